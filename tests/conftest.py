@@ -1,0 +1,47 @@
+"""Shared test fixtures: the real-data folder (skipped when absent) and the Warp devices to test on."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: real shape data sits beside the project (../shared/data); WPOT_DATA overrides
+DATA = Path(os.environ.get("WPOT_DATA", ROOT.parent / "shared" / "data"))
+
+
+def _cuda_available() -> bool:
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        return wp.is_cuda_available()
+    except Exception:  # pragma: no cover - no usable warp at all
+        return False
+
+
+#: devices every device-parametrized test runs on: always "cpu", and "cuda" when present
+DEVICES = ["cpu"] + (["cuda"] if _cuda_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    return request.param
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The `../shared/data` folder; tests that use it are skipped with a reason when it is absent."""
+    if not DATA.is_dir():
+        pytest.skip(f"real shape data not found at {DATA} (set WPOT_DATA or place ../shared/data beside the project)")
+    return DATA
+
+
+@pytest.fixture(scope="session")
+def tosca5k(shared_data) -> Path:
+    p = shared_data / "tosca_isometric_5k" / "vtx_5k"
+    if not p.is_dir():
+        pytest.skip(f"TOSCA 5k meshes not found at {p}")
+    return p

@@ -1,0 +1,58 @@
+"""wpot: compare 3D shapes (triangle meshes) by statistical-physics optimal transport.
+
+Koehl & Orland (2023), "Partial shape matching" — per-vertex signatures (WKS or LD-SIFT), a cost
+matrix between them, and a balanced or partial (unbalanced, chi^2 mass penalty) transport plan found
+by annealing the inverse temperature beta. Heavy numerics run in NVIDIA Warp kernels, on "cpu" or "cuda".
+
+Public names are imported lazily (``import wpot`` stays cheap; Warp is only loaded when a name that
+needs it is first used). ``__all__`` is the explicit list; a test checks that every name resolves.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+# public name -> module that defines it
+_EXPORTS: dict[str, str] = {
+    # mesh I/O and validation
+    "Mesh": "wpot.mesh",
+    "MeshWarning": "wpot.mesh",
+    "cut": "wpot.mesh",
+    "load_mesh": "wpot.io",
+    "save_mesh": "wpot.io",
+    "load_vts": "wpot.io",
+    "load_vertex_map": "wpot.io",
+    # spectral
+    "laplace_beltrami": "wpot.spectral",
+    "eigenpairs": "wpot.spectral",
+    "LaplaceBeltrami": "wpot.spectral",
+    # signatures and costs
+    "wks": "wpot.signatures",
+    "wks_energies": "wpot.signatures",
+    "ldsift": "wpot.signatures",
+    "cost_matrix": "wpot.cost",
+    # comparison
+    "compare": "wpot.compare",
+    "Comparison": "wpot.compare",
+}
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "pipeline", "plot", "cli")
+
+__all__ = sorted(_EXPORTS) + ["ot", "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    if name in _SUBMODULES:
+        module = importlib.import_module(f"wpot.{name}")
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module 'wpot' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

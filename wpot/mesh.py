@@ -1,0 +1,416 @@
+"""The `Mesh` type: an immutable triangle mesh with validation and cached derived quantities.
+
+Validation lives here, in one place (`validate`), and every constructor goes through it:
+
+* errors (`ValueError`, naming the problem and the offending indices): empty mesh, wrong array shapes,
+  NaN/inf coordinates, non-integer or out-of-range face indices, faces that repeat a vertex;
+* warnings (`MeshWarning`, with counts): zero-area triangles, unreferenced (isolated) vertices,
+  non-manifold edges, several connected components.
+
+Nothing is ever re-indexed silently: per-vertex results line up with the input vertices. Repairs happen
+only when asked for, through `Mesh.cleaned`, which returns the index map.
+"""
+from __future__ import annotations
+
+import hashlib
+import warnings
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike
+
+__all__ = ["Mesh", "MeshWarning", "cut", "validate"]
+
+#: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
+DEGENERATE_AREA_RTOL = 1e-12
+_MAX_LISTED = 10
+
+
+class MeshWarning(UserWarning):
+    """A mesh is usable but has a defect that may spoil results (see `Mesh.cleaned`)."""
+
+
+def _listed(idx: np.ndarray) -> str:
+    idx = np.asarray(idx).ravel()
+    head = ", ".join(str(int(i)) for i in idx[:_MAX_LISTED])
+    return f"[{head}{', ...' if idx.size > _MAX_LISTED else ''}]"
+
+
+def _as_vertices(vertices: ArrayLike) -> np.ndarray:
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"vertices must be a numeric (N, 3) array, got {type(vertices).__name__}: {exc}") from None
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (N, 3), got {v.shape}")
+    return v
+
+
+def _as_faces(faces: ArrayLike) -> np.ndarray:
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(
+            f"faces must have shape (F, 3) (triangles only), got {f.shape}; "
+            "triangulate polygonal faces before building a Mesh"
+        )
+    if f.size and not np.issubdtype(f.dtype, np.integer):
+        if not np.issubdtype(f.dtype, np.floating) or not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
+            bad = np.unique(np.nonzero(~np.isfinite(f) | (f != np.round(f)))[0]) if np.issubdtype(f.dtype, np.floating) else np.arange(len(f))
+            raise ValueError(f"face indices must be integers; non-integer entries in faces {_listed(bad)}")
+    return f.astype(np.int64)
+
+
+def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True) -> None:
+    """Check a mesh; raise `ValueError` for fatal problems and warn (`MeshWarning`) for defects.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float64
+    faces : (F, 3) int64, 0-based
+    warn : emit `MeshWarning` for degenerate triangles, isolated vertices, non-manifold edges and
+        several connected components.
+    """
+    n = len(vertices)
+    if n == 0:
+        raise ValueError("empty mesh: no vertices")
+    if len(faces) == 0:
+        raise ValueError(f"empty mesh: no faces (got {n} vertices and 0 triangles)")
+    bad_v = np.nonzero(~np.all(np.isfinite(vertices), axis=1))[0]
+    if bad_v.size:
+        raise ValueError(f"{bad_v.size} vertices have NaN or infinite coordinates: vertices {_listed(bad_v)}")
+    bad_f = np.nonzero(np.any((faces < 0) | (faces >= n), axis=1))[0]
+    if bad_f.size:
+        raise ValueError(
+            f"{bad_f.size} faces index vertices outside [0, {n - 1}]: faces {_listed(bad_f)} "
+            f"(first: {faces[bad_f[0]].tolist()})"
+        )
+    rep = np.nonzero((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2]))[0]
+    if rep.size:
+        raise ValueError(
+            f"{rep.size} faces repeat a vertex (not triangles): faces {_listed(rep)} "
+            f"(first: {faces[rep[0]].tolist()})"
+        )
+    if not warn:
+        return
+    m = Mesh._unchecked(vertices, faces)
+    problems = []
+    degenerate = m.degenerate_faces
+    if degenerate.size:
+        problems.append(f"{degenerate.size} zero-area triangles (faces {_listed(degenerate)})")
+    isolated = m.unreferenced_vertices
+    if isolated.size:
+        problems.append(f"{isolated.size} unreferenced vertices (vertices {_listed(isolated)})")
+    nm = m.nonmanifold_edges
+    if len(nm):
+        problems.append(f"{len(nm)} non-manifold edges (shared by 3+ triangles, e.g. {nm[0].tolist()})")
+    ncomp = m.n_components
+    if ncomp > 1:
+        sizes = np.bincount(m.component_labels[m.referenced])
+        problems.append(f"{ncomp} connected components (vertex counts {sorted(sizes.tolist(), reverse=True)[:_MAX_LISTED]})")
+    if problems:
+        warnings.warn(
+            "mesh defects: " + "; ".join(problems) + ". Results for these vertices may be unreliable; "
+            "Mesh.cleaned() repairs them and returns the index map.",
+            MeshWarning,
+            stacklevel=3,
+        )
+
+
+class Mesh:
+    """An immutable triangle mesh.
+
+    Parameters
+    ----------
+    vertices : (N, 3) array-like, converted to float64
+    faces : (F, 3) array-like of 0-based vertex indices, converted to int64
+    validate : run `validate` (errors always; warnings when ``warn`` is true). Default True.
+    warn : emit `MeshWarning` for defects (default True).
+
+    Derived quantities (edges, edge lengths, areas, normals, one-ring adjacency, boundary edges,
+    components) are computed on first use and cached. The arrays are read-only.
+    """
+
+    __slots__ = ("_vertices", "_faces", "__dict__")
+
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike, *, warn: bool = True) -> None:
+        v = _as_vertices(vertices).copy()
+        f = _as_faces(faces).copy()
+        validate(v, f, warn=warn)
+        v.setflags(write=False)
+        f.setflags(write=False)
+        self._vertices = v
+        self._faces = f
+
+    @classmethod
+    def _unchecked(cls, vertices: np.ndarray, faces: np.ndarray) -> "Mesh":
+        m = cls.__new__(cls)
+        m._vertices = vertices
+        m._faces = faces
+        return m
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def vertices(self) -> np.ndarray:
+        """(N, 3) float64, read-only."""
+        return self._vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(F, 3) int64, 0-based, read-only."""
+        return self._faces
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self._vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self._faces)
+
+    def __len__(self) -> int:
+        return self.n_vertices
+
+    def __repr__(self) -> str:
+        return f"Mesh(n_vertices={self.n_vertices}, n_faces={self.n_faces})"
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Mesh):
+            return NotImplemented
+        return np.array_equal(self._vertices, other._vertices) and np.array_equal(self._faces, other._faces)
+
+    def __hash__(self) -> int:
+        return hash(self.fingerprint)
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """SHA-1 of the vertex and face bytes: a content key for caches."""
+        h = hashlib.sha1()
+        h.update(np.ascontiguousarray(self._vertices, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self._faces, dtype="<i8").tobytes())
+        return h.hexdigest()
+
+    # ------------------------------------------------------------- geometry
+    @cached_property
+    def _face_cross(self) -> np.ndarray:
+        v = self._vertices
+        f = self._faces
+        return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+
+    @cached_property
+    def face_areas(self) -> np.ndarray:
+        """(F,) float64 triangle areas."""
+        return 0.5 * np.linalg.norm(self._face_cross, axis=1)
+
+    @property
+    def area(self) -> float:
+        """Total surface area."""
+        return float(self.face_areas.sum())
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) unit normals (right-hand rule on the face order); zero for degenerate faces."""
+        c = self._face_cross
+        nrm = np.linalg.norm(c, axis=1, keepdims=True)
+        return np.divide(c, nrm, out=np.zeros_like(c), where=nrm > 0)
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """(N, 3) area-weighted unit vertex normals; zero where undefined (isolated vertices)."""
+        acc = np.zeros_like(self._vertices)
+        for k in range(3):
+            np.add.at(acc, self._faces[:, k], self._face_cross)
+        nrm = np.linalg.norm(acc, axis=1, keepdims=True)
+        return np.divide(acc, nrm, out=np.zeros_like(acc), where=nrm > 0)
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) int64 unique undirected edges, sorted so that ``edges[:, 0] < edges[:, 1]``."""
+        return np.unique(np.sort(self._half_edges, axis=1), axis=0)
+
+    @cached_property
+    def _half_edges(self) -> np.ndarray:
+        f = self._faces
+        return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+    @cached_property
+    def _edge_face_count(self) -> tuple[np.ndarray, np.ndarray]:
+        und, counts = np.unique(np.sort(self._half_edges, axis=1), axis=0, return_counts=True)
+        return und, counts
+
+    @cached_property
+    def edge_lengths(self) -> np.ndarray:
+        """(E,) float64 lengths of `edges`."""
+        e = self.edges
+        return np.linalg.norm(self._vertices[e[:, 0]] - self._vertices[e[:, 1]], axis=1)
+
+    @cached_property
+    def mean_edge_length(self) -> float:
+        return float(self.edge_lengths.mean())
+
+    @cached_property
+    def boundary_edges(self) -> np.ndarray:
+        """(B, 2) edges used by exactly one triangle."""
+        und, counts = self._edge_face_count
+        return und[counts == 1]
+
+    @cached_property
+    def nonmanifold_edges(self) -> np.ndarray:
+        """(K, 2) edges used by three or more triangles."""
+        und, counts = self._edge_face_count
+        return und[counts > 2]
+
+    @cached_property
+    def adjacency(self) -> sp.csr_matrix:
+        """(N, N) symmetric CSR vertex adjacency (one-ring), entries 1."""
+        e = self.edges
+        n = self.n_vertices
+        a = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
+        a = a.tocsr()
+        a.sort_indices()
+        return a
+
+    def one_ring(self, i: int) -> np.ndarray:
+        """Indices of the vertices sharing an edge with vertex ``i``."""
+        a = self.adjacency
+        return a.indices[a.indptr[i] : a.indptr[i + 1]]
+
+    @cached_property
+    def one_ring_mean_edge_length(self) -> np.ndarray:
+        """(N,) mean length of the edges at each vertex (paper Eq. 1, D(v)); NaN for isolated vertices."""
+        e = self.edges
+        n = self.n_vertices
+        tot = np.bincount(e[:, 0], self.edge_lengths, n) + np.bincount(e[:, 1], self.edge_lengths, n)
+        deg = np.bincount(e[:, 0], minlength=n) + np.bincount(e[:, 1], minlength=n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return tot / deg
+
+    @cached_property
+    def referenced(self) -> np.ndarray:
+        """(N,) bool: vertex used by at least one face."""
+        r = np.zeros(self.n_vertices, dtype=bool)
+        r[self._faces.ravel()] = True
+        return r
+
+    @property
+    def unreferenced_vertices(self) -> np.ndarray:
+        return np.nonzero(~self.referenced)[0]
+
+    @cached_property
+    def degenerate_faces(self) -> np.ndarray:
+        """Indices of triangles with (numerically) zero area."""
+        scale = self.mean_edge_length ** 2
+        return np.nonzero(self.face_areas <= DEGENERATE_AREA_RTOL * max(scale, np.finfo(float).tiny))[0]
+
+    @cached_property
+    def component_labels(self) -> np.ndarray:
+        """(N,) connected-component label per vertex (isolated vertices get their own label)."""
+        _, labels = sp.csgraph.connected_components(self.adjacency, directed=False)
+        return labels
+
+    @cached_property
+    def n_components(self) -> int:
+        """Number of connected components among referenced vertices."""
+        return int(np.unique(self.component_labels[self.referenced]).size)
+
+    @cached_property
+    def bounding_box_diagonal(self) -> float:
+        return float(np.linalg.norm(self._vertices.max(0) - self._vertices.min(0)))
+
+    # ------------------------------------------------------------- editing
+    def transformed(self, rotation: ArrayLike | None = None, translation: ArrayLike | None = None, scale: float = 1.0) -> "Mesh":
+        """A new mesh with vertices ``scale * vertices @ rotation.T + translation`` (same faces)."""
+        v = self._vertices * float(scale)
+        if rotation is not None:
+            r = np.asarray(rotation, dtype=np.float64)
+            if r.shape != (3, 3):
+                raise ValueError(f"rotation must have shape (3, 3), got {r.shape}")
+            v = v @ r.T
+        if translation is not None:
+            v = v + np.asarray(translation, dtype=np.float64).reshape(1, 3)
+        return Mesh(v, self._faces, warn=False)
+
+    def relabelled(self, permutation: ArrayLike) -> "Mesh":
+        """A new mesh whose vertex ``i`` is this mesh's vertex ``permutation[i]``."""
+        p = np.asarray(permutation, dtype=np.int64)
+        if p.shape != (self.n_vertices,) or not np.array_equal(np.sort(p), np.arange(self.n_vertices)):
+            raise ValueError(f"permutation must be a permutation of range({self.n_vertices}), got shape {p.shape}")
+        inv = np.empty_like(p)
+        inv[p] = np.arange(len(p))
+        return Mesh(self._vertices[p], inv[self._faces], warn=False)
+
+    def cleaned(self, *, keep_largest_component: bool = False) -> tuple["Mesh", np.ndarray]:
+        """Repair the defects that `validate` warns about, and say how vertices moved.
+
+        Removes zero-area and duplicate triangles, then unreferenced vertices; optionally keeps only
+        the largest connected component. Non-manifold edges are reported, not repaired.
+
+        Returns
+        -------
+        mesh : the repaired mesh
+        index_map : (N',) int64, ``index_map[i]`` is the index in this mesh of the new vertex ``i``.
+        """
+        f = self._faces
+        keep = np.ones(len(f), dtype=bool)
+        keep[self.degenerate_faces] = False
+        _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+        dup = np.ones(len(f), dtype=bool)
+        dup[first] = False
+        keep &= ~dup
+        f = f[keep]
+        if len(f) == 0:
+            raise ValueError("cleaning removed every triangle: all faces are degenerate")
+        used = np.zeros(self.n_vertices, dtype=bool)
+        used[f.ravel()] = True
+        if keep_largest_component:
+            sub = Mesh._unchecked(self._vertices, f)
+            labels = sub.component_labels
+            counts = np.bincount(labels[used])
+            used &= labels == np.argmax(counts)
+            f = f[used[f].all(axis=1)]
+        return _reindex(self._vertices, f, used)
+
+
+def _reindex(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    index_map = np.nonzero(keep)[0]
+    new_of_old = np.full(len(vertices), -1, dtype=np.int64)
+    new_of_old[index_map] = np.arange(index_map.size)
+    return Mesh(vertices[index_map], new_of_old[faces]), index_map
+
+
+def cut(mesh: Mesh, vertex_mask: ArrayLike) -> tuple[Mesh, np.ndarray]:
+    """Extract the part of ``mesh`` spanned by the masked vertices (a partial shape).
+
+    Keeps the triangles whose three vertices are all in the mask, then the vertices those triangles
+    use (mask vertices left without a triangle are dropped).
+
+    Parameters
+    ----------
+    mesh : the full shape
+    vertex_mask : (N,) bool, or an integer array of vertex indices
+
+    Returns
+    -------
+    submesh : the partial shape
+    index_map : (N_sub,) int64, ``index_map[i]`` is the vertex of ``mesh`` that submesh vertex ``i`` came
+        from: the ground-truth map from the part back into the full shape.
+    """
+    m = np.asarray(vertex_mask)
+    if m.dtype == bool:
+        if m.shape != (mesh.n_vertices,):
+            raise ValueError(f"vertex_mask must have shape ({mesh.n_vertices},), got {m.shape}")
+        mask = m
+    else:
+        if m.size and not np.issubdtype(m.dtype, np.integer):
+            raise ValueError(f"vertex_mask must be boolean or integer indices, got dtype {m.dtype}")
+        idx = m.astype(np.int64).ravel()
+        if idx.size and (idx.min() < 0 or idx.max() >= mesh.n_vertices):
+            raise ValueError(f"vertex indices out of range [0, {mesh.n_vertices - 1}]: {_listed(idx[(idx < 0) | (idx >= mesh.n_vertices)])}")
+        mask = np.zeros(mesh.n_vertices, dtype=bool)
+        mask[idx] = True
+    faces = mesh.faces[mask[mesh.faces].all(axis=1)]
+    if len(faces) == 0:
+        raise ValueError(f"cut keeps no triangle: the {int(mask.sum())} selected vertices span no face")
+    used = np.zeros(mesh.n_vertices, dtype=bool)
+    used[faces.ravel()] = True
+    return _reindex(mesh.vertices, faces, used)
