@@ -1,0 +1,193 @@
+"""wpot.compare: registration (closed form), farthest-point sampling, memory guard, and end-to-end comparisons."""
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
+
+from wpot.compare import (
+    ProblemTooLargeError,
+    Registration,
+    _edge_graph,
+    check_problem_size,
+    debias_history,
+    farthest_point_sampling,
+    fit_similarity,
+    history_at,
+)
+from wpot.mesh import Mesh
+
+
+def torus(n_major: int = 24, n_minor: int = 12, R: float = 2.0, r: float = 0.7, noise: float = 0.0, seed: int = 0) -> Mesh:
+    """A closed torus grid mesh (n_major·n_minor vertices), optionally with jittered vertices."""
+    u, v = np.meshgrid(np.arange(n_major) * 2 * np.pi / n_major, np.arange(n_minor) * 2 * np.pi / n_minor, indexing="ij")
+    x = np.stack([(R + r * np.cos(v)) * np.cos(u), (R + r * np.cos(v)) * np.sin(u), r * np.sin(v)], -1).reshape(-1, 3)
+    if noise:
+        x = x + np.random.default_rng(seed).normal(scale=noise, size=x.shape)
+    idx = np.arange(n_major * n_minor).reshape(n_major, n_minor)
+    a = idx
+    b = np.roll(idx, -1, 0)
+    c = np.roll(idx, -1, 1)
+    d = np.roll(np.roll(idx, -1, 0), -1, 1)
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return Mesh(x, faces)
+
+
+# ------------------------------------------------------------------------------------ registration
+def _random_similarity(seed: int):
+    rng = np.random.default_rng(seed)
+    rot = Rotation.random(random_state=seed).as_matrix()
+    return float(rng.uniform(0.3, 3.0)), rot, rng.normal(size=3) * 5
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_fit_similarity_recovers_a_known_transform(seed):
+    scale, rot, t = _random_similarity(seed)
+    p = np.random.default_rng(100 + seed).normal(size=(40, 3))
+    reg = fit_similarity(p, scale * p @ rot.T + t)
+    assert reg.scale == pytest.approx(scale, rel=1e-12)
+    np.testing.assert_allclose(reg.rotation, rot, atol=1e-12)
+    np.testing.assert_allclose(reg.translation, t, atol=1e-11)
+    assert reg.rms < 1e-11
+    assert np.linalg.det(reg.rotation) == pytest.approx(1.0)
+
+
+def test_fit_similarity_weights_ignore_zero_weight_outliers():
+    scale, rot, t = _random_similarity(7)
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(30, 3))
+    q = scale * p @ rot.T + t
+    q[:5] += rng.normal(scale=10.0, size=(5, 3))  # five gross outliers
+    w = np.r_[np.zeros(5), np.ones(25)]
+    reg = fit_similarity(p, q, w)
+    np.testing.assert_allclose(reg.rotation, rot, atol=1e-10)
+    assert reg.scale == pytest.approx(scale, rel=1e-10)
+    unweighted = fit_similarity(p, q)
+    assert unweighted.rms > 1.0  # the outliers do spoil an unweighted fit
+
+
+def test_fit_similarity_with_noise_matches_an_independent_optimizer():
+    """Against a generic optimizer of the same weighted objective (scale, rotation vector, translation)."""
+    from scipy.optimize import minimize
+
+    scale, rot, t = _random_similarity(3)
+    rng = np.random.default_rng(5)
+    p = rng.normal(size=(50, 3))
+    q = scale * p @ rot.T + t + rng.normal(scale=0.05, size=p.shape)
+    w = rng.uniform(0.1, 1.0, size=50)
+    reg = fit_similarity(p, q, w)
+
+    def f(z):
+        r = Rotation.from_rotvec(z[1:4]).as_matrix()
+        res = z[0] * p @ r.T + z[4:] - q
+        return float(w @ (res**2).sum(1))
+
+    z0 = np.r_[reg.scale, Rotation.from_matrix(reg.rotation).as_rotvec(), reg.translation]
+    best = minimize(f, z0 + 0.05, method="BFGS", options={"gtol": 1e-12})
+    assert f(z0) <= best.fun * (1 + 1e-8)
+    assert reg.rms == pytest.approx(np.sqrt(f(z0) / w.sum()), rel=1e-10)
+
+
+def test_fit_similarity_never_returns_a_reflection():
+    p = np.random.default_rng(2).normal(size=(20, 3))
+    mirrored = p * np.array([1.0, 1.0, -1.0])
+    reg = fit_similarity(p, mirrored)
+    assert np.linalg.det(reg.rotation) == pytest.approx(1.0)
+    assert reg.rms > 0.1
+
+
+def test_registration_apply_inverse_and_matrix_round_trip():
+    scale, rot, t = _random_similarity(11)
+    reg = Registration(scale, rot, t, 0.0, 3)
+    p = np.random.default_rng(0).normal(size=(10, 3))
+    np.testing.assert_allclose(reg.inverse().apply(reg.apply(p)), p, atol=1e-12)
+    h = np.c_[p, np.ones(len(p))] @ reg.matrix.T
+    np.testing.assert_allclose(h[:, :3], reg.apply(p), atol=1e-12)
+    m = torus(8, 6)
+    np.testing.assert_allclose(reg.apply(m).vertices, reg.apply(m.vertices), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        ((np.zeros((2, 3)), np.zeros((2, 3))), "at least 3"),
+        ((np.zeros((4, 3)), np.zeros((5, 3))), "shape"),
+        ((np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)],) * 2, "collinear"),
+    ],
+)
+def test_fit_similarity_rejects_bad_input(args, match):
+    with pytest.raises(ValueError, match=match):
+        fit_similarity(*args)
+
+
+def test_fit_similarity_rejects_negative_weights():
+    p = np.random.default_rng(0).normal(size=(5, 3))
+    with pytest.raises(ValueError, match="non-negative"):
+        fit_similarity(p, p, [1, 1, -1, 1, 1])
+
+
+# -------------------------------------------------------------------------------------------- FPS
+@pytest.mark.parametrize("metric", ["geodesic", "euclidean"])
+def test_fps_spreads_samples_and_extension_map_is_nearest(metric):
+    mesh = torus(30, 14, noise=0.02, seed=3)
+    k = 40
+    s = farthest_point_sampling(mesh, k, metric=metric)
+    assert s.indices.shape == (k,) and len(np.unique(s.indices)) == k
+    assert s.nearest.shape == (mesh.n_vertices,)
+    np.testing.assert_array_equal(s.nearest[s.indices], np.arange(k))
+    if metric == "geodesic":
+        d = dijkstra(_edge_graph(mesh), directed=False, indices=s.indices)  # (k, N)
+    else:
+        d = cdist(mesh.vertices[s.indices], mesh.vertices)
+    # the map sends every vertex to a nearest sample
+    np.testing.assert_allclose(d[s.nearest, np.arange(mesh.n_vertices)], d.min(0), atol=1e-12)
+    # covering radius, and the farthest-point property: samples are pairwise at least that far apart
+    radius = d.min(0).max()
+    assert s.radius == pytest.approx(radius, rel=1e-12)
+    pair = d[:, s.indices] + np.diag(np.full(k, np.inf))
+    assert pair.min() >= radius - 1e-12
+    # and the sample is far better spread than a random one of the same size
+    rand = np.random.default_rng(0).choice(mesh.n_vertices, k, replace=False)
+    d_rand = dijkstra(_edge_graph(mesh), directed=False, indices=rand) if metric == "geodesic" else cdist(mesh.vertices[rand], mesh.vertices)
+    assert d_rand.min(0).max() > 1.2 * radius
+
+
+def test_fps_is_independent_of_vertex_order():
+    mesh = torus(20, 10, noise=0.03, seed=1)
+    perm = np.random.default_rng(4).permutation(mesh.n_vertices)
+    s = farthest_point_sampling(mesh, 25)
+    s2 = farthest_point_sampling(mesh.relabelled(perm), 25)
+    np.testing.assert_array_equal(perm[s2.indices], s.indices)
+
+
+def test_fps_extend_lifts_per_sample_values():
+    mesh = torus(12, 8)
+    s = farthest_point_sampling(mesh, 10)
+    vals = np.arange(10) * 10
+    np.testing.assert_array_equal(s.extend(vals)[s.indices], vals)
+    with pytest.raises(ValueError, match="10 rows"):
+        s.extend(np.arange(9))
+
+
+@pytest.mark.parametrize("k", [0, 10_000])
+def test_fps_rejects_bad_k(k):
+    with pytest.raises(ValueError, match="k must be"):
+        farthest_point_sampling(torus(8, 6), k)
+
+
+# --------------------------------------------------------------------------------- memory and history
+def test_problem_too_large_names_max_vertices():
+    with pytest.raises(ProblemTooLargeError, match="max_vertices"):
+        check_problem_size(50_000, 50_000, "cpu", free_bytes=24 * 2**30)
+    check_problem_size(1_000, 1_000, "cpu", free_bytes=24 * 2**30)  # 32 MB: fine
+
+
+def test_history_at_reads_the_last_value_at_or_below_each_beta():
+    h = np.array([[1e3, 5.0], [1e4, 4.0], [1e5, 3.5]])
+    np.testing.assert_array_equal(history_at(h, np.array([1e2, 1e3, 1e4, 1e6])), [np.nan, 5.0, 4.0, 3.5])
+    su = debias_history(np.array([[1e3, 10.0], [1e4, 9.0]]), h, np.array([[1e3, 1.0]]))
+    np.testing.assert_allclose(su[:, 1], [10 - 0.5 * (5 + 1), 9 - 0.5 * (4 + 1)])

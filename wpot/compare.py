@@ -1,0 +1,736 @@
+"""Pairwise shape comparison: signatures → cost → OT plan → distance, correspondence, matches, registration.
+
+The pieces (paper §2–§5):
+
+* per-vertex signatures, WKS (§2.3, Eq. 5, compared by the normalized L1 of Eq. 29) or LD-SIFT (§2.2, L2);
+* the cost matrix ``C(k, l)`` between the two signature sets, then the balanced (Eq. 6–16) or partial
+  (Eq. 17–26) statistical-physics transport plan ``G`` annealed in β (Algorithm 1);
+* the distance: ``U`` at convergence for balanced transport, and ``SU`` (Eq. 27) for partial transport,
+  ``SU(A, B) = U(A, B) − ½ (U(A, A) + U(B, B))``, where U is the solver's regularized objective
+  (Eq. 17: transport plus the two χ² mass penalties) and the self-comparisons are cached per shape;
+* the correspondence (argmax of each plan row, §4.1.3), the matched pairs ``G(i, j) > 0.9·m1(i)`` and a
+  similarity transform (scale, rotation, translation) fitted to them (§5.1, Fig. 1).
+
+`Comparer` is the caching set-up class (signatures per shape in memory and on disk, one WKS energy grid
+shared by every shape it sees); `compare` is the one-shot function.
+
+Large meshes: ``max_vertices`` subsamples each mesh by farthest-point sampling (`farthest_point_sampling`)
+before transport. Signatures are still computed on the full mesh, then taken at the samples; the
+correspondence is extended back to every vertex through its nearest sample. Without ``max_vertices``, a
+problem whose dense ``N1 × N2`` float64 matrices would not fit in the device's free memory raises
+`ProblemTooLargeError` naming the option.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from wpot.mesh import Mesh
+
+__all__ = [
+    "Comparison",
+    "Comparer",
+    "ProblemTooLargeError",
+    "Registration",
+    "Subsample",
+    "compare",
+    "farthest_point_sampling",
+    "fit_similarity",
+    "solver_memory_bytes",
+]
+
+SIGNATURES = ("wks", "ldsift")
+TRANSPORTS = ("balanced", "partial")
+#: the signature distance each signature uses (paper §3.1: L2 for LD-SIFT; §3.2, Eq. 29 for WKS)
+SIGNATURE_METRIC = {"wks": "wks", "ldsift": "l2"}
+#: how many dense N1×N2 float64 arrays the solver keeps at once (C, the plan G, φ' for the Hessian and one
+#: work array). Used only to estimate memory before a solve.
+SOLVER_DENSE_MATRICES = 4
+#: fraction of the device's free memory a solve may plan to use
+MEMORY_FRACTION = 0.8
+FPS_METRICS = ("geodesic", "euclidean")
+
+
+class ProblemTooLargeError(ValueError):
+    """The dense transport problem does not fit in the chosen device's memory (use ``max_vertices``)."""
+
+
+# ----------------------------------------------------------------------------------------- registration
+@dataclass(frozen=True)
+class Registration:
+    """A similarity transform ``x ↦ scale · R x + t`` (paper §5.1, Fig. 1).
+
+    Attributes
+    ----------
+    scale : float, > 0
+    rotation : (3, 3) float64, a proper rotation (det = +1)
+    translation : (3,) float64
+    rms : weighted root-mean-square residual ``|scale·R·s + t − d|`` over the fitted pairs
+    n_pairs : number of point pairs it was fitted to
+    """
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    rms: float
+    n_pairs: int
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 homogeneous matrix of the transform."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    def apply(self, x: Mesh | ArrayLike) -> Mesh | np.ndarray:
+        """Transform a mesh (returns a new `Mesh`) or points ``(n, 3)`` (returns ``(n, 3)`` float64)."""
+        if isinstance(x, Mesh):
+            return x.transformed(self.rotation, self.translation, self.scale)
+        p = np.asarray(x, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"points must have shape (n, 3), got {p.shape}")
+        return self.scale * p @ self.rotation.T + self.translation
+
+    def inverse(self) -> "Registration":
+        """The inverse transform ``y ↦ (1/scale) Rᵀ (y − t)`` (rms expressed in the source's units)."""
+        rt = self.rotation.T
+        return Registration(1.0 / self.scale, rt, -(rt @ self.translation) / self.scale, self.rms / self.scale, self.n_pairs)
+
+
+def fit_similarity(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None, *, with_scale: bool = True) -> Registration:
+    """Weighted least-squares similarity transform taking ``source`` onto ``target`` (Umeyama 1991).
+
+    Minimizes ``Σ w_i |s · R p_i + t − q_i|²`` over rotations R (det +1, no reflections), scales s > 0
+    (fixed to 1 when ``with_scale`` is false) and translations t, in closed form from the SVD of the
+    weighted cross-covariance.
+
+    Parameters
+    ----------
+    source, target : (n, 3) float64, corresponding points p_i and q_i
+    weights : (n,) non-negative, default uniform
+
+    Raises
+    ------
+    ValueError : mismatched shapes, negative or all-zero weights, fewer than 3 points, or points that are
+        (numerically) collinear, for which the rotation is not determined.
+    """
+    p = np.asarray(source, dtype=np.float64)
+    q = np.asarray(target, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or q.shape != p.shape:
+        raise ValueError(f"source and target must both have shape (n, 3), got {p.shape} and {q.shape}")
+    n = len(p)
+    if n < 3:
+        raise ValueError(f"a similarity transform needs at least 3 point pairs, got {n}")
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    if w.shape != (n,):
+        raise ValueError(f"weights must have shape ({n},), got {w.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"weights must be finite, non-negative and not all zero (sum {w.sum()!r}, min {w.min()!r})")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        raise ValueError("source and target must be finite")
+    w = w / w.sum()
+    mp = w @ p
+    mq = w @ q
+    pc = p - mp
+    qc = q - mq
+    cov = (qc * w[:, None]).T @ pc  # Σ w q p^T, (3, 3)
+    u, d, vt = np.linalg.svd(cov)
+    var_p = float(w @ np.einsum("ij,ij->i", pc, pc))
+    if var_p <= 0 or d[1] <= 1e-12 * max(d[0], np.finfo(float).tiny):
+        raise ValueError(
+            f"the source points are (numerically) collinear or coincident (singular values {d.tolist()}); "
+            "a rotation is not determined"
+        )
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    rot = (u * sign) @ vt
+    scale = float((d * sign).sum() / var_p) if with_scale else 1.0
+    if scale <= 0:
+        raise ValueError(f"the best similarity has a non-positive scale ({scale}); the pairs are inconsistent")
+    trans = mq - scale * rot @ mp
+    res = scale * p @ rot.T + trans - q
+    rms = float(np.sqrt(w @ np.einsum("ij,ij->i", res, res)))
+    return Registration(scale, rot, trans, rms, n)
+
+
+# ------------------------------------------------------------------------------------------ subsampling
+@dataclass(frozen=True)
+class Subsample:
+    """A farthest-point sample of a mesh's vertices, with the map from every vertex to its nearest sample.
+
+    Attributes
+    ----------
+    indices : (k,) int64, sampled vertex indices, in the order FPS picked them
+    nearest : (N,) int64, position in ``indices`` of each vertex's nearest sample (``indices[nearest]`` is
+        the sampled vertex standing for each vertex; sampled vertices map to themselves)
+    radius : the covering radius, the largest distance of a vertex to its nearest sample
+    metric : "geodesic" (shortest paths along mesh edges) or "euclidean"
+    """
+
+    indices: np.ndarray
+    nearest: np.ndarray
+    radius: float
+    metric: str
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.indices)
+
+    def extend(self, per_sample: ArrayLike) -> np.ndarray:
+        """Lift a per-sample array ``(k, ...)`` to every vertex ``(N, ...)`` through the nearest-sample map."""
+        a = np.asarray(per_sample)
+        if a.shape[:1] != (self.n_samples,):
+            raise ValueError(f"expected an array with {self.n_samples} rows (one per sample), got shape {a.shape}")
+        return a[self.nearest]
+
+
+def _edge_graph(mesh: Mesh):
+    import scipy.sparse as sp
+
+    e = mesh.edges
+    n = mesh.n_vertices
+    w = mesh.edge_lengths
+    # zero-length edges would be dropped by csgraph (0 = no edge); give them a tiny positive length
+    w = np.maximum(w, np.finfo(float).tiny)
+    g = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    return g
+
+
+def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", start: int | None = None) -> Subsample:
+    """Farthest-point sampling of ``k`` vertices of ``mesh``, spread over the surface.
+
+    Greedy: the first sample is ``start`` (default: the vertex farthest from the centroid, which does not
+    depend on the vertex order); each next sample is the vertex farthest from all samples so far. The
+    result covers the mesh with radius ``radius`` and every two samples are at least that far apart
+    (the 2-approximation of the k-center problem).
+
+    Parameters
+    ----------
+    metric : "geodesic" (default) measures distance along the surface by shortest paths on the edge
+        graph (Dijkstra with edge lengths; it overestimates the true geodesic by a few percent on good
+        triangulations, but never jumps across a gap as a straight line does, e.g. between touching legs).
+        Each new source's Dijkstra is cut off at the current covering radius, so the cost stays about
+        O(N log N) per sample only early on and shrinks as the samples densify. "euclidean" uses straight
+        lines in R³ (faster, O(kN)). Disconnected parts are reached because an unreached vertex is
+        infinitely far.
+
+    Returns
+    -------
+    Subsample, whose ``nearest`` map assigns each vertex to its nearest sample in the same metric
+    (the geodesic Voronoi cell for "geodesic").
+    """
+    if metric not in FPS_METRICS:
+        raise ValueError(f"metric must be one of {FPS_METRICS}, got {metric!r}")
+    n = mesh.n_vertices
+    k = int(k)
+    if not 1 <= k <= n:
+        raise ValueError(f"k must be between 1 and the number of vertices ({n}), got {k}")
+    v = mesh.vertices
+    if start is None:
+        start = int(np.argmax(np.einsum("ij,ij->i", v - v.mean(0), v - v.mean(0))))
+    elif not 0 <= int(start) < n:
+        raise ValueError(f"start must be a vertex index in [0, {n - 1}], got {start}")
+    idx = np.empty(k, dtype=np.int64)
+    idx[0] = int(start)
+    if metric == "euclidean":
+        mind = np.full(n, np.inf)
+        for t in range(k):
+            d = v - v[idx[t]]
+            np.minimum(mind, np.einsum("ij,ij->i", d, d), out=mind)
+            if t + 1 < k:
+                idx[t + 1] = int(np.argmax(mind))
+        from scipy.spatial import cKDTree
+
+        dist, nearest = cKDTree(v[idx]).query(v)
+        return Subsample(idx, nearest.astype(np.int64), float(dist.max()), metric)
+
+    from scipy.sparse.csgraph import dijkstra
+
+    g = _edge_graph(mesh)
+    mind = np.full(n, np.inf)
+    for t in range(k):
+        radius = float(mind.max())
+        d = dijkstra(g, directed=False, indices=int(idx[t]), limit=radius if np.isfinite(radius) else np.inf)
+        np.minimum(mind, d, out=mind)
+        mind[idx[t]] = 0.0
+        if t + 1 < k:
+            idx[t + 1] = int(np.argmax(mind))
+    dist, _, src = dijkstra(g, directed=False, indices=idx, min_only=True, return_predecessors=True)
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[idx] = np.arange(k)
+    nearest = np.where(src >= 0, pos[np.maximum(src, 0)], -1)
+    nearest[idx] = np.arange(k)  # a sample maps to itself even when two samples coincide
+    if np.any(nearest < 0):  # only when k is smaller than the number of connected parts
+        from scipy.spatial import cKDTree
+
+        lost = np.nonzero(nearest < 0)[0]
+        nearest[lost] = cKDTree(v[idx]).query(v[lost])[1]
+        dist = np.where(np.isfinite(dist), dist, 0.0)
+        warnings.warn(
+            f"{lost.size} vertices lie in parts of the mesh that hold no sample (k={k} is smaller than the number "
+            f"of connected parts, {mesh.n_components}); they were assigned to the nearest sample in a straight line",
+            stacklevel=2,
+        )
+    return Subsample(idx, nearest, float(dist.max()), metric)
+
+
+# ----------------------------------------------------------------------------------------------- memory
+def solver_memory_bytes(n1: int, n2: int) -> int:
+    """Estimated peak memory of one dense solve: `SOLVER_DENSE_MATRICES` float64 ``(n1, n2)`` arrays."""
+    return int(SOLVER_DENSE_MATRICES) * int(n1) * int(n2) * 8
+
+
+def _free_memory(device: str) -> int:
+    import warp as wp
+
+    return int(wp.get_device(device).free_memory)
+
+
+def check_problem_size(n1: int, n2: int, device: str, *, free_bytes: int | None = None) -> None:
+    """Raise `ProblemTooLargeError` (naming ``max_vertices``) when an ``n1 × n2`` solve cannot fit on ``device``."""
+    need = solver_memory_bytes(n1, n2)
+    free = _free_memory(device) if free_bytes is None else int(free_bytes)
+    budget = MEMORY_FRACTION * free
+    if need > budget:
+        k = max(1, int(math.sqrt(budget / (SOLVER_DENSE_MATRICES * 8))))
+        raise ProblemTooLargeError(
+            f"a {n1} x {n2} vertex comparison needs about {need / 2**30:.1f} GiB for the solver's "
+            f"{SOLVER_DENSE_MATRICES} dense N1 x N2 float64 matrices, but device {device!r} has "
+            f"{free / 2**30:.1f} GiB free; pass max_vertices (at most about {k} here) to subsample both "
+            "meshes by farthest-point sampling"
+        )
+
+
+# ----------------------------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class Comparison:
+    """The comparison of shape A with shape B.
+
+    Attributes
+    ----------
+    distance : U at convergence (balanced, Eq. 6) or SU (partial, Eq. 27, with the self-comparisons)
+    correspondence : (N_A,) int64, for each vertex of A the vertex of B with the largest plan entry in its
+        row (when subsampled: the row of A's nearest sample, and B's sampled vertex)
+    matched : (K, 2) int64 pairs (i in A, j in B) with ``G(i, j) > 0.9·m1(i)`` (vertex indices of the full meshes)
+    matched_weight : (K,) float64, the plan entries ``G(i, j)`` of the matched pairs
+    mass1 : (n_A,) float64, the mass each (sampled) vertex of A sends, ``Σ_l G(k, l)`` (uniform for balanced)
+    mass2 : (n_B,) float64, the mass each (sampled) vertex of B receives
+    registration : similarity transform taking A onto B fitted to the matched pairs weighted by G
+        (§5.1), or None when fewer than 3 non-collinear pairs matched
+    result : the solver's `OTResult` for A vs B (on the sampled vertices when subsampled)
+    self_energies : (U(A, A), U(B, B)) for partial transport, else None
+    history : (n_β, 2) float64, columns β and D(β): U_β (balanced) or SU_β (partial) at each annealing β
+    sample_a, sample_b : the `Subsample` of each mesh, or None when not subsampled
+    """
+
+    distance: float
+    correspondence: np.ndarray
+    matched: np.ndarray
+    matched_weight: np.ndarray
+    mass1: np.ndarray
+    mass2: np.ndarray
+    registration: Registration | None
+    result: Any
+    signature: str
+    transport: str
+    self_energies: tuple[float, float] | None = None
+    history: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    sample_a: Subsample | None = None
+    sample_b: Subsample | None = None
+
+
+# ----------------------------------------------------------------------------------- energy bookkeeping
+def transport_energy(result: Any, transport: str) -> float:
+    """The U entering the distance: ``cost`` (Eq. 6) for balanced, ``objective`` (Eq. 17) for partial."""
+    return float(result.cost if transport == "balanced" else result.objective)
+
+
+def energy_history(result: Any, transport: str) -> np.ndarray:
+    """(n_β, 2) float64: β and U_β from the solver's per-β history (the same quantity as `transport_energy`).
+
+    For partial transport the per-β objective is used when the solver records it (``BetaStep.objective``);
+    otherwise the per-β transport cost, and the store says which (`history_quantity`).
+    """
+    rows = []
+    for step in getattr(result, "history", ()) or ():
+        rows.append((float(step.beta), _step_energy(step, transport)))
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+
+
+def history_quantity(transport: str) -> str:
+    return "cost" if transport == "balanced" else "objective"
+
+
+def _step_energy(step: Any, transport: str) -> float:
+    if transport == "balanced":
+        return float(step.cost)
+    obj = getattr(step, "objective", None)
+    return float(step.cost if obj is None else obj)
+
+
+def debias_history(h_ab: np.ndarray, h_aa: np.ndarray, h_bb: np.ndarray) -> np.ndarray:
+    """SU_β (Eq. 27) on the β grid of ``h_ab``; each self history is read at the same β (its last value
+    after it converged, NaN before its first β)."""
+    out = np.array(h_ab, dtype=np.float64, copy=True).reshape(-1, 2)
+    if len(out) == 0:
+        return out
+    out[:, 1] = out[:, 1] - 0.5 * (history_at(h_aa, out[:, 0]) + history_at(h_bb, out[:, 0]))
+    return out
+
+
+def history_at(h: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """Value of a (β, U) history at each β in ``betas``: the last entry with β' ≤ β (1e-9 relative slack in log β),
+    NaN where β is below the first recorded β."""
+    h = np.asarray(h, dtype=np.float64).reshape(-1, 2)
+    betas = np.asarray(betas, dtype=np.float64)
+    if len(h) == 0:
+        return np.full(betas.shape, np.nan)
+    lb = np.log(h[:, 0])
+    pos = np.searchsorted(lb, np.log(betas) + 1e-9, side="right") - 1
+    return np.where(pos >= 0, h[np.maximum(pos, 0), 1], np.nan)
+
+
+# --------------------------------------------------------------------------------------------- comparer
+def _digest(obj: Any) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=_json_default).encode()).hexdigest()[:16]
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return [float(x) for x in o.ravel()]
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+class Comparer:
+    """A comparison session: fixed settings, signatures cached per shape, one shared WKS energy grid.
+
+    Parameters
+    ----------
+    signature : "wks" (intrinsic, §2.3; cost Eq. 29) or "ldsift" (extrinsic, §2.2; L2 cost)
+    transport : "balanced" (Eq. 6–16) or "partial" (Eq. 17–26)
+    max_vertices : subsample meshes with more vertices than this by farthest-point sampling (None: never;
+        then a problem too large for the device raises `ProblemTooLargeError`)
+    fps_metric : "geodesic" or "euclidean", see `farthest_point_sampling`
+    device : Warp device for signatures, cost and solver; None is Warp's default, resolved once here
+    mass_penalty : partial transport's χ² penalty factor, α(k) = mass_penalty / ρ(k)² (1.0 is the paper)
+    n_eigen, n_energies : WKS parameters (paper: 500 eigenpairs, 200 energies)
+    energies : a fixed WKS energy grid (n_energies,) shared by all shapes; when None, the grid is built by
+        `fit_energies` (from a dataset) or, for a lone pair, from the two shapes' spectra
+    ldsift_K, ldsift_resolution : LD-SIFT scale constant K (paper 3) and image size (paper 21)
+    cache_dir : folder for the on-disk signature cache (content-keyed npz); None keeps signatures in memory only
+    solver_options : extra keyword arguments for `wpot.ot.solve_balanced` / `solve_partial` (beta0, tol, ...)
+    match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)
+    """
+
+    def __init__(
+        self,
+        *,
+        signature: str = "wks",
+        transport: str = "balanced",
+        max_vertices: int | None = None,
+        fps_metric: str = "geodesic",
+        device: str | None = None,
+        mass_penalty: float = 1.0,
+        n_eigen: int = 500,
+        n_energies: int = 200,
+        energies: ArrayLike | None = None,
+        ldsift_K: float = 3.0,
+        ldsift_resolution: int = 21,
+        cache_dir: str | Path | None = None,
+        solver_options: Mapping[str, Any] | None = None,
+        match_ratio: float = 0.9,
+    ) -> None:
+        if signature not in SIGNATURES:
+            raise ValueError(f"signature must be one of {SIGNATURES}, got {signature!r}")
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+        if max_vertices is not None and (int(max_vertices) != max_vertices or max_vertices < 3):
+            raise ValueError(f"max_vertices must be an integer >= 3 or None, got {max_vertices!r}")
+        if fps_metric not in FPS_METRICS:
+            raise ValueError(f"fps_metric must be one of {FPS_METRICS}, got {fps_metric!r}")
+        if not (np.isfinite(mass_penalty) and mass_penalty > 0):
+            raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
+        if not 0 < match_ratio <= 1:
+            raise ValueError(f"match_ratio must be in (0, 1], got {match_ratio!r}")
+        self.signature = signature
+        self.transport = transport
+        self.max_vertices = None if max_vertices is None else int(max_vertices)
+        self.fps_metric = fps_metric
+        self.device = _resolve_device(device)
+        self.mass_penalty = float(mass_penalty)
+        self.n_eigen = int(n_eigen)
+        self.n_energies = int(n_energies)
+        self.ldsift_K = float(ldsift_K)
+        self.ldsift_resolution = int(ldsift_resolution)
+        self.solver_options = dict(solver_options or {})
+        self.match_ratio = float(match_ratio)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self._energies: np.ndarray | None = None
+        if energies is not None:
+            self.energies = energies
+        self._signatures: dict[tuple[str, str], np.ndarray] = {}
+        self._samples: dict[str, Subsample] = {}
+        self._self_results: dict[tuple[str, str], Any] = {}
+
+    # ------------------------------------------------------------------------------ parameters
+    def params(self) -> dict[str, Any]:
+        """Every setting that changes a distance, as JSON-able values (the pipeline's run key)."""
+        p: dict[str, Any] = {
+            "signature": self.signature,
+            "transport": self.transport,
+            "max_vertices": self.max_vertices,
+            "fps_metric": self.fps_metric if self.max_vertices is not None else None,
+            "match_ratio": self.match_ratio,
+            "solver_options": {k: self.solver_options[k] for k in sorted(self.solver_options)},
+        }
+        if self.transport == "partial":
+            p["mass_penalty"] = self.mass_penalty
+        if self.signature == "wks":
+            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies)
+        else:
+            p.update(ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution)
+        return p
+
+    @property
+    def energies(self) -> np.ndarray | None:
+        """The shared WKS energy grid (n_energies,) float64, or None until fitted."""
+        return self._energies
+
+    @energies.setter
+    def energies(self, value: ArrayLike | None) -> None:
+        if value is None:
+            self._energies = None
+            return
+        e = np.asarray(value, dtype=np.float64).ravel().copy()
+        if e.size < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"energies must be a finite increasing grid of at least 2 values, got {e.size} values")
+        e.setflags(write=False)
+        if self._energies is not None and not np.array_equal(self._energies, e):
+            self._signatures.clear()  # WKS depends on the grid
+            self._self_results.clear()
+        self._energies = e
+
+    def fit_energies(self, meshes: Sequence[Mesh]) -> np.ndarray:
+        """Build one WKS energy grid from the spectra of all ``meshes`` (`wpot.wks_energies`), and keep it."""
+        from wpot.signatures import wks_energies
+        from wpot.spectral import eigenpairs
+
+        spectra = [eigenpairs(m, self.n_eigen) for m in meshes]
+        self.energies = _energy_grid(wks_energies(spectra))
+        return self.energies
+
+    # ------------------------------------------------------------------------------ signatures
+    def _signature_key(self) -> str:
+        p = {"signature": self.signature}
+        if self.signature == "wks":
+            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies)
+        else:
+            p.update(K=self.ldsift_K, resolution=self.ldsift_resolution)
+        return _digest(p)
+
+    def signatures(self, mesh: Mesh) -> np.ndarray:
+        """Per-vertex signatures of the full mesh, (N, d) float64, cached in memory and on disk.
+
+        WKS needs the energy grid first (`fit_energies`, the ``energies`` argument, or `compare`, which
+        fits it to the pair it is given).
+        """
+        if self.signature == "wks" and self._energies is None:
+            raise ValueError("the WKS energy grid is not set: call fit_energies(meshes) or pass energies=")
+        key = (mesh.fingerprint, self._signature_key())
+        sig = self._signatures.get(key)
+        if sig is not None:
+            return sig
+        path = None if self.cache_dir is None else self.cache_dir / f"sig-{key[0]}-{key[1]}.npz"
+        if path is not None and path.is_file():
+            with np.load(path, allow_pickle=False) as z:
+                sig = np.array(z["signature"], dtype=np.float64)
+        if sig is None:
+            sig = self._compute_signatures(mesh)
+            if path is not None:
+                _save_npz_atomic(path, signature=sig)
+        if sig.shape[0] != mesh.n_vertices:
+            raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
+        sig.setflags(write=False)
+        self._signatures[key] = sig
+        return sig
+
+    def _compute_signatures(self, mesh: Mesh) -> np.ndarray:
+        if self.signature == "wks":
+            from wpot.signatures import wks
+
+            return np.asarray(wks(mesh, n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies), dtype=np.float64)
+        from wpot.signatures import ldsift
+
+        return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)
+
+    def subsample(self, mesh: Mesh) -> Subsample | None:
+        """The farthest-point sample used for ``mesh`` (None when it has at most ``max_vertices`` vertices)."""
+        if self.max_vertices is None or mesh.n_vertices <= self.max_vertices:
+            return None
+        s = self._samples.get(mesh.fingerprint)
+        if s is None:
+            s = farthest_point_sampling(mesh, self.max_vertices, metric=self.fps_metric)
+            self._samples[mesh.fingerprint] = s
+        return s
+
+    def _points(self, mesh: Mesh) -> tuple[np.ndarray, Subsample | None]:
+        sig = self.signatures(mesh)
+        s = self.subsample(mesh)
+        return (sig if s is None else sig[s.indices]), s
+
+    # ------------------------------------------------------------------------------ transport
+    def transport_plan(self, mesh_a: Mesh, mesh_b: Mesh) -> Any:
+        """Solve the transport between the (sampled) signatures of A and B; returns the solver's `OTResult`."""
+        sa, sub_a = self._points(mesh_a)
+        sb, sub_b = self._points(mesh_b)
+        return self._solve(sa, sb)
+
+    def _solve(self, sa: np.ndarray, sb: np.ndarray) -> Any:
+        from wpot.cost import cost_matrix
+        from wpot import ot
+
+        check_problem_size(len(sa), len(sb), self.device)
+        c = cost_matrix(sa, sb, metric=SIGNATURE_METRIC[self.signature], device=self.device)
+        if self.transport == "balanced":
+            return ot.solve_balanced(c, device=self.device, **self.solver_options)
+        return ot.solve_partial(c, mass_penalty=self.mass_penalty, device=self.device, **self.solver_options)
+
+    def self_result(self, mesh: Mesh) -> Any:
+        """The solver's result for ``mesh`` against itself (needed by Eq. 27), cached per shape."""
+        key = (mesh.fingerprint, self._signature_key())
+        r = self._self_results.get(key)
+        if r is None:
+            s, _ = self._points(mesh)
+            r = self._solve(s, s)
+            self._self_results[key] = r
+        return r
+
+    def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> Comparison:
+        """Compare A with B; see `Comparison`. For WKS with no grid yet, the grid is fitted to A and B."""
+        for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
+            if not isinstance(m, Mesh):
+                raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
+        if self.signature == "wks" and self._energies is None:
+            self.fit_energies([mesh_a, mesh_b])
+        sa, sub_a = self._points(mesh_a)
+        sb, sub_b = self._points(mesh_b)
+        res = self._solve(sa, sb)
+        hist = energy_history(res, self.transport)
+        self_e = None
+        if self.transport == "balanced":
+            distance = transport_energy(res, "balanced")
+        else:
+            from wpot.ot import debiased
+
+            ra, rb = self.self_result(mesh_a), self.self_result(mesh_b)
+            uaa, ubb = transport_energy(ra, "partial"), transport_energy(rb, "partial")
+            distance = float(debiased(transport_energy(res, "partial"), uaa, ubb))
+            self_e = (uaa, ubb)
+            hist = debias_history(hist, energy_history(ra, "partial"), energy_history(rb, "partial"))
+        return _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, self.signature, self.transport, self.match_ratio)
+
+
+def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, signature, transport, match_ratio) -> Comparison:
+    plan = np.asarray(res.plan, dtype=np.float64)
+    m1 = np.asarray(res.mass1, dtype=np.float64) if getattr(res, "mass1", None) is not None else plan.sum(1)
+    m2 = np.asarray(res.mass2, dtype=np.float64) if getattr(res, "mass2", None) is not None else plan.sum(0)
+    rows_best = np.argmax(plan, axis=1)
+    ia = np.arange(len(plan)) if sub_a is None else sub_a.indices
+    jb = np.arange(plan.shape[1]) if sub_b is None else sub_b.indices
+    corr_sampled = jb[rows_best]
+    correspondence = corr_sampled if sub_a is None else sub_a.extend(corr_sampled)
+    ii, jj = np.nonzero(plan > match_ratio * m1[:, None])
+    weight = plan[ii, jj]
+    matched = np.stack([ia[ii], jb[jj]], axis=1).astype(np.int64)
+    registration = None
+    if len(matched) >= 3:
+        try:
+            registration = fit_similarity(mesh_a.vertices[matched[:, 0]], mesh_b.vertices[matched[:, 1]], weight)
+        except ValueError:
+            registration = None  # degenerate (collinear) matches; documented as None
+    return Comparison(
+        distance=float(distance),
+        correspondence=correspondence.astype(np.int64),
+        matched=matched,
+        matched_weight=weight,
+        mass1=m1,
+        mass2=m2,
+        registration=registration,
+        result=res,
+        signature=signature,
+        transport=transport,
+        self_energies=self_e,
+        history=hist,
+        sample_a=sub_a,
+        sample_b=sub_b,
+    )
+
+
+def _energy_grid(out: Any) -> np.ndarray:
+    """Accept `wks_energies`' return value: the grid itself, or a (grid, sigma) pair / object with ``energies``."""
+    if hasattr(out, "energies"):
+        out = out.energies
+    elif isinstance(out, tuple):
+        out = out[0]
+    return np.asarray(out, dtype=np.float64)
+
+
+def _resolve_device(device: str | None) -> str:
+    import warp as wp
+
+    wp.config.quiet = True
+    return str(wp.get_device(device))
+
+
+def _save_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def compare(
+    mesh_a: Mesh,
+    mesh_b: Mesh,
+    *,
+    signature: str = "wks",
+    transport: str = "balanced",
+    max_vertices: int | None = None,
+    device: str | None = None,
+    mass_penalty: float = 1.0,
+    **options: Any,
+) -> Comparison:
+    """Compare two meshes by statistical-physics optimal transport of their vertex signatures.
+
+    One-shot form of `Comparer` (which see for every option, e.g. ``n_eigen``, ``solver_options``,
+    ``fps_metric``); for many pairs, build one `Comparer` so signatures are computed once per shape
+    and every shape shares one WKS energy grid.
+
+    Returns
+    -------
+    Comparison : distance (U or SU, Eq. 27), correspondence (N_A,), matched pairs, masses, registration,
+        and the solver's `OTResult`.
+    """
+    return Comparer(
+        signature=signature, transport=transport, max_vertices=max_vertices, device=device, mass_penalty=mass_penalty, **options
+    ).compare(mesh_a, mesh_b)
