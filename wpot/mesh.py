@@ -31,6 +31,12 @@ class MeshWarning(UserWarning):
     """A mesh is usable but has a defect that may spoil results (see `Mesh.cleaned`)."""
 
 
+def _ro(a: np.ndarray) -> np.ndarray:
+    """Mark a cached array read-only (a cache a caller could edit in place would be a silent corruption)."""
+    a.setflags(write=False)
+    return a
+
+
 def _listed(idx: np.ndarray) -> str:
     idx = np.asarray(idx).ravel()
     head = ", ".join(str(int(i)) for i in idx[:_MAX_LISTED])
@@ -195,12 +201,12 @@ class Mesh:
     def _face_cross(self) -> np.ndarray:
         v = self._vertices
         f = self._faces
-        return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        return _ro(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]))
 
     @cached_property
     def face_areas(self) -> np.ndarray:
         """(F,) float64 triangle areas."""
-        return 0.5 * np.linalg.norm(self._face_cross, axis=1)
+        return _ro(0.5 * np.linalg.norm(self._face_cross, axis=1))
 
     @property
     def area(self) -> float:
@@ -212,7 +218,7 @@ class Mesh:
         """(F, 3) unit normals (right-hand rule on the face order); zero for degenerate faces."""
         c = self._face_cross
         nrm = np.linalg.norm(c, axis=1, keepdims=True)
-        return np.divide(c, nrm, out=np.zeros_like(c), where=nrm > 0)
+        return _ro(np.divide(c, nrm, out=np.zeros_like(c), where=nrm > 0))
 
     @cached_property
     def vertex_normals(self) -> np.ndarray:
@@ -221,17 +227,17 @@ class Mesh:
         for k in range(3):
             np.add.at(acc, self._faces[:, k], self._face_cross)
         nrm = np.linalg.norm(acc, axis=1, keepdims=True)
-        return np.divide(acc, nrm, out=np.zeros_like(acc), where=nrm > 0)
+        return _ro(np.divide(acc, nrm, out=np.zeros_like(acc), where=nrm > 0))
 
     @cached_property
     def edges(self) -> np.ndarray:
         """(E, 2) int64 unique undirected edges, sorted so that ``edges[:, 0] < edges[:, 1]``."""
-        return np.unique(np.sort(self._half_edges, axis=1), axis=0)
+        return _ro(np.unique(np.sort(self._half_edges, axis=1), axis=0))
 
     @cached_property
     def _half_edges(self) -> np.ndarray:
         f = self._faces
-        return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        return _ro(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]))
 
     @cached_property
     def _edge_face_count(self) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +248,7 @@ class Mesh:
     def edge_lengths(self) -> np.ndarray:
         """(E,) float64 lengths of `edges`."""
         e = self.edges
-        return np.linalg.norm(self._vertices[e[:, 0]] - self._vertices[e[:, 1]], axis=1)
+        return _ro(np.linalg.norm(self._vertices[e[:, 0]] - self._vertices[e[:, 1]], axis=1))
 
     @cached_property
     def mean_edge_length(self) -> float:
@@ -252,13 +258,13 @@ class Mesh:
     def boundary_edges(self) -> np.ndarray:
         """(B, 2) edges used by exactly one triangle."""
         und, counts = self._edge_face_count
-        return und[counts == 1]
+        return _ro(und[counts == 1])
 
     @cached_property
     def nonmanifold_edges(self) -> np.ndarray:
         """(K, 2) edges used by three or more triangles."""
         und, counts = self._edge_face_count
-        return und[counts > 2]
+        return _ro(und[counts > 2])
 
     @cached_property
     def adjacency(self) -> sp.csr_matrix:
@@ -271,9 +277,15 @@ class Mesh:
         return a
 
     def one_ring(self, i: int) -> np.ndarray:
-        """Indices of the vertices sharing an edge with vertex ``i``."""
+        """Indices of the vertices sharing an edge with vertex ``i`` (sorted, read-only)."""
+        n = self.n_vertices
+        if not isinstance(i, (int, np.integer)) or isinstance(i, bool) or not -n <= i < n:
+            raise ValueError(f"vertex index must be an integer in [-{n}, {n - 1}], got {i!r}")
+        i = int(i) % n
         a = self.adjacency
-        return a.indices[a.indptr[i] : a.indptr[i + 1]]
+        ring = a.indices[a.indptr[i] : a.indptr[i + 1]].view()
+        ring.setflags(write=False)
+        return ring
 
     @cached_property
     def one_ring_mean_edge_length(self) -> np.ndarray:
@@ -283,14 +295,14 @@ class Mesh:
         tot = np.bincount(e[:, 0], self.edge_lengths, n) + np.bincount(e[:, 1], self.edge_lengths, n)
         deg = np.bincount(e[:, 0], minlength=n) + np.bincount(e[:, 1], minlength=n)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return tot / deg
+            return _ro(tot / deg)
 
     @cached_property
     def referenced(self) -> np.ndarray:
         """(N,) bool: vertex used by at least one face."""
         r = np.zeros(self.n_vertices, dtype=bool)
         r[self._faces.ravel()] = True
-        return r
+        return _ro(r)
 
     @property
     def unreferenced_vertices(self) -> np.ndarray:
@@ -300,13 +312,13 @@ class Mesh:
     def degenerate_faces(self) -> np.ndarray:
         """Indices of triangles with (numerically) zero area."""
         scale = self.mean_edge_length ** 2
-        return np.nonzero(self.face_areas <= DEGENERATE_AREA_RTOL * max(scale, np.finfo(float).tiny))[0]
+        return _ro(np.nonzero(self.face_areas <= DEGENERATE_AREA_RTOL * max(scale, np.finfo(float).tiny))[0])
 
     @cached_property
     def component_labels(self) -> np.ndarray:
         """(N,) connected-component label per vertex (isolated vertices get their own label)."""
         _, labels = sp.csgraph.connected_components(self.adjacency, directed=False)
-        return labels
+        return _ro(labels)
 
     @cached_property
     def n_components(self) -> int:

@@ -1,0 +1,645 @@
+"""Reading and writing meshes and ground-truth correspondences.
+
+Meshes
+------
+`load_mesh` reads
+
+* ``.off``, ``.ply``, ``.obj`` through trimesh's format parsers, with every kind of processing off
+  (no vertex merging, no removal of unreferenced vertices, no re-ordering: OBJ is read with
+  ``maintain_order=True``, PLY with ``fix_texture=False``), so vertex ``i`` of the `Mesh` is vertex
+  ``i`` of the file. trimesh silently triangulates polygons; wpot refuses them instead: a small
+  independent scan of the file (OFF face-count column, OBJ ``f`` lines, PLY raw face lists) finds
+  every face that is not a triangle and the error names them. The scan also checks that trimesh
+  returned exactly the vertex and face counts the file declares (a truncated OFF is an error, not a
+  smaller mesh).
+* ``.mat`` (MATLAB v5/v7, read with `scipy.io.loadmat`) in two layouts:
+
+  - TOSCA: a struct (usually named ``surface``) with fields ``X``, ``Y``, ``Z`` (N-vectors) and
+    ``TRIV`` ((F, 3), 1-based);
+  - SHREC'19 style: a struct (e.g. ``Shape_df`` or ``shape``) with fields ``VERT`` ((N, 3)) and
+    ``TRIV`` ((F, 3), 1-based), or top-level variables ``VERT`` and ``TRIV`` (or ``X``, ``Y``, ``Z``,
+    ``TRIV``).
+
+  The first variable holding one of these layouts is used; when several do, the error lists them and
+  ``variable=`` picks one. ``TRIV`` is always 1-based: a 0 in it is an error (never guessed away).
+  MATLAB v7.3 files are HDF5 and are not read (re-save them with ``save(..., '-v7')``).
+
+`save_mesh` writes OFF and OBJ as text with 17 significant digits, PLY as binary little-endian with
+``double`` coordinates (trimesh's own PLY writer stores float32), and ``.mat`` in the TOSCA layout,
+so that ``load_mesh(save_mesh(m, p)) == m`` exactly.
+
+Correspondences
+---------------
+* `load_vts`: TOSCA/SCAPE/FAUST-style ``.vts`` landmark files, one 1-based vertex index per line
+  (``tosca_isometric_5k/vtx_5k/corres/<name>.vts``: 5,000 lines; line ``i`` of two shapes of a class
+  are corresponding vertices).
+* `load_vertex_map`: one vertex index per line; line ``i`` is the vertex of the *target* shape matched
+  to vertex ``i`` of the *source* shape. SHREC'19 ``i_j.txt`` files are 1-based (the default,
+  ``base=1``). The pyFM example maps (``pyfm_examples/camel_gallop/maps/<i>_to_<j>`` and
+  ``pyfm_examples/lion2cat``) are **0-based**: checked on the data, ``1_to_3`` has 4,999 lines
+  (= vertices of camel-gallop-01) with values 0..5001 (camel-gallop-03 has 5,002 vertices), and
+  ``lion2cat`` has 5,000 lines (lion-00) with values 0..7206 (cat-00 has 7,207); read them with
+  ``base=0``. A 0 in a file read with ``base=1`` is an error that suggests ``base=0``.
+
+All results are 0-based int64. ``n_vertices=`` checks the range against the mesh the indices refer to.
+
+Errors: a missing file raises `FileNotFoundError` (an `OSError`) naming the path; an unknown extension
+raises `ValueError` listing the supported ones; malformed content raises `ValueError` naming the file
+and the problem. Mesh warnings (`MeshWarning`) raised while loading are re-issued with the file name.
+"""
+from __future__ import annotations
+
+import io
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .mesh import Mesh, MeshWarning, _listed
+
+__all__ = [
+    "MESH_FORMATS",
+    "load_mesh",
+    "save_mesh",
+    "load_vts",
+    "save_vts",
+    "load_vertex_map",
+    "save_vertex_map",
+]
+
+#: file extensions `load_mesh` and `save_mesh` understand
+MESH_FORMATS = (".off", ".ply", ".obj", ".mat")
+
+PathLike = str | os.PathLike
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+class _Malformed(ValueError):
+    """Internal: a problem found while parsing (the message is prefixed with the file later)."""
+
+
+def _read_bytes(path: PathLike) -> tuple[Path, bytes]:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(2, "No such file", str(p))
+    return p, p.read_bytes()  # IsADirectoryError / PermissionError are OSErrors too
+
+
+def _suffix(p: Path) -> str:
+    ext = p.suffix.lower()
+    if ext not in MESH_FORMATS:
+        raise ValueError(
+            f"{p}: unsupported mesh file extension {p.suffix!r}; supported: {', '.join(MESH_FORMATS)}"
+        )
+    return ext
+
+
+def _guarded(p: Path, what: str, fn: Callable[[], Any]) -> Any:
+    """Run a parser; turn whatever a malformed file makes it raise into a ValueError naming the file."""
+    try:
+        return fn()
+    except OSError:
+        raise
+    except _Malformed as exc:
+        raise ValueError(f"{p}: malformed {what} file: {exc}") from None
+    except Exception as exc:  # third-party parsers raise anything (IndexError, struct.error, ...)
+        raise ValueError(f"{p}: malformed {what} file ({type(exc).__name__}: {exc})") from None
+
+
+def _int_token(tok: str, where: str) -> int:
+    try:
+        return int(tok)
+    except ValueError:
+        raise _Malformed(f"{where}: expected an integer, got {tok[:40]!r}") from None
+
+
+def _strip_comments(text: str) -> list[str]:
+    """Non-empty lines with ``#`` comments removed (as trimesh's OFF reader does)."""
+    out = []
+    for ln in text.splitlines():
+        ln = ln.split("#", 1)[0].strip()
+        if ln:
+            out.append(ln)
+    return out
+
+
+def _decode(data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _reject_polygons(arity: np.ndarray) -> None:
+    bad = np.nonzero(arity != 3)[0]
+    if bad.size:
+        sizes = sorted(set(int(a) for a in arity[bad]))
+        raise _Malformed(
+            f"{bad.size} faces are not triangles (vertex counts {sizes[:_MAX_SIZES]}): faces {_listed(bad)} "
+            "(0-based, in file order); wpot reads triangle meshes only: triangulate them first "
+            "(trimesh would have done so silently, changing the face list)"
+        )
+
+
+_MAX_SIZES = 5
+
+
+def _check_counts(kind: str, got_v: int, got_f: int, want_v: int, want_f: int) -> None:
+    if got_v != want_v or got_f != want_f:
+        raise _Malformed(
+            f"the {kind} file declares {want_v} vertices and {want_f} faces but the parser returned "
+            f"{got_v} and {got_f}"
+        )
+
+
+# -------------------------------------------------------------------------------------------------- OFF
+_OFF_HEAD = re.compile(r"^(ST)?(C)?(N)?(4)?n?OFF(?:\s+(.*))?$")
+
+
+def _scan_off(text: str) -> tuple[int, int, np.ndarray]:
+    """Declared vertex/face counts and each face's vertex count, from the OFF text."""
+    lines = _strip_comments(text)
+    if not lines:
+        raise _Malformed("the file is empty")
+    m = _OFF_HEAD.match(lines[0])
+    if m is None:
+        raise _Malformed(f"the first line must be the OFF keyword, got {lines[0][:40]!r}")
+    if m.group(4):
+        raise _Malformed("4OFF (4-D vertices) is not supported")
+    rest = m.group(5)
+    pos = 1
+    if rest is None:
+        if len(lines) < 2:
+            raise _Malformed("missing the line with vertex and face counts")
+        rest = lines[1]
+        pos = 2
+    counts = rest.split()
+    if len(counts) < 2:
+        raise _Malformed(f"the counts line needs 'n_vertices n_faces [n_edges]', got {rest[:40]!r}")
+    nv = _int_token(counts[0], "vertex count")
+    nf = _int_token(counts[1], "face count")
+    if nv < 0 or nf < 0:
+        raise _Malformed(f"negative counts: {nv} vertices, {nf} faces")
+    body = lines[pos:]
+    if len(body) < nv + nf:
+        raise _Malformed(
+            f"the header declares {nv} vertices and {nf} faces ({nv + nf} lines) but only "
+            f"{len(body)} lines follow: the file is truncated"
+        )
+    for i in range(nv):
+        if len(body[i].split()) < 3:
+            raise _Malformed(f"vertex {i} has fewer than 3 coordinates: {body[i][:60]!r}")
+    arity = np.empty(nf, dtype=np.int64)
+    for j in range(nf):
+        toks = body[nv + j].split()
+        k = _int_token(toks[0], f"face {j}")
+        if k < 0 or len(toks) < k + 1:
+            raise _Malformed(f"face {j} declares {k} vertices but lists {len(toks) - 1}: {body[nv + j][:60]!r}")
+        arity[j] = k
+    return nv, nf, arity
+
+
+def _read_off(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    from trimesh.exchange.off import load_off
+
+    nv, nf, arity = _scan_off(_decode(data))
+    _reject_polygons(arity)
+    kw = load_off(io.BytesIO(data))
+    v = np.asarray(kw["vertices"], dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(kw["faces"], dtype=np.int64).reshape(-1, 3)
+    _check_counts("OFF", len(v), len(f), nv, nf)
+    return v, f
+
+
+# -------------------------------------------------------------------------------------------------- OBJ
+def _scan_obj(text: str) -> tuple[int, np.ndarray]:
+    """Number of ``v`` lines and each ``f`` line's vertex count."""
+    text = text.replace("\\\r\n", "").replace("\\\n", "")  # line continuations, as trimesh does
+    nv = 0
+    arity = []
+    for ln in text.splitlines():
+        ln = ln.split("#", 1)[0].strip()
+        if ln.startswith("v ") or ln.startswith("v\t"):
+            nv += 1
+        elif ln.startswith("f ") or ln.startswith("f\t"):
+            arity.append(len(ln.split()) - 1)
+    return nv, np.asarray(arity, dtype=np.int64)
+
+
+def _read_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    from trimesh.exchange.obj import load_obj
+
+    nv, arity = _scan_obj(_decode(data))
+    _reject_polygons(arity)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # trimesh's texture bookkeeping on odd UVs
+        out = load_obj(
+            io.BytesIO(data),
+            maintain_order=True,
+            group_material=False,
+            skip_materials=True,
+            split_objects=False,
+            split_groups=False,
+        )
+    geometry = out.get("geometry", {}) if isinstance(out, dict) else {}
+    if len(geometry) > 1:
+        raise _Malformed(f"trimesh split the file into {len(geometry)} meshes; expected one")
+    if not geometry:
+        v = np.zeros((0, 3))
+        f = np.zeros((0, 3), dtype=np.int64)
+    else:
+        kw = next(iter(geometry.values()))
+        v = np.asarray(kw.get("vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        f = kw.get("faces")
+        f = np.zeros((0, 3), dtype=np.int64) if f is None else np.asarray(f, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0 and arity.size == 0:
+        return v, f  # no faces: Mesh reports an empty mesh
+    _check_counts("OBJ", len(v), len(f), nv, int(arity.size))
+    return v, f
+
+
+# -------------------------------------------------------------------------------------------------- PLY
+_PLY_TYPES = {
+    "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+    "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
+}
+
+
+def _scan_ply_header(data: bytes) -> None:
+    """Refuse headers whose element counts cannot fit in the file (before trimesh allocates for them)."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise _Malformed("missing 'ply' magic or 'end_header'")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    body_len = len(data) - end - len("end_header")
+    binary = None
+    need = 0
+    elements: list[list[Any]] = []  # [name, count, min_bytes_binary, min_tokens_ascii]
+    for ln in header:
+        toks = ln.split()
+        if not toks:
+            continue
+        if toks[0] == "format" and len(toks) >= 2:
+            binary = toks[1] != "ascii"
+        elif toks[0] == "element":
+            if len(toks) < 3:
+                raise _Malformed(f"bad element line {ln[:60]!r}")
+            count = _int_token(toks[2], f"element {toks[1]} count")
+            if count < 0:
+                raise _Malformed(f"negative element count in {ln[:60]!r}")
+            elements.append([toks[1], count, 0, 0])
+        elif toks[0] == "property" and elements:
+            if len(toks) >= 5 and toks[1] == "list":
+                elements[-1][2] += _PLY_TYPES.get(toks[2], 1)
+            else:
+                elements[-1][2] += _PLY_TYPES.get(toks[1], 1) if len(toks) > 1 else 1
+            elements[-1][3] += 1
+    if binary is None:
+        raise _Malformed("missing 'format' line")
+    for _, count, nbytes, ntok in elements:
+        need += count * (nbytes if binary else 2 * ntok)
+    if need > body_len:
+        raise _Malformed(
+            f"the header declares elements {[(e[0], e[1]) for e in elements]} needing at least {need} "
+            f"bytes but only {body_len} follow: the file is truncated"
+        )
+
+
+def _ply_face_lists(raw: Any) -> Any:
+    """The per-face vertex-index lists from trimesh's raw PLY face element."""
+    data = raw["data"]
+    names = ("vertex_indices", "vertex_index")
+    if isinstance(data, dict):
+        for n in names:
+            if n in data:
+                return data[n]
+        raise _Malformed(f"face element has no vertex_indices property (has {sorted(data)})")
+    if isinstance(data, np.ndarray) and data.dtype.names:
+        fields = data.dtype.names
+        name = fields[0] if len(fields) == 1 else next((n for n in names if n in fields), None)
+        if name is None:
+            raise _Malformed(f"face element has no vertex_indices property (has {list(fields)})")
+        col = data[name]
+        return col["f1"] if col.dtype.names else col
+    return data
+
+
+def _read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    from trimesh.exchange.ply import load_ply
+
+    _scan_ply_header(data)
+    kw = load_ply(io.BytesIO(data), fix_texture=False, skip_materials=True)
+    raw = kw.get("metadata", {}).get("_ply_raw", {})
+    v = kw.get("vertices")
+    v = np.zeros((0, 3)) if v is None else np.asarray(v, dtype=np.float64).reshape(-1, 3)
+    face_el = raw.get("face")
+    if face_el is None or not face_el.get("length"):
+        return v, np.zeros((0, 3), dtype=np.int64)
+    lists = _ply_face_lists(face_el)
+    if isinstance(lists, np.ndarray) and lists.dtype != object and lists.ndim == 2:
+        arity = np.full(len(lists), lists.shape[1], dtype=np.int64)
+    else:
+        arity = np.array([len(np.atleast_1d(x)) for x in lists], dtype=np.int64)
+    _reject_polygons(arity)
+    f = np.array([np.asarray(x, dtype=np.int64) for x in lists], dtype=np.int64).reshape(-1, 3)
+    nv = int(raw["vertex"]["length"]) if "vertex" in raw else len(v)
+    _check_counts("PLY", len(v), len(f), nv, int(face_el["length"]))
+    return v, f
+
+
+# -------------------------------------------------------------------------------------------------- MAT
+_TOSCA_FIELDS = ("X", "Y", "Z", "TRIV")
+_SHREC_FIELDS = ("VERT", "TRIV")
+
+
+def _mat_candidates(d: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Variables (name -> field dict) holding a mesh in the TOSCA or SHREC'19 layout."""
+    found: dict[str, dict[str, Any]] = {}
+    for key, val in d.items():
+        if key.startswith("__") or not isinstance(val, np.ndarray) or not val.dtype.names or val.size < 1:
+            continue
+        rec = val.flat[0]
+        fields = {n: rec[n] for n in val.dtype.names}
+        if all(k in fields for k in _TOSCA_FIELDS) or all(k in fields for k in _SHREC_FIELDS):
+            found[key] = fields
+    top = {k: v for k, v in d.items() if not k.startswith("__")}
+    if all(k in top for k in _TOSCA_FIELDS) or all(k in top for k in _SHREC_FIELDS):
+        found["<top level>"] = top
+    return found
+
+
+def _mat_array(x: Any, name: str) -> np.ndarray:
+    a = np.asarray(x)
+    while a.dtype == object and a.size == 1:  # MATLAB cells/structs wrap values in 1x1 object arrays
+        a = np.asarray(a.flat[0])
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise _Malformed(f"field {name} is not a numeric array (dtype {a.dtype})")
+    return a
+
+
+def _read_mat(data: bytes, variable: str | None) -> tuple[np.ndarray, np.ndarray]:
+    import scipy.io
+
+    try:
+        d = scipy.io.loadmat(io.BytesIO(data), squeeze_me=False, struct_as_record=True)
+    except NotImplementedError as exc:
+        raise _Malformed(
+            f"{exc}. MATLAB v7.3 (HDF5) files are not supported; re-save with save(..., '-v7')"
+        ) from None
+    found = _mat_candidates(d)
+    names = sorted(k for k in d if not k.startswith("__"))
+    if variable is not None:
+        if variable not in found:
+            raise _Malformed(
+                f"variable {variable!r} does not hold a mesh (variables with a mesh: {sorted(found)}; "
+                f"all variables: {names})"
+            )
+        fields = found[variable]
+    elif not found:
+        raise _Malformed(
+            "no mesh found: expected a struct with fields X, Y, Z, TRIV (TOSCA) or VERT, TRIV (SHREC'19), "
+            f"or such top-level variables; the file has variables {names}"
+        )
+    elif len(found) > 1:
+        raise _Malformed(f"several variables hold a mesh: {sorted(found)}; pick one with variable=")
+    else:
+        fields = next(iter(found.values()))
+    if "VERT" in fields:
+        v = _mat_array(fields["VERT"], "VERT").astype(np.float64)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise _Malformed(f"VERT must have shape (N, 3), got {v.shape}")
+    else:
+        cols = [_mat_array(fields[k], k).astype(np.float64).ravel() for k in "XYZ"]
+        if not (len(cols[0]) == len(cols[1]) == len(cols[2])):
+            raise _Malformed(f"X, Y, Z have different lengths {[len(c) for c in cols]}")
+        v = np.column_stack(cols)
+    t = _mat_array(fields["TRIV"], "TRIV")
+    if t.size == 0:
+        t = np.zeros((0, 3))
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise _Malformed(f"TRIV must have shape (F, 3), got {t.shape}")
+    tf = t.astype(np.float64)
+    bad = np.nonzero(~np.all(np.isfinite(tf) & (tf == np.round(tf)), axis=1))[0]
+    if bad.size:
+        raise _Malformed(f"TRIV has non-integer entries in faces {_listed(bad)}")
+    if tf.size and tf.min() < 1:
+        bad = np.nonzero(np.any(tf < 1, axis=1))[0]
+        raise _Malformed(
+            f"TRIV has indices below 1 in faces {_listed(bad)} (first: {tf[bad[0]].astype(np.int64).tolist()}); "
+            "TRIV is 1-based in TOSCA/SHREC'19 files"
+        )
+    if tf.size and tf.max() > np.iinfo(np.int64).max // 2:
+        raise _Malformed(f"TRIV index {tf.max():g} is too large")
+    return v, tf.astype(np.int64) - 1
+
+
+# ------------------------------------------------------------------------------------------- public API
+def load_mesh(path: PathLike, *, warn: bool = True, variable: str | None = None) -> Mesh:
+    """Read a triangle mesh, keeping the file's vertex order and count.
+
+    Parameters
+    ----------
+    path : ``.off``, ``.ply``, ``.obj`` or ``.mat`` (TOSCA / SHREC'19 layouts, see the module docstring)
+    warn : emit `MeshWarning` (naming the file) for defects: zero-area triangles, unreferenced
+        vertices, non-manifold edges, several connected components.
+    variable : ``.mat`` only: the variable that holds the mesh, when the file has several.
+
+    Returns
+    -------
+    Mesh with ``vertices`` (N, 3) float64 and ``faces`` (F, 3) int64 (0-based), in file order.
+
+    Raises
+    ------
+    FileNotFoundError : the file does not exist (other `OSError` for unreadable paths).
+    ValueError : unknown extension, malformed content, non-triangle faces, or a mesh that fails
+        `wpot.mesh.validate` (NaN/inf coordinates, out-of-range faces, empty mesh); the message names
+        the file and the problem.
+    """
+    p = Path(path)
+    ext = _suffix(p)
+    p, data = _read_bytes(p)
+    if variable is not None and ext != ".mat":
+        raise ValueError(f"{p}: variable= applies to .mat files only, got {variable!r}")
+    readers = {".off": _read_off, ".obj": _read_obj, ".ply": _read_ply}
+    fmt = ext[1:].upper()
+    if ext == ".mat":
+        v, f = _guarded(p, "MATLAB", lambda: _read_mat(data, variable))
+    else:
+        v, f = _guarded(p, fmt, lambda: readers[ext](data))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MeshWarning)
+        try:
+            mesh = Mesh(v, f, warn=warn)
+        except ValueError as exc:
+            raise ValueError(f"{p}: invalid mesh: {exc}") from None
+    for w in caught:
+        if issubclass(w.category, MeshWarning):
+            warnings.warn(f"{p}: {w.message}", MeshWarning, stacklevel=2)
+        else:  # pragma: no cover - pass anything else through unchanged
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return mesh
+
+
+def _fmt_rows(a: np.ndarray, prefix: str, fmt: str) -> str:
+    if len(a) == 0:
+        return ""
+    lines = [prefix + " ".join(fmt % x for x in row) for row in a.tolist()]
+    return "\n".join(lines) + "\n"
+
+
+def save_mesh(mesh: Mesh, path: PathLike) -> Path:
+    """Write a mesh so that `load_mesh` reads it back exactly (same vertices, faces and order).
+
+    OFF and OBJ: text, coordinates with 17 significant digits. PLY: binary little-endian, ``double``
+    x, y, z and ``int`` vertex indices. ``.mat``: the TOSCA layout (struct ``surface`` with column
+    vectors ``X``, ``Y``, ``Z`` and 1-based ``TRIV``), MATLAB v5.
+
+    Returns the path written.
+    """
+    if not isinstance(mesh, Mesh):
+        raise ValueError(f"save_mesh expects a wpot.Mesh, got {type(mesh).__name__}")
+    p = Path(path)
+    ext = _suffix(p)
+    v = mesh.vertices
+    f = mesh.faces
+    if ext == ".off":
+        text = f"OFF\n{len(v)} {len(f)} 0\n" + _fmt_rows(v, "", "%.17g") + _fmt_rows(f, "3 ", "%d")
+        p.write_text(text)
+    elif ext == ".obj":
+        text = "# written by wpot\n" + _fmt_rows(v, "v ", "%.17g") + _fmt_rows(f + 1, "f ", "%d")
+        p.write_text(text)
+    elif ext == ".ply":
+        if len(v) > np.iinfo(np.int32).max:
+            raise ValueError(f"too many vertices for a PLY with int indices: {len(v)}")
+        header = (
+            "ply\nformat binary_little_endian 1.0\ncomment written by wpot\n"
+            f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+            f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+        )
+        fdt = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
+        frec = np.empty(len(f), dtype=fdt)
+        frec["n"] = 3
+        frec["idx"] = f
+        with open(p, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(np.ascontiguousarray(v, dtype="<f8").tobytes())
+            fh.write(frec.tobytes())
+    else:  # .mat
+        import scipy.io
+
+        surface = {
+            "X": v[:, :1].copy(),
+            "Y": v[:, 1:2].copy(),
+            "Z": v[:, 2:3].copy(),
+            "TRIV": (f + 1).astype(np.float64),
+        }
+        scipy.io.savemat(p, {"surface": surface}, do_compression=True)
+    return p
+
+
+def _read_index_file(path: PathLike, what: str, base: int, n_vertices: int | None) -> np.ndarray:
+    p, data = _read_bytes(path)
+
+    def parse() -> np.ndarray:
+        try:
+            text = data.decode("ascii")
+        except UnicodeDecodeError as exc:
+            raise _Malformed(f"not a text file ({exc})") from None
+        lines = text.splitlines()
+        while lines and not lines[-1].strip():
+            lines.pop()
+        out = np.empty(len(lines), dtype=np.int64)
+        for i, ln in enumerate(lines):
+            toks = ln.split()
+            if len(toks) != 1:
+                raise _Malformed(f"line {i + 1} must hold exactly one vertex index, got {ln[:60]!r}")
+            tok = toks[0]
+            try:
+                out[i] = int(tok)
+            except ValueError:
+                try:
+                    x = float(tok)
+                except ValueError:
+                    x = float("nan")
+                if not np.isfinite(x) or x != round(x) or abs(x) > 2.0**62:
+                    raise _Malformed(f"line {i + 1}: expected an integer vertex index, got {tok[:40]!r}") from None
+                out[i] = int(x)
+            except OverflowError:
+                raise _Malformed(f"line {i + 1}: vertex index {tok[:40]} is too large") from None
+        return out
+
+    idx = _guarded(p, what, parse)
+    if idx.size == 0:
+        raise ValueError(f"{p}: empty {what} file: no vertex indices")
+    low = np.nonzero(idx < base)[0]
+    if low.size:
+        hint = "; the file looks 0-based: pass base=0" if base == 1 and idx[low].min() == 0 else ""
+        raise ValueError(
+            f"{p}: {low.size} indices below {base} (the file is read as {base}-based) on lines "
+            f"{_listed(low + 1)} (first: {int(idx[low[0]])}){hint}"
+        )
+    idx = idx - base
+    if n_vertices is not None:
+        high = np.nonzero(idx >= n_vertices)[0]
+        if high.size:
+            raise ValueError(
+                f"{p}: {high.size} indices exceed the mesh's {n_vertices} vertices on lines {_listed(high + 1)} "
+                f"(first: {int(idx[high[0]]) + base} in the file, {base}-based)"
+            )
+    return idx
+
+
+def load_vts(path: PathLike, *, n_vertices: int | None = None) -> np.ndarray:
+    """Read a ``.vts`` landmark file: one 1-based vertex index per line.
+
+    Returns
+    -------
+    (K,) int64, 0-based vertex indices in file order. With ``n_vertices``, indices beyond the mesh
+    raise `ValueError`.
+    """
+    return _read_index_file(path, "VTS", 1, n_vertices)
+
+
+def load_vertex_map(path: PathLike, *, base: int = 1, n_vertices: int | None = None) -> np.ndarray:
+    """Read a point-to-point map: line ``i`` holds the target vertex matched to source vertex ``i``.
+
+    Parameters
+    ----------
+    base : index of the first vertex in the file: 1 for SHREC'19 ``i_j.txt`` (default), 0 for the
+        pyFM example maps (see the module docstring).
+    n_vertices : vertex count of the target mesh, to check the range.
+
+    Returns
+    -------
+    (N_source,) int64, 0-based target vertex indices.
+    """
+    if base not in (0, 1):
+        raise ValueError(f"base must be 0 or 1, got {base!r}")
+    return _read_index_file(path, "vertex map", base, n_vertices)
+
+
+def _write_index_file(indices: ArrayLike, path: PathLike, base: int) -> Path:
+    a = np.asarray(indices)
+    if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"indices must be a 1-D integer array, got shape {a.shape} and dtype {a.dtype}")
+    if a.size and a.min() < 0:
+        raise ValueError(f"indices must be non-negative (0-based), got {_listed(a[a < 0])}")
+    p = Path(path)
+    p.write_text("".join(f"{int(i) + base}\n" for i in a))
+    return p
+
+
+def save_vts(indices: ArrayLike, path: PathLike) -> Path:
+    """Write (K,) 0-based vertex indices as a 1-based ``.vts`` file (inverse of `load_vts`)."""
+    return _write_index_file(indices, path, 1)
+
+
+def save_vertex_map(vertex_map: ArrayLike, path: PathLike, *, base: int = 1) -> Path:
+    """Write a (N,) 0-based vertex map, one index per line, ``base``-based (inverse of `load_vertex_map`)."""
+    if base not in (0, 1):
+        raise ValueError(f"base must be 0 or 1, got {base!r}")
+    return _write_index_file(vertex_map, path, base)
