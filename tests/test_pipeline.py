@@ -1,0 +1,122 @@
+"""wpot.pipeline: the resumable SQLite store, parameter checks, D(β) read-back, and interrupted real runs."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wpot.pipeline import RunMismatchError, RunStore, discover_shapes
+
+SHAPES = [("a1", None, "f0", 10), ("a2", None, "f1", 10), ("b1", None, "f2", 12)]
+LABELS = {0: {"class": "a"}, 1: {"class": "a"}, 2: {"class": "b"}}
+
+
+def _rec(i, j, energy, history=None, converged=True):
+    h = history if history is not None else [[1e3, energy * 2], [1e4, energy]]
+    return {"i": i, "j": j, "energy": energy, "history": h, "converged": converged, "n_newton": 3, "n_linear": 10, "seconds": 0.1, "worker": "t"}
+
+
+def _store(tmp_path, transport="partial", **extra):
+    s = RunStore(tmp_path / "run", create=True)
+    s.initialize({"signature": "wks", "transport": transport, **extra}, SHAPES, LABELS)
+    return s
+
+
+def test_partial_distance_is_debiased_whatever_the_commit_order(tmp_path):
+    s = _store(tmp_path)
+    assert s.tasks() == [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    energies = {(0, 1): 5.0, (0, 2): 9.0, (1, 2): 8.0, (0, 0): 1.0, (1, 1): 2.0, (2, 2): 4.0}
+    order = [(0, 1), (2, 2), (0, 2), (0, 0), (1, 2), (1, 1)]
+    for k, (i, j) in enumerate(order):
+        assert s.commit(_rec(i, j, energies[(i, j)]))
+        d = s.distance_matrix()
+        for (a, b), e in energies.items():
+            if a == b or (a, b) not in order[: k + 1]:
+                continue
+            ready = (a, a) in order[: k + 1] and (b, b) in order[: k + 1]
+            want = e - 0.5 * (energies[(a, a)] + energies[(b, b)]) if ready else np.nan
+            np.testing.assert_equal(d[a, b], want)
+            np.testing.assert_equal(d[b, a], want)
+    np.testing.assert_array_equal(np.diag(d), 0.0)
+    assert s.done() == set(energies)
+
+
+def test_balanced_store_skips_self_pairs_and_stores_u(tmp_path):
+    s = _store(tmp_path, transport="balanced")
+    assert s.tasks() == [(0, 1), (0, 2), (1, 2)]
+    s.commit(_rec(0, 2, 3.5))
+    d = s.distance_matrix()
+    assert d[0, 2] == d[2, 0] == 3.5 and np.isnan(d[0, 1])
+
+
+def test_a_pair_is_stored_once_and_every_computation_is_logged(tmp_path):
+    s = _store(tmp_path, transport="balanced")
+    assert s.commit(_rec(0, 1, 1.0))
+    assert not s.commit(_rec(0, 1, 7.0))  # a second computation of the same pair does not overwrite it
+    assert s.distance_matrix()[0, 1] == 1.0
+    assert s.n_computations == 2 and len(s.pair_rows()) == 1
+
+
+def test_store_refuses_other_parameters_and_other_shapes(tmp_path):
+    _store(tmp_path, transport="partial", mass_penalty=1.0).close()
+    s = RunStore(tmp_path / "run")
+    with pytest.raises(RunMismatchError, match=r"mass_penalty: stored 1\.0, requested 2\.0"):
+        s.initialize({"signature": "wks", "transport": "partial", "mass_penalty": 2.0}, SHAPES, LABELS)
+    with pytest.raises(RunMismatchError, match="other shapes"):
+        s.initialize({"signature": "wks", "transport": "partial", "mass_penalty": 1.0}, SHAPES[:2], LABELS)
+    changed = [SHAPES[0], SHAPES[1], ("b1", None, "fX", 12)]
+    with pytest.raises(RunMismatchError, match="different mesh contents"):
+        s.initialize({"signature": "wks", "transport": "partial", "mass_penalty": 1.0}, changed, LABELS)
+    # the same parameters resume without complaint
+    s.initialize({"transport": "partial", "mass_penalty": 1.0, "signature": "wks"}, SHAPES, LABELS)
+
+
+def test_opening_a_missing_run_names_the_command(tmp_path):
+    with pytest.raises(FileNotFoundError, match="all-vs-all"):
+        RunStore(tmp_path / "nothing")
+
+
+def test_store_is_in_wal_mode_and_labels_round_trip(tmp_path):
+    s = _store(tmp_path)
+    assert s.con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert s.labels("class") == ["a", "a", "b"]
+    assert s.names == ["a1", "a2", "b1"]
+
+
+def test_distance_matrices_follow_each_pair_history_in_beta(tmp_path):
+    s = _store(tmp_path)
+    s.commit(_rec(0, 0, 1.0, [[1e3, 3.0], [1e4, 1.0]]))
+    s.commit(_rec(1, 1, 2.0, [[1e3, 2.0]]))  # converged early: keeps its last value
+    s.commit(_rec(0, 1, 5.0, [[1e3, 9.0], [1e4, 6.0], [1e5, 5.0]]))
+    betas, d = s.distance_matrices()
+    np.testing.assert_allclose(betas, [1e3, 1e4, 1e5])
+    np.testing.assert_allclose(d[:, 0, 1], [9 - 0.5 * (3 + 2), 6 - 0.5 * (1 + 2), 5 - 0.5 * (1 + 2)])
+    np.testing.assert_allclose(d[:, 1, 0], d[:, 0, 1])
+    assert np.isnan(d[:, 0, 2]).all()
+    np.testing.assert_allclose(d[-1, 0, 1], s.distance_matrix()[0, 1])
+
+
+def test_discover_shapes_reads_a_folder_and_a_list_file(tmp_path):
+    from wpot.examples import example_mesh
+    from wpot.io import save_mesh
+
+    for name in ["cat2", "cat10", "dog1"]:
+        save_mesh(example_mesh(60), tmp_path / f"{name}.off")
+    specs = discover_shapes(tmp_path)
+    assert [s.name for s in specs] == ["cat2", "cat10", "dog1"]
+    assert [s.labels["class"] for s in specs] == ["cat", "cat", "dog"]
+    lst = tmp_path / "list.txt"
+    lst.write_text("dog1.off\n# comment\ncat2.off\n")
+    assert [s.name for s in discover_shapes(lst)] == ["dog1", "cat2"]
+    with pytest.raises(FileNotFoundError, match="no such folder"):
+        discover_shapes(tmp_path / "missing")
+    with pytest.raises(ValueError, match="single mesh"):
+        discover_shapes(tmp_path / "cat2.off")

@@ -1,0 +1,608 @@
+"""All-vs-all dataset runs (paper §4): parallel pairs, a resumable SQLite store, distance matrices D(β) and D(∞).
+
+``run_all_vs_all(shapes, out)`` compares every unordered pair of shapes (and, for partial transport, every
+shape with itself, which Eq. 27 needs) and commits each finished pair at once to ``out/wpot.sqlite``:
+
+* table ``run``: the parameters (JSON) and their hash, the shared WKS energy grid, the wpot version;
+* table ``shapes``: index, name, source path, content fingerprint, vertex count;
+* table ``labels``: (shape, level, label), from file names (level "class") and/or a CSV;
+* table ``pairs``: one row per pair (i ≤ j): the raw energy U (balanced: transport cost, Eq. 6; partial:
+  the objective of Eq. 17), the distance (U, or SU of Eq. 27 once both self-comparisons are in; 0 on the
+  diagonal), the per-β history ``[[β, U_β], ...]`` as JSON, converged flag, Newton/linear iteration
+  counts, seconds, worker;
+* table ``computations``: one row per pair computation ever committed (so a test can check that no pair
+  was computed twice), and ``failures`` for pairs that raised.
+
+The database runs in WAL mode and only the coordinating process writes to it. A killed run loses at most
+the pairs in flight: rerunning the same command resumes, skipping every committed pair. Rerunning with
+other parameters or another shape list raises `RunMismatchError`.
+
+Execution is pluggable: ``jobs=1`` runs pairs inline; ``jobs>1`` uses a `ProcessPoolExecutor` (spawned
+processes, safe with CUDA); any `concurrent.futures.Executor` can be passed instead, e.g. a Dask
+cluster's ``client.get_executor()``. Workers receive self-contained tasks (mesh path or arrays, settings,
+energy grid) and share an on-disk signature cache in ``out/cache``.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import os
+import socket
+import sqlite3
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from wpot.mesh import Mesh
+
+__all__ = ["RunMismatchError", "RunStore", "ShapeSpec", "discover_shapes", "run_all_vs_all"]
+
+STORE_NAME = "wpot.sqlite"
+SCHEMA_VERSION = 1
+
+
+class RunMismatchError(ValueError):
+    """A run folder already holds a run with different parameters or shapes."""
+
+
+# ---------------------------------------------------------------------------------------------- shapes
+@dataclass(frozen=True)
+class ShapeSpec:
+    """One shape of a dataset: its name, where it comes from (a file, or arrays), and its labels."""
+
+    name: str
+    path: str | None = None
+    mesh: Mesh | None = None
+    labels: Mapping[str, str] | None = None
+
+    def load(self) -> Mesh:
+        if self.mesh is not None:
+            return self.mesh
+        from wpot.io import load_mesh
+
+        return load_mesh(self.path)
+
+
+def discover_shapes(
+    source: str | Path | Sequence[str | Path | Mesh], *, labels: str | Path | None = None
+) -> list[ShapeSpec]:
+    """The shapes of a dataset, in a stable order, with their labels (through `wpot.datasets.list_shapes`).
+
+    ``source`` is a folder (mesh files in natural name order, not recursive), a text file listing one mesh
+    path per line (relative paths are relative to the list; ``#`` starts a comment), or a sequence of paths
+    or `Mesh` objects (meshes are named ``shape0000``, ... and have no labels). ``labels`` is a label CSV
+    (`wpot.datasets.read_label_csv`); without it the level "class" comes from the file names.
+    """
+    from wpot.datasets import MESH_EXTENSIONS, list_shapes
+
+    if isinstance(source, (str, Path)):
+        p = Path(source)
+        if p.is_file() and p.suffix.lower() in MESH_EXTENSIONS:
+            raise ValueError(f"an all-vs-all needs a folder or a list of meshes, got the single mesh {str(p)!r}")
+        if p.is_file():
+            items: list[Any] = []
+            for line in p.read_text().splitlines():
+                line = line.split("#", 1)[0].strip()
+                if line:
+                    q = Path(line)
+                    items.append(q if q.is_absolute() else p.parent / q)
+            source = items
+        elif not p.is_dir():
+            raise FileNotFoundError(f"no such folder or list file: {str(p)!r}")
+    else:
+        source = list(source)
+    if not isinstance(source, (str, Path)) and source and all(isinstance(m, Mesh) for m in source):
+        if labels is not None:
+            raise ValueError("labels from a CSV need named shapes (files); got Mesh objects")
+        specs = [ShapeSpec(f"shape{k:04d}", None, m, {}) for k, m in enumerate(source)]
+    else:
+        if not isinstance(source, (str, Path)) and any(isinstance(m, Mesh) for m in source):
+            raise ValueError("give either mesh files or Mesh objects, not a mix")
+        ss = list_shapes(source, labels=labels)
+        specs = [
+            ShapeSpec(name, str(Path(path).resolve()), None, {lv: str(lab[k]) for lv, lab in ss.labels.items()})
+            for k, (name, path) in enumerate(zip(ss.names, ss.paths))
+        ]
+    if len(specs) < 2:
+        raise ValueError(f"an all-vs-all needs at least 2 shapes, got {len(specs)}")
+    return specs
+
+
+# ----------------------------------------------------------------------------------------------- store
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
+class RunStore:
+    """The SQLite store of one all-vs-all run (``folder/wpot.sqlite``). See the module docstring for tables."""
+
+    def __init__(self, folder: str | Path, *, create: bool = False) -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / STORE_NAME
+        if not create and not self.path.is_file():
+            raise FileNotFoundError(f"no wpot run in {str(self.folder)!r} (missing {STORE_NAME}); run `wpot all-vs-all ... --out {self.folder}` first")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.con = sqlite3.connect(self.path, timeout=60.0, isolation_level=None)
+        self.con.execute("PRAGMA journal_mode=WAL")
+        self.con.execute("PRAGMA synchronous=NORMAL")
+        self.con.executescript(
+            """
+            CREATE TABLE IF NOT EXISTS run(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+            CREATE TABLE IF NOT EXISTS shapes(idx INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, path TEXT,
+                fingerprint TEXT NOT NULL, n_vertices INTEGER NOT NULL);
+            CREATE TABLE IF NOT EXISTS labels(idx INTEGER NOT NULL, level TEXT NOT NULL, label TEXT NOT NULL,
+                PRIMARY KEY(idx, level));
+            CREATE TABLE IF NOT EXISTS pairs(i INTEGER NOT NULL, j INTEGER NOT NULL, energy REAL NOT NULL,
+                distance REAL, history TEXT NOT NULL, converged INTEGER NOT NULL, n_newton INTEGER,
+                n_linear INTEGER, seconds REAL, worker TEXT, finished_at REAL, PRIMARY KEY(i, j));
+            CREATE TABLE IF NOT EXISTS computations(id INTEGER PRIMARY KEY AUTOINCREMENT, i INTEGER NOT NULL,
+                j INTEGER NOT NULL, finished_at REAL);
+            CREATE TABLE IF NOT EXISTS failures(i INTEGER NOT NULL, j INTEGER NOT NULL, error TEXT, at REAL);
+            """
+        )
+
+    def close(self) -> None:
+        self.con.close()
+
+    def __enter__(self) -> "RunStore":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------------------- run metadata
+    def get(self, key: str, default: Any = None) -> Any:
+        row = self.con.execute("SELECT value FROM run WHERE key=?", (key,)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    def set(self, key: str, value: Any) -> None:
+        self.con.execute("INSERT OR REPLACE INTO run(key, value) VALUES (?, ?)", (key, json.dumps(value)))
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self.get("params", {})
+
+    @property
+    def transport(self) -> str:
+        return self.params.get("transport", "balanced")
+
+    def initialize(self, params: Mapping[str, Any], shapes: Sequence[tuple[str, str | None, str, int]], labels: Mapping[int, Mapping[str, str]]) -> None:
+        """Record a new run, or check that the stored one has the same parameters and shapes.
+
+        ``shapes`` holds (name, path, fingerprint, n_vertices) per shape, in order.
+        """
+        params = json.loads(_canonical(params))
+        phash = hashlib.sha1(_canonical(params).encode()).hexdigest()
+        fps = [s[2] for s in shapes]
+        stored = self.get("params_hash")
+        if stored is not None:
+            if stored != phash:
+                old = self.params
+                diff = {k: (old.get(k), params.get(k)) for k in sorted(set(old) | set(params)) if old.get(k) != params.get(k)}
+                raise RunMismatchError(
+                    f"{str(self.folder)!r} holds a run with other parameters: "
+                    + "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, (a, b) in diff.items())
+                    + ". Use another --out folder, or rerun with the stored parameters to resume."
+                )
+            old_fps = [r[0] for r in self.con.execute("SELECT fingerprint FROM shapes ORDER BY idx")]
+            if old_fps != fps:
+                old_names = [r[0] for r in self.con.execute("SELECT name FROM shapes ORDER BY idx")]
+                new_names = [s[0] for s in shapes]
+                what = (
+                    f"stored {len(old_names)} shapes, requested {len(new_names)}"
+                    if old_names != new_names
+                    else "the same names but different mesh contents"
+                )
+                raise RunMismatchError(
+                    f"{str(self.folder)!r} holds a run over other shapes ({what}); use another --out folder"
+                )
+            self._write_labels(labels)  # labels may be added or corrected on resume; they change no distance
+            return
+        with self.con:
+            self.con.execute("BEGIN")
+            self.set("schema_version", SCHEMA_VERSION)
+            self.set("params", params)
+            self.set("params_hash", phash)
+            self.set("created_at", time.time())
+            from wpot import __version__
+
+            self.set("wpot_version", __version__)
+            self.con.executemany(
+                "INSERT INTO shapes(idx, name, path, fingerprint, n_vertices) VALUES (?, ?, ?, ?, ?)",
+                [(k, *s) for k, s in enumerate(shapes)],
+            )
+        self._write_labels(labels)
+
+    def _write_labels(self, labels: Mapping[int, Mapping[str, str]]) -> None:
+        with self.con:
+            self.con.execute("BEGIN")
+            for idx, d in labels.items():
+                for level, lab in d.items():
+                    self.con.execute("INSERT OR REPLACE INTO labels(idx, level, label) VALUES (?, ?, ?)", (int(idx), level, str(lab)))
+
+    # ----------------------------------------------------------------------------------- shapes
+    @property
+    def names(self) -> list[str]:
+        return [r[0] for r in self.con.execute("SELECT name FROM shapes ORDER BY idx")]
+
+    @property
+    def n_shapes(self) -> int:
+        return int(self.con.execute("SELECT COUNT(*) FROM shapes").fetchone()[0])
+
+    def shape_rows(self) -> list[tuple[int, str, str | None, str, int]]:
+        return list(self.con.execute("SELECT idx, name, path, fingerprint, n_vertices FROM shapes ORDER BY idx"))
+
+    def label_levels(self) -> list[str]:
+        return [r[0] for r in self.con.execute("SELECT DISTINCT level FROM labels ORDER BY level")]
+
+    def labels(self, level: str = "class") -> list[str | None]:
+        """Label of each shape (by index) at ``level``; None where a shape has none."""
+        out: list[str | None] = [None] * self.n_shapes
+        for idx, lab in self.con.execute("SELECT idx, label FROM labels WHERE level=?", (level,)):
+            out[idx] = lab
+        return out
+
+    # ------------------------------------------------------------------------------------ pairs
+    def tasks(self) -> list[tuple[int, int]]:
+        """Every pair this run needs: i < j, plus (i, i) for partial transport (self-comparisons first)."""
+        n = self.n_shapes
+        selfs = [(i, i) for i in range(n)] if self.transport == "partial" else []
+        return selfs + [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+    def done(self) -> set[tuple[int, int]]:
+        return {(int(i), int(j)) for i, j in self.con.execute("SELECT i, j FROM pairs")}
+
+    def commit(self, rec: Mapping[str, Any]) -> bool:
+        """Commit one finished pair in a single transaction. Returns False (and stores nothing new in
+        ``pairs``) when the pair was already there; the computation is logged either way."""
+        i, j = int(rec["i"]), int(rec["j"])
+        now = time.time()
+        with self.con:
+            self.con.execute("BEGIN IMMEDIATE")
+            self.con.execute("INSERT INTO computations(i, j, finished_at) VALUES (?, ?, ?)", (i, j, now))
+            try:
+                self.con.execute(
+                    "INSERT INTO pairs(i, j, energy, distance, history, converged, n_newton, n_linear, seconds, worker, finished_at)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        i, j, float(rec["energy"]),
+                        0.0 if i == j else (float(rec["energy"]) if self.transport == "balanced" else None),
+                        json.dumps(rec["history"]), int(bool(rec["converged"])), rec.get("n_newton"),
+                        rec.get("n_linear"), rec.get("seconds"), rec.get("worker"), now,
+                    ),
+                )
+            except sqlite3.IntegrityError:
+                return False
+            if self.transport == "partial":  # SU (Eq. 27) for every pair whose two self-comparisons are now in
+                self.con.execute(
+                    "UPDATE pairs SET distance = energy - 0.5 * ("
+                    " (SELECT s.energy FROM pairs s WHERE s.i = pairs.i AND s.j = pairs.i) +"
+                    " (SELECT s.energy FROM pairs s WHERE s.i = pairs.j AND s.j = pairs.j))"
+                    " WHERE distance IS NULL AND i <> j"
+                )
+            self.con.execute("DELETE FROM failures WHERE i=? AND j=?", (i, j))
+        return True
+
+    def record_failure(self, i: int, j: int, error: str) -> None:
+        with self.con:
+            self.con.execute("INSERT INTO failures(i, j, error, at) VALUES (?, ?, ?, ?)", (i, j, error, time.time()))
+
+    def failures(self) -> list[tuple[int, int, str]]:
+        return list(self.con.execute("SELECT i, j, error FROM failures ORDER BY at"))
+
+    @property
+    def n_computations(self) -> int:
+        return int(self.con.execute("SELECT COUNT(*) FROM computations").fetchone()[0])
+
+    def pair_rows(self) -> list[dict[str, Any]]:
+        cols = ["i", "j", "energy", "distance", "history", "converged", "n_newton", "n_linear", "seconds", "worker"]
+        rows = self.con.execute(f"SELECT {', '.join(cols)} FROM pairs ORDER BY i, j")
+        return [dict(zip(cols, r)) for r in rows]
+
+    # ------------------------------------------------------------------------------- matrices
+    def distance_matrix(self) -> np.ndarray:
+        """D(∞): (n, n) float64 symmetric distances at convergence; NaN for pairs not yet computed
+        (partial: also until both self-comparisons are in). The diagonal is 0."""
+        n = self.n_shapes
+        d = np.full((n, n), np.nan)
+        np.fill_diagonal(d, 0.0)
+        for i, j, dist in self.con.execute("SELECT i, j, distance FROM pairs WHERE i <> j"):
+            if dist is not None:
+                d[i, j] = d[j, i] = dist
+        return d
+
+    def converged_matrix(self) -> np.ndarray:
+        """(n, n) bool: the solver reported convergence for the pair (False where missing)."""
+        n = self.n_shapes
+        c = np.zeros((n, n), dtype=bool)
+        for i, j, ok in self.con.execute("SELECT i, j, converged FROM pairs"):
+            c[i, j] = c[j, i] = bool(ok)
+        return c
+
+    def distance_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """D(β) at every annealing β that any pair reached.
+
+        Returns
+        -------
+        betas : (n_β,) float64, increasing
+        D : (n_β, n, n) float64; a pair that converged before β keeps its last value (the energies are
+            monotone in β and settle); NaN where missing. Partial: SU_β of Eq. 27, with the self
+            energies read at the same β. Diagonal 0.
+        """
+        from wpot.compare import debias_history, history_at
+
+        rows = self.con.execute("SELECT i, j, history FROM pairs").fetchall()
+        hist = {(i, j): np.asarray(json.loads(h), dtype=np.float64).reshape(-1, 2) for i, j, h in rows}
+        all_b = np.concatenate([h[:, 0] for h in hist.values()]) if hist else np.zeros(0)
+        betas = _unique_logs(all_b)
+        n = self.n_shapes
+        out = np.full((len(betas), n, n), np.nan)
+        idx = np.arange(n)
+        out[:, idx, idx] = 0.0
+        partial = self.transport == "partial"
+        for (i, j), h in hist.items():
+            if i == j:
+                continue
+            if partial:
+                if (i, i) not in hist or (j, j) not in hist:
+                    continue
+                h = debias_history(h, hist[(i, i)], hist[(j, j)])
+            v = history_at(h, betas)
+            out[:, i, j] = out[:, j, i] = v
+        return betas, out
+
+
+def _unique_logs(b: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
+    if b.size == 0:
+        return b
+    b = np.sort(b)
+    keep = np.r_[True, np.diff(np.log(b)) > rtol]
+    return b[keep]
+
+
+# --------------------------------------------------------------------------------------------- workers
+_WORKER_COMPARERS: dict[str, Any] = {}
+_WORKER_MESHES: dict[str, Mesh] = {}
+
+
+def _worker_comparer(config: Mapping[str, Any]):
+    key = _canonical(config)
+    c = _WORKER_COMPARERS.get(key)
+    if c is None:
+        from wpot.compare import Comparer
+
+        opts = dict(config["comparer"])
+        c = Comparer(**opts, energies=config.get("energies"), cache_dir=config.get("cache_dir"), device=config.get("device"))
+        _WORKER_COMPARERS.clear()
+        _WORKER_COMPARERS[key] = c
+    return c
+
+
+def _worker_mesh(spec: Any) -> Mesh:
+    if isinstance(spec, Mesh):
+        return spec
+    m = _WORKER_MESHES.get(spec)
+    if m is None:
+        from wpot.io import load_mesh
+
+        m = load_mesh(spec)
+        if len(_WORKER_MESHES) > 64:
+            _WORKER_MESHES.clear()
+        _WORKER_MESHES[spec] = m
+    return m
+
+
+def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
+    """Compute (and cache on disk) one shape's signatures; returns its vertex count."""
+    mesh = _worker_mesh(spec)
+    _worker_comparer(config).signatures(mesh)
+    return mesh.n_vertices
+
+
+def _spectrum_task(spec: Any, n_eigen: int) -> Any:
+    from wpot.spectral import eigenpairs
+
+    return eigenpairs(_worker_mesh(spec), n_eigen)
+
+
+def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
+    """Solve one pair (raw energy U and its per-β history), self-contained so any executor can run it."""
+    from wpot.compare import energy_history, transport_energy
+
+    t0 = time.perf_counter()
+    comp = _worker_comparer(config)
+    a = _worker_mesh(spec_i)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # non-convergence is recorded in the store's `converged` column
+        if i == j:
+            res = comp.self_result(a)
+        else:
+            res = comp.transport_plan(a, _worker_mesh(spec_j))
+    return {
+        "i": i,
+        "j": j,
+        "energy": transport_energy(res, comp.transport),
+        "history": energy_history(res, comp.transport).tolist(),
+        "converged": bool(res.converged),
+        "n_newton": int(getattr(res, "n_newton", 0) or 0),
+        "n_linear": int(getattr(res, "n_linear", 0) or 0),
+        "seconds": time.perf_counter() - t0,
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+    }
+
+
+# ------------------------------------------------------------------------------------------------ runner
+def run_all_vs_all(
+    shapes: str | Path | Sequence[str | Path | Mesh],
+    out: str | Path,
+    *,
+    signature: str = "wks",
+    transport: str = "balanced",
+    jobs: int | None = 1,
+    executor: cf.Executor | None = None,
+    labels: str | Path | Mapping[str, Mapping[str, str]] | None = None,
+    device: str | None = None,
+    progress: bool = True,
+    max_pairs: int | None = None,
+    **comparer_options: Any,
+) -> RunStore:
+    """Compare every pair of ``shapes`` and store the results in the run folder ``out`` (resumable).
+
+    Parameters
+    ----------
+    shapes : folder, list file, or sequence of paths / meshes (see `discover_shapes`)
+    out : run folder; created if needed. An existing run with the same parameters and shapes is resumed.
+    signature, transport, **comparer_options : as `wpot.compare.Comparer` (max_vertices, mass_penalty,
+        n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` defaults to ``out/cache``.
+    jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores)
+    executor : any `concurrent.futures.Executor` (e.g. a Dask ``client.get_executor()``); overrides ``jobs``
+    labels : a label CSV (`wpot.datasets.read_label_csv`: a ``name`` column and one column per level); its
+        first column is also level "class". Without it, "class" comes from the file names.
+    device : Warp device each worker uses (None: its default)
+    progress : show a tqdm bar with pairs per second and the ETA
+    max_pairs : stop after committing this many new pairs (for tests and partial runs)
+
+    Returns
+    -------
+    RunStore : the open store; ``distance_matrix()`` and ``distance_matrices()`` read the results back.
+    """
+    from wpot.compare import Comparer
+
+    if labels is not None and not isinstance(labels, (str, Path)):
+        raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
+    specs = discover_shapes(shapes, labels=labels)
+    out = Path(out)
+    cache_dir = str((out / "cache").resolve())
+    comparer = Comparer(signature=signature, transport=transport, device=device, **{k: v for k, v in comparer_options.items() if k != "cache_dir"})
+    params = comparer.params()
+
+    meshes = [s.load() for s in specs]  # validates every file up front: fail before any work
+    shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
+    lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
+
+    store = RunStore(out, create=True)
+    store.initialize(params, shape_rows, lab)
+    todo = [t for t in store.tasks() if t not in store.done()]
+    if not todo:
+        return store
+
+    own_pool = None
+    if executor is None and (jobs is None or jobs > 1):
+        import multiprocessing as mp
+
+        own_pool = cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"))
+        executor = own_pool
+    task_specs = [s.path if s.path is not None else m for s, m in zip(specs, meshes)]
+    try:
+        # the shared WKS energy grid (paper §3.2): one grid for the whole dataset, stored with the run
+        energies = store.get("energies")
+        if signature == "wks" and energies is None:
+            spectra = _map(executor, _spectrum_task, [(sp, comparer.n_eigen) for sp in task_specs], "spectra", progress)
+            from wpot.compare import _energy_grid
+            from wpot.signatures import wks_energies
+
+            energies = _energy_grid(wks_energies(spectra)).tolist()
+            store.set("energies", energies)
+        config = {
+            "comparer": {k: v for k, v in _comparer_kwargs(comparer).items()},
+            "energies": energies,
+            "cache_dir": cache_dir,
+            "device": device,
+        }
+        needed = sorted({i for t in todo for i in t})
+        _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
+        _run_pairs(store, executor, todo, task_specs, config, progress, max_pairs)
+    finally:
+        if own_pool is not None:
+            own_pool.shutdown(wait=True, cancel_futures=True)
+    return store
+
+
+def _comparer_kwargs(c: Any) -> dict[str, Any]:
+    return {
+        "signature": c.signature,
+        "transport": c.transport,
+        "max_vertices": c.max_vertices,
+        "fps_metric": c.fps_metric,
+        "mass_penalty": c.mass_penalty,
+        "n_eigen": c.n_eigen,
+        "n_energies": c.n_energies,
+        "ldsift_K": c.ldsift_K,
+        "ldsift_resolution": c.ldsift_resolution,
+        "solver_options": dict(c.solver_options),
+        "match_ratio": c.match_ratio,
+    }
+
+
+def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: bool) -> list[Any]:
+    """Run ``fn(*args)`` for each args (inline or on the executor), in order, with a progress bar."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(arglist), desc=what, unit="shape", disable=not progress, leave=False)
+    try:
+        if executor is None:
+            out = []
+            for a in arglist:
+                out.append(fn(*a))
+                bar.update()
+            return out
+        futs = [executor.submit(fn, *a) for a in arglist]
+        for _ in cf.as_completed(futs):
+            bar.update()
+        return [f.result() for f in futs]
+    finally:
+        bar.close()
+
+
+def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: bool, max_pairs: int | None) -> None:
+    from tqdm.auto import tqdm
+
+    total = len(store.tasks())
+    bar = tqdm(total=total, initial=total - len(todo), desc="pairs", unit="pair", disable=not progress, dynamic_ncols=True)
+    n_new = 0
+
+    def handle(i: int, j: int, fut_or_rec: Any) -> None:
+        nonlocal n_new
+        try:
+            rec = fut_or_rec.result() if isinstance(fut_or_rec, cf.Future) else fut_or_rec
+        except Exception as exc:  # a failing pair is recorded and the run goes on
+            store.record_failure(i, j, f"{type(exc).__name__}: {exc}")
+            bar.write(f"pair ({i}, {j}) failed: {type(exc).__name__}: {exc}")
+            return
+        if store.commit(rec):
+            n_new += 1
+        bar.update()
+
+    try:
+        if executor is None:
+            for i, j in todo:
+                if max_pairs is not None and n_new >= max_pairs:
+                    break
+                try:
+                    rec = _pair_task(i, j, task_specs[i], task_specs[j], config)
+                except Exception as exc:
+                    store.record_failure(i, j, f"{type(exc).__name__}: {exc}")
+                    bar.write(f"pair ({i}, {j}) failed: {type(exc).__name__}: {exc}")
+                    continue
+                handle(i, j, rec)
+        else:
+            futs = {executor.submit(_pair_task, i, j, task_specs[i], task_specs[j], config): (i, j) for i, j in todo}
+            for f in cf.as_completed(futs):
+                handle(*futs[f], f)
+                if max_pairs is not None and n_new >= max_pairs:
+                    for g in futs:
+                        g.cancel()
+                    break
+    finally:
+        bar.close()
+    fails = store.failures()
+    if fails:
+        warnings.warn(
+            f"{len(fails)} pairs failed and are not in the store (first: {fails[0]}); rerun the same command to retry them",
+            stacklevel=3,
+        )
