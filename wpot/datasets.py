@@ -1,0 +1,482 @@
+"""Datasets for the paper's experiments (§4): shape lists with class labels, TOSCA ground truth, and HEAD.
+
+* Class labels come from file names (`class_label`: the name without its trailing digits, ``cat10`` ->
+  ``cat``) or from a CSV file with a ``name`` column and one or more label levels (`read_label_csv`,
+  e.g. genus / family / superfamily for the anatomical datasets of Tables 2-4).
+* TOSCA ground truth (`tosca_ground_truth`): line ``i`` of ``corres/A.vts`` and line ``i`` of
+  ``corres/B.vts`` (1-based vertex indices) are corresponding vertices, for shapes of one class and also
+  for david/michael, which share a template (`correspondence_group`) but are different classes.
+* HEAD (`build_head_dataset`, paper §4.2): the head of every cat and horse of ``tosca_isometric_5k``,
+  cut with `wpot.cut` at a region chosen once on a reference shape per class and transferred to the
+  other shapes through the ground truth, so that every head of a class is the same part.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .mesh import Mesh, cut
+
+__all__ = [
+    "MESH_EXTENSIONS",
+    "ShapeSet",
+    "LabelTable",
+    "HeadDataset",
+    "class_label",
+    "correspondence_group",
+    "list_shapes",
+    "read_label_csv",
+    "read_test_pairs",
+    "tosca_vts",
+    "tosca_ground_truth",
+    "build_head_dataset",
+    "load_head_dataset",
+    "head_ground_truth",
+]
+
+#: file extensions `list_shapes` picks up in a folder
+MESH_EXTENSIONS = (".off", ".obj", ".ply", ".stl", ".mat")
+
+#: TOSCA classes that share a correspondence template (``.vts`` lines match across them)
+TOSCA_TEMPLATE_GROUPS: dict[str, str] = {"david": "human_male", "michael": "human_male"}
+
+_TRAILING_DIGITS = re.compile(r"[\s_\-.]*\d+$")
+
+
+# ----------------------------------------------------------------------------- labels and lists
+def class_label(name: str | Path) -> str:
+    """Class of a shape from its name: the name (no folder, no extension) without trailing digits.
+
+    ``cat10`` -> ``cat``; ``cat_head3`` -> ``cat_head``; ``camel-gallop-01`` -> ``camel-gallop`` (a
+    separator ``_``, ``-``, ``.`` or space right before the digits is dropped too).
+    """
+    stem = Path(str(name)).name
+    for ext in MESH_EXTENSIONS:
+        if stem.lower().endswith(ext):
+            stem = stem[: -len(ext)]
+            break
+    label = _TRAILING_DIGITS.sub("", stem)
+    if not label:
+        raise ValueError(f"cannot derive a class label from the name {str(name)!r}: it has no non-digit prefix")
+    return label
+
+
+def correspondence_group(name: str) -> str:
+    """The ground-truth template a TOSCA shape belongs to: its class, except david/michael share one."""
+    label = class_label(name)
+    return TOSCA_TEMPLATE_GROUPS.get(label, label)
+
+
+@dataclass(frozen=True)
+class LabelTable:
+    """Labels for named shapes at one or more levels (e.g. genus, family).
+
+    ``levels[level][k]`` is the label of ``names[k]``.
+    """
+
+    names: tuple[str, ...]
+    levels: dict[str, tuple[str, ...]]
+
+    def for_names(self, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """Labels at every level, reordered to follow ``names``: ``{level: (len(names),) str array}``."""
+        pos = {n: k for k, n in enumerate(self.names)}
+        missing = [n for n in names if n not in pos]
+        if missing:
+            raise ValueError(f"{len(missing)} shapes have no row in the label table, e.g. {missing[:5]}")
+        idx = np.array([pos[n] for n in names], dtype=np.int64)
+        return {lvl: np.asarray(lab, dtype=str)[idx] for lvl, lab in self.levels.items()}
+
+
+def read_label_csv(path: str | Path) -> LabelTable:
+    """Read a label CSV: a header row with a ``name`` column (a shape's file name, with or without its
+    extension) and one column per label level; one row per shape.
+    """
+    path = Path(path)
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    if not rows:
+        raise ValueError(f"label CSV {path} is empty")
+    header = [h.strip() for h in rows[0]]
+    if "name" not in header:
+        raise ValueError(f"label CSV {path} needs a 'name' column in its header row, got columns {header}")
+    if len(header) < 2:
+        raise ValueError(f"label CSV {path} needs at least one label column besides 'name', got {header}")
+    if len(set(header)) != len(header):
+        raise ValueError(f"label CSV {path} repeats a column name: {header}")
+    ni = header.index("name")
+    names: list[str] = []
+    cols: dict[str, list[str]] = {h: [] for k, h in enumerate(header) if k != ni}
+    for line, r in enumerate(rows[1:], start=2):
+        if len(r) != len(header):
+            raise ValueError(f"label CSV {path} line {line} has {len(r)} fields, expected {len(header)}: {r}")
+        names.append(_strip_ext(r[ni].strip()))
+        for k, h in enumerate(header):
+            if k != ni:
+                cols[h].append(r[k].strip())
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"label CSV {path} lists shapes more than once: {dup[:5]}")
+    return LabelTable(tuple(names), {h: tuple(v) for h, v in cols.items()})
+
+
+def _strip_ext(name: str) -> str:
+    for ext in MESH_EXTENSIONS:
+        if name.lower().endswith(ext):
+            return name[: -len(ext)]
+    return name
+
+
+def _natural_key(s: str) -> list:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+
+
+@dataclass(frozen=True)
+class ShapeSet:
+    """An ordered list of mesh files with labels.
+
+    ``paths[k]`` has name ``names[k]`` (file name without extension) and label ``labels[level][k]``;
+    the level ``"class"`` is always there (from the CSV's first label column, or from the file names).
+    """
+
+    paths: tuple[Path, ...]
+    names: tuple[str, ...]
+    labels: dict[str, np.ndarray] = field(repr=False)
+
+    @property
+    def classes(self) -> np.ndarray:
+        """(n,) str: the labels at level ``"class"``."""
+        return self.labels["class"]
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+
+def list_shapes(source: str | Path | Iterable[str | Path], *, labels: str | Path | None = None) -> ShapeSet:
+    """List the meshes of a dataset, in natural name order (``cat2`` before ``cat10``) for a folder, or in
+    the given order for a list, with their class labels.
+
+    Parameters
+    ----------
+    source : a folder (its files with an extension in `MESH_EXTENSIONS`; not recursive) or a list of paths.
+    labels : optional CSV (see `read_label_csv`); its first label column becomes level ``"class"`` as well as
+        keeping its own name. Without it the class is `class_label` of each file name.
+    """
+    if isinstance(source, (str, Path)):
+        folder = Path(source)
+        if not folder.is_dir():
+            raise ValueError(f"shape source must be a folder or a list of mesh files, got {str(source)!r} (not a folder)")
+        paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in MESH_EXTENSIONS and p.is_file()),
+                       key=lambda p: _natural_key(p.stem))
+        if not paths:
+            raise ValueError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) in folder {folder}")
+    else:
+        paths = [Path(p) for p in source]
+        if not paths:
+            raise ValueError("empty list of meshes")
+        missing = [str(p) for p in paths if not p.is_file()]
+        if missing:
+            raise ValueError(f"{len(missing)} mesh files do not exist, e.g. {missing[:3]}")
+    names = tuple(p.stem for p in paths)
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"several files share a name (shapes are identified by name): {dup[:5]}")
+    if labels is None:
+        lab = {"class": np.array([class_label(n) for n in names], dtype=str)}
+    else:
+        table = read_label_csv(labels)
+        lab = table.for_names(names)
+        first = next(iter(table.levels))
+        lab = {"class": lab[first], **lab}
+    return ShapeSet(tuple(paths), names, lab)
+
+
+def read_test_pairs(path: str | Path) -> list[tuple[str, str]]:
+    """Read a pair list: one pair of shape names per line, separated by a tab (or other whitespace)."""
+    pairs = []
+    for line_no, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split("\t") if "\t" in line else line.split()
+        parts = [p.strip() for p in parts if p.strip()]
+        if len(parts) != 2:
+            raise ValueError(f"{path} line {line_no}: expected two shape names, got {line!r}")
+        pairs.append((parts[0], parts[1]))
+    return pairs
+
+
+# ----------------------------------------------------------------------------- TOSCA ground truth
+def _load_vts(path: Path) -> np.ndarray:
+    """A ``.vts`` file as a (K,) int64 array of 0-based vertex indices."""
+    # TODO(io): switch to wpot.io.load_vts once it lands
+    v = np.loadtxt(path, dtype=np.int64, ndmin=1)
+    if v.ndim != 1 or v.size == 0 or v.min() < 1:
+        raise ValueError(f"{path}: expected one 1-based vertex index per line, got shape {v.shape}, min {v.min() if v.size else None}")
+    return v - 1
+
+
+def tosca_vts(folder: str | Path, name: str, *, symmetric: bool = False) -> np.ndarray:
+    """The correspondence template of a TOSCA shape: (K,) int64, 0-based vertex of ``name`` at template
+    point ``i``. ``folder`` is the ``vtx_5k`` folder (with ``corres/``) or its parent. ``symmetric`` reads the
+    left/right-flipped template (``<name>.sym.vts``).
+    """
+    folder = Path(folder)
+    corres = folder / "corres" if (folder / "corres").is_dir() else folder / "vtx_5k" / "corres"
+    path = corres / f"{name}{'.sym' if symmetric else ''}.vts"
+    if not path.is_file():
+        raise ValueError(f"no ground-truth file for shape {name!r}: {path} does not exist")
+    return _load_vts(path)
+
+
+def tosca_ground_truth(folder: str | Path, source: str, target: str, *, symmetric: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth vertex pairs between two TOSCA shapes of the same template.
+
+    Returns
+    -------
+    src, dst : (K,) int64 each; vertex ``src[k]`` of ``source`` corresponds to vertex ``dst[k]`` of ``target``
+        (K = 5,000 template points for ``tosca_isometric_5k``; a vertex may appear several times).
+        With ``symmetric=True``, ``dst`` is the left/right mirror of the true correspondent.
+    """
+    ga, gb = correspondence_group(source), correspondence_group(target)
+    if ga != gb:
+        raise ValueError(f"{source!r} ({ga}) and {target!r} ({gb}) share no correspondence template")
+    src = tosca_vts(folder, source)
+    dst = tosca_vts(folder, target, symmetric=symmetric)
+    if src.shape != dst.shape:
+        raise ValueError(f"ground-truth files of {source!r} and {target!r} differ in length: {src.shape} vs {dst.shape}")
+    return src, dst
+
+
+# ----------------------------------------------------------------------------- mesh files
+def _load_mesh(path: Path) -> Mesh:
+    # TODO(io): switch to wpot.io.load_mesh once it lands
+    import trimesh
+
+    tm = trimesh.load(path, process=False, force="mesh")
+    return Mesh(tm.vertices, tm.faces)
+
+
+def _save_mesh(mesh: Mesh, path: Path) -> None:
+    # TODO(io): switch to wpot.io.save_mesh once it lands
+    import trimesh
+
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+
+
+# ----------------------------------------------------------------------------- HEAD dataset
+#: HEAD: the reference shape per class and the fraction of its area that the head covers. The head
+#: is the geodesic ball around the snout tip (the reference's vertex of smallest y: TOSCA cats and horses
+#: face -y) holding that area fraction; the paper's heads have about 700 of 3,400 vertices (~20 %).
+HEAD_REFERENCES: dict[str, str] = {"cat": "cat0", "horse": "horse0"}
+HEAD_AREA_FRACTION = 0.2
+
+
+@dataclass(frozen=True)
+class HeadDataset:
+    """The HEAD dataset (paper §4.2): full shapes and their heads.
+
+    ``names[k]`` / ``meshes[k]`` / ``labels[k]`` (``"cat"``, ``"cat_head"``, ``"horse"``, ``"horse_head"``)
+    and ``species[k]`` (``"cat"`` / ``"horse"``). For a head, ``parent[name]`` is the full shape it was cut
+    from and ``parent_map[name]`` ((N_head,) int64) the vertex of the parent each head vertex is
+    (part vertex -> full-shape vertex). ``template[name]`` ((K,) int64, -1 where absent) is the head vertex at
+    each TOSCA template point, so heads map to every shape of their class (`head_ground_truth`).
+    """
+
+    names: tuple[str, ...]
+    meshes: tuple[Mesh, ...] = field(repr=False)
+    labels: np.ndarray = field(repr=False)
+    species: np.ndarray = field(repr=False)
+    parent: dict[str, str] = field(repr=False)
+    parent_map: dict[str, np.ndarray] = field(repr=False)
+    template: dict[str, np.ndarray] = field(repr=False)
+    landmark: dict[str, int] = field(repr=False)
+    radius: dict[str, float] = field(repr=False)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def mesh(self, name: str) -> Mesh:
+        return self.meshes[self.names.index(name)]
+
+
+def _geodesic_from(mesh: Mesh, vertex: int) -> np.ndarray:
+    from .evaluate import GeodesicDistances
+
+    return GeodesicDistances(mesh).from_sources(np.array([vertex]))[0].astype(np.float64)
+
+
+def _transfer_scalar(mesh: Mesh, vts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Carry a function on the template points onto every vertex of ``mesh``: a vertex that template points
+    land on gets their mean; the others take the value of the nearest such vertex (Euclidean)."""
+    n = mesh.n_vertices
+    tot = np.bincount(vts, values, minlength=n)
+    cnt = np.bincount(vts, minlength=n)
+    hit = cnt > 0
+    out = np.empty(n)
+    out[hit] = tot[hit] / cnt[hit]
+    if not hit.all():
+        hit_idx = np.nonzero(hit)[0]
+        _, nn = cKDTree(mesh.vertices[hit_idx]).query(mesh.vertices[~hit])
+        out[~hit] = out[hit_idx[nn]]
+    return out
+
+
+def _clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
+    """The connected component of ``mask`` holding ``seed``, with holes (components of the complement
+    that do not hold the complement's largest component) filled."""
+    adj = mesh.adjacency
+
+    def components(keep: np.ndarray) -> np.ndarray:
+        a = sp.diags(keep.astype(float)) @ adj @ sp.diags(keep.astype(float))
+        _, lab = sp.csgraph.connected_components(a, directed=False)
+        return lab
+
+    if not mask[seed]:
+        raise ValueError(f"the head landmark (vertex {seed}) is outside the transferred head region")
+    lab = components(mask)
+    region = mask & (lab == lab[seed])
+    rest = ~region
+    lab = components(rest)
+    big = np.bincount(lab[rest]).argmax()
+    return region | (rest & (lab != big))
+
+
+def _region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> float:
+    """Smallest radius r whose ball {dist <= r} holds ``fraction`` of the area (vertex areas = 1/3 of faces)."""
+    va = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices)
+    order = np.argsort(dist)
+    cum = np.cumsum(va[order]) / va.sum()
+    return float(dist[order[np.searchsorted(cum, fraction)]])
+
+
+def build_head_dataset(
+    tosca: str | Path,
+    out: str | Path | None = None,
+    *,
+    classes: Sequence[str] = ("cat", "horse"),
+    area_fraction: float = HEAD_AREA_FRACTION,
+) -> HeadDataset:
+    """Build HEAD (paper §4.2): every cat and horse of ``tosca_isometric_5k`` and its head.
+
+    The head is chosen once per class on the reference shape (`HEAD_REFERENCES`): the geodesic ball
+    (heat method) around the snout tip holding ``area_fraction`` of the area. Its geodesic distance function
+    is carried to the other shapes of the class through the ``.vts`` ground truth (`_transfer_scalar`), and
+    thresholded at the same radius, so every head is the same part; the region is then made one connected
+    piece without holes and cut out with `wpot.cut`. For ``tosca_isometric_5k`` that is 11 cats + 8 horses =
+    19 full shapes and 19 heads: 38 shapes.
+
+    Parameters
+    ----------
+    tosca : the ``tosca_isometric_5k`` folder or its ``vtx_5k`` folder.
+    out : optional folder (created; never inside the repository) where the shapes are written as
+        ``<name>.off`` beside ``labels.csv`` (name, class, species), ``<head>.parent.txt`` (one 0-based
+        vertex of the parent per head vertex) and ``<head>.template.txt`` (the head vertex at each template
+        point, -1 where absent), and ``manifest.json``. `load_head_dataset` reads it back.
+    """
+    tosca = Path(tosca)
+    folder = tosca / "vtx_5k" if (tosca / "vtx_5k").is_dir() else tosca
+    if not (folder / "corres").is_dir():
+        raise ValueError(f"{tosca} is not a tosca_isometric_5k folder (no vtx_5k/corres)")
+    if not 0.0 < area_fraction < 1.0:
+        raise ValueError(f"area_fraction must lie in (0, 1), got {area_fraction}")
+    all_names = [p.stem for p in sorted(folder.glob("*.off"), key=lambda p: _natural_key(p.stem))]
+    names, meshes, labels, species = [], [], [], []
+    parent, parent_map, template, landmark, radius = {}, {}, {}, {}, {}
+    heads: list[tuple[str, Mesh, str]] = []
+    for cls in classes:
+        members = [n for n in all_names if class_label(n) == cls]
+        ref = HEAD_REFERENCES.get(cls, members[0] if members else None)
+        if ref not in members:
+            raise ValueError(f"no shapes of class {cls!r} (reference {ref!r}) in {folder}")
+        ref_mesh = _load_mesh(folder / f"{ref}.off")
+        ref_vts = tosca_vts(folder, ref)
+        tip = int(np.argmin(ref_mesh.vertices[:, 1]))
+        # the template point closest (on the reference) to the snout tip: the landmark carried to each shape
+        t_land = int(np.argmin(np.linalg.norm(ref_mesh.vertices[ref_vts] - ref_mesh.vertices[tip], axis=1)))
+        dist = _geodesic_from(ref_mesh, int(ref_vts[t_land]))
+        r = _region_fraction_radius(ref_mesh, dist, area_fraction)
+        f_template = dist[ref_vts]
+        landmark[cls], radius[cls] = t_land, r
+        for name in members:
+            mesh = ref_mesh if name == ref else _load_mesh(folder / f"{name}.off")
+            vts = tosca_vts(folder, name)
+            f = _transfer_scalar(mesh, vts, f_template)
+            region = _clean_region(mesh, f <= r, int(vts[t_land]))
+            head, pmap = cut(mesh, region)
+            hname = f"{cls}_head{name[len(cls):]}"
+            inv = np.full(mesh.n_vertices, -1, dtype=np.int64)
+            inv[pmap] = np.arange(len(pmap))
+            names.append(name), meshes.append(mesh), labels.append(cls), species.append(cls)
+            heads.append((hname, head, cls))
+            parent[hname], parent_map[hname], template[hname] = name, pmap, inv[vts]
+        for hname, head, _ in heads:  # order: cat, cat_head, horse, horse_head (paper Fig. 7)
+            names.append(hname), meshes.append(head), labels.append(f"{cls}_head"), species.append(cls)
+        heads.clear()
+    ds = HeadDataset(tuple(names), tuple(meshes), np.array(labels), np.array(species), parent, parent_map, template,
+                     landmark, radius)
+    if out is not None:
+        _write_head_dataset(ds, Path(out))
+    return ds
+
+
+def _write_head_dataset(ds: HeadDataset, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for name, mesh in zip(ds.names, ds.meshes):
+        _save_mesh(mesh, out / f"{name}.off")
+    with open(out / "labels.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", "class", "species"])
+        w.writerows(zip(ds.names, ds.labels.tolist(), ds.species.tolist()))
+    for h in ds.parent:
+        np.savetxt(out / f"{h}.parent.txt", ds.parent_map[h], fmt="%d")
+        np.savetxt(out / f"{h}.template.txt", ds.template[h], fmt="%d")
+    manifest = {
+        "description": "HEAD dataset (Koehl & Orland 2023, section 4.2) built by wpot.datasets.build_head_dataset",
+        "index_base": 0,
+        "names": list(ds.names),
+        "parent": ds.parent,
+        "landmark_template_point": ds.landmark,
+        "radius": ds.radius,
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+
+
+def load_head_dataset(folder: str | Path) -> HeadDataset:
+    """Read a HEAD dataset written by `build_head_dataset` (``out=``)."""
+    folder = Path(folder)
+    mf = folder / "manifest.json"
+    if not mf.is_file():
+        raise ValueError(f"{folder} holds no HEAD dataset (no manifest.json)")
+    manifest = json.loads(mf.read_text())
+    table = read_label_csv(folder / "labels.csv").for_names(manifest["names"])
+    names = tuple(manifest["names"])
+    meshes = tuple(_load_mesh(folder / f"{n}.off") for n in names)
+    pm = {h: np.loadtxt(folder / f"{h}.parent.txt", dtype=np.int64, ndmin=1) for h in manifest["parent"]}
+    tp = {h: np.loadtxt(folder / f"{h}.template.txt", dtype=np.int64, ndmin=1) for h in manifest["parent"]}
+    return HeadDataset(names, meshes, table["class"], table["species"], dict(manifest["parent"]), pm, tp,
+                       {k: int(v) for k, v in manifest["landmark_template_point"].items()},
+                       {k: float(v) for k, v in manifest["radius"].items()})
+
+
+def head_ground_truth(ds: HeadDataset, head: str, target: str, tosca: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth pairs from a head to a full shape of its class (its parent or another pose).
+
+    Returns ``src, dst`` ((K,) int64): head vertex ``src[k]`` corresponds to vertex ``dst[k]`` of ``target``,
+    through the TOSCA template (template points that fall outside the head are left out).
+    """
+    if head not in ds.template:
+        raise ValueError(f"{head!r} is not a head of this dataset; heads: {sorted(ds.template)}")
+    tmpl = ds.template[head]
+    dst_all = tosca_vts(tosca, target)
+    if correspondence_group(ds.parent[head]) != correspondence_group(target):
+        raise ValueError(f"{head!r} (cut from {ds.parent[head]!r}) and {target!r} share no correspondence template")
+    keep = tmpl >= 0
+    return tmpl[keep], dst_all[keep]
