@@ -57,6 +57,8 @@ SOLVER_DENSE_MATRICES = 4
 #: fraction of the device's free memory a solve may plan to use
 MEMORY_FRACTION = 0.8
 FPS_METRICS = ("geodesic", "euclidean")
+#: signatures kept in a `Comparer`'s memory cache (the disk cache has no bound)
+MAX_CACHED_SHAPES = 128
 
 
 class ProblemTooLargeError(ValueError):
@@ -482,7 +484,7 @@ class Comparer:
             self.energies = energies
         self._signatures: dict[tuple[str, str], np.ndarray] = {}
         self._samples: dict[str, Subsample] = {}
-        self._self_results: dict[tuple[str, str], Any] = {}
+        self._self_energies: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------ parameters
     def params(self) -> dict[str, Any]:
@@ -519,7 +521,7 @@ class Comparer:
         e.setflags(write=False)
         if self._energies is not None and not np.array_equal(self._energies, e):
             self._signatures.clear()  # WKS depends on the grid
-            self._self_results.clear()
+            self._self_energies.clear()
         self._energies = e
 
     def fit_energies(self, meshes: Sequence[Mesh]) -> np.ndarray:
@@ -563,6 +565,8 @@ class Comparer:
         if sig.shape[0] != mesh.n_vertices:
             raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
         sig.setflags(write=False)
+        if len(self._signatures) >= MAX_CACHED_SHAPES:  # bound memory in long runs: drop the oldest
+            self._signatures.pop(next(iter(self._signatures)))
         self._signatures[key] = sig
         return sig
 
@@ -607,14 +611,19 @@ class Comparer:
             return ot.solve_balanced(c, device=self.device, **self.solver_options)
         return ot.solve_partial(c, mass_penalty=self.mass_penalty, device=self.device, **self.solver_options)
 
-    def self_result(self, mesh: Mesh) -> Any:
-        """The solver's result for ``mesh`` against itself (needed by Eq. 27), cached per shape."""
+    def self_transport(self, mesh: Mesh) -> Any:
+        """Solve ``mesh`` against itself (the self-comparison of Eq. 27); returns the `OTResult`, not cached."""
+        s, _ = self._points(mesh)
+        return self._solve(s, s)
+
+    def self_energy(self, mesh: Mesh) -> tuple[float, np.ndarray]:
+        """U(A, A) and its per-β history ((n_β, 2) float64), for Eq. 27; cached per shape (the plan is not kept)."""
         key = (mesh.fingerprint, self._signature_key())
-        r = self._self_results.get(key)
+        r = self._self_energies.get(key)
         if r is None:
-            s, _ = self._points(mesh)
-            r = self._solve(s, s)
-            self._self_results[key] = r
+            res = self.self_transport(mesh)
+            r = (transport_energy(res, self.transport), energy_history(res, self.transport))
+            self._self_energies[key] = r
         return r
 
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> Comparison:
@@ -634,11 +643,10 @@ class Comparer:
         else:
             from wpot.ot import debiased
 
-            ra, rb = self.self_result(mesh_a), self.self_result(mesh_b)
-            uaa, ubb = transport_energy(ra, "partial"), transport_energy(rb, "partial")
+            (uaa, haa), (ubb, hbb) = self.self_energy(mesh_a), self.self_energy(mesh_b)
             distance = float(debiased(transport_energy(res, "partial"), uaa, ubb))
             self_e = (uaa, ubb)
-            hist = debias_history(hist, energy_history(ra, "partial"), energy_history(rb, "partial"))
+            hist = debias_history(hist, haa, hbb)
         return _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, self.signature, self.transport, self.match_ratio)
 
 

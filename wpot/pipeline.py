@@ -420,7 +420,7 @@ def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, An
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # non-convergence is recorded in the store's `converged` column
         if i == j:
-            res = comp.self_result(a)
+            res = comp.self_transport(a)
         else:
             res = comp.transport_plan(a, _worker_mesh(spec_j))
     return {
