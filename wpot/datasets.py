@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .io import load_mesh, load_vertex_map, load_vts, save_mesh
 from .mesh import Mesh, cut
 
 __all__ = [
@@ -216,11 +217,7 @@ def read_test_pairs(path: str | Path) -> list[tuple[str, str]]:
 # ----------------------------------------------------------------------------- TOSCA ground truth
 def _load_vts(path: Path) -> np.ndarray:
     """A ``.vts`` file as a (K,) int64 array of 0-based vertex indices."""
-    # TODO(io): switch to wpot.io.load_vts once it lands
-    v = np.loadtxt(path, dtype=np.int64, ndmin=1)
-    if v.ndim != 1 or v.size == 0 or v.min() < 1:
-        raise ValueError(f"{path}: expected one 1-based vertex index per line, got shape {v.shape}, min {v.min() if v.size else None}")
-    return v - 1
+    return load_vts(path)
 
 
 def tosca_vts(folder: str | Path, name: str, *, symmetric: bool = False) -> np.ndarray:
@@ -257,18 +254,11 @@ def tosca_ground_truth(folder: str | Path, source: str, target: str, *, symmetri
 
 # ----------------------------------------------------------------------------- mesh files
 def _load_mesh(path: Path) -> Mesh:
-    # TODO(io): switch to wpot.io.load_mesh once it lands
-    import trimesh
-
-    tm = trimesh.load(path, process=False, force="mesh")
-    return Mesh(tm.vertices, tm.faces)
+    return load_mesh(path)
 
 
 def _save_mesh(mesh: Mesh, path: Path) -> None:
-    # TODO(io): switch to wpot.io.save_mesh once it lands
-    import trimesh
-
-    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+    save_mesh(mesh, path)
 
 
 # ----------------------------------------------------------------------------- HEAD dataset
@@ -459,7 +449,8 @@ def load_head_dataset(folder: str | Path) -> HeadDataset:
     table = read_label_csv(folder / "labels.csv").for_names(manifest["names"])
     names = tuple(manifest["names"])
     meshes = tuple(_load_mesh(folder / f"{n}.off") for n in names)
-    pm = {h: np.loadtxt(folder / f"{h}.parent.txt", dtype=np.int64, ndmin=1) for h in manifest["parent"]}
+    nv = dict(zip(names, (m.n_vertices for m in meshes)))
+    pm = {h: load_vertex_map(folder / f"{h}.parent.txt", base=0, n_vertices=nv[p]) for h, p in manifest["parent"].items()}
     tp = {h: np.loadtxt(folder / f"{h}.template.txt", dtype=np.int64, ndmin=1) for h in manifest["parent"]}
     return HeadDataset(names, meshes, table["class"], table["species"], dict(manifest["parent"]), pm, tp,
                        {k: int(v) for k, v in manifest["landmark_template_point"].items()},

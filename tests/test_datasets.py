@@ -1,0 +1,161 @@
+"""Shape lists, labels, TOSCA ground truth and the HEAD dataset builder."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from wpot.datasets import (
+    build_head_dataset,
+    class_label,
+    correspondence_group,
+    head_ground_truth,
+    list_shapes,
+    load_head_dataset,
+    read_label_csv,
+    read_test_pairs,
+    tosca_ground_truth,
+    tosca_vts,
+)
+from wpot.io import save_mesh
+from wpot.mesh import Mesh
+
+
+@pytest.mark.parametrize(
+    "name, label",
+    [("cat10", "cat"), ("cat10.off", "cat"), ("cat_head3", "cat_head"), ("camel-gallop-01", "camel-gallop"),
+     ("dir/michael19.ply", "michael"), ("wolf", "wolf")],
+)
+def test_class_label(name, label):
+    assert class_label(name) == label
+
+
+def test_class_label_rejects_digits_only():
+    with pytest.raises(ValueError, match="no non-digit"):
+        class_label("0042")
+
+
+def test_david_and_michael_share_a_template_not_a_class():
+    assert class_label("david3") != class_label("michael3")
+    assert correspondence_group("david3") == correspondence_group("michael3")
+    assert correspondence_group("cat1") != correspondence_group("dog1")
+
+
+@pytest.fixture
+def tiny_folder(tmp_path):
+    s = trimesh.creation.icosphere(1)
+    m = Mesh(s.vertices, s.faces)
+    for n in ["b10", "b2", "a1", "a0"]:
+        save_mesh(m, tmp_path / f"{n}.off")
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    return tmp_path
+
+
+def test_list_shapes_folder_natural_order_and_labels(tiny_folder):
+    s = list_shapes(tiny_folder)
+    assert s.names == ("a0", "a1", "b2", "b10")
+    assert s.classes.tolist() == ["a", "a", "b", "b"]
+    r = list_shapes([tiny_folder / "b10.off", tiny_folder / "a0.off"])
+    assert r.names == ("b10", "a0")
+
+
+def test_label_csv_levels(tiny_folder):
+    csv = tiny_folder / "labels.csv"
+    csv.write_text("name,genus,family\na0.off,g1,f1\na1,g2,f1\nb2,g3,f2\nb10,g3,f2\n")
+    t = read_label_csv(csv)
+    assert t.names == ("a0", "a1", "b2", "b10") and list(t.levels) == ["genus", "family"]
+    s = list_shapes(tiny_folder, labels=csv)
+    assert s.classes.tolist() == ["g1", "g2", "g3", "g3"]
+    assert s.labels["family"].tolist() == ["f1", "f1", "f2", "f2"]
+    csv.write_text("file,genus\na0,g\n")
+    with pytest.raises(ValueError, match="'name' column"):
+        read_label_csv(csv)
+    csv.write_text("name,genus\na0,g\na0,h\n")
+    with pytest.raises(ValueError, match="more than once"):
+        read_label_csv(csv)
+    csv.write_text("name,genus\na0,g1\n")
+    with pytest.raises(ValueError, match="no row"):
+        list_shapes(tiny_folder, labels=csv)
+
+
+def test_list_shapes_rejects_bad_sources(tmp_path):
+    with pytest.raises(ValueError, match="no mesh files"):
+        list_shapes(tmp_path)
+    with pytest.raises(ValueError, match="do not exist"):
+        list_shapes([tmp_path / "missing.off"])
+
+
+def test_test_pairs_and_ground_truth(tosca5k):
+    pairs = read_test_pairs(tosca5k.parent / "test_pairs.txt")
+    # 285 lines, the last one blank: 284 pairs (the data README says 285), none repeated
+    assert len(pairs) == 284 and len(set(pairs)) == 284
+    assert all(correspondence_group(a) == correspondence_group(b) for a, b in pairs)
+    src, dst = tosca_ground_truth(tosca5k, "david0", "michael1")
+    assert src.shape == dst.shape == (5000,) and src.dtype == np.int64
+    assert src.min() >= 0 and src.max() < 5000
+    np.testing.assert_array_equal(src, np.loadtxt(tosca5k / "corres" / "david0.vts", dtype=np.int64) - 1)
+    assert not np.array_equal(tosca_vts(tosca5k, "cat0", symmetric=True), tosca_vts(tosca5k, "cat0"))
+    with pytest.raises(ValueError, match="no correspondence template"):
+        tosca_ground_truth(tosca5k, "cat0", "dog0")
+    with pytest.raises(ValueError, match="does not exist"):
+        tosca_vts(tosca5k, "unicorn0")
+
+
+# ----------------------------------------------------------------------------- HEAD
+@pytest.fixture(scope="module")
+def head(tosca5k, tmp_path_factory):
+    out = tmp_path_factory.mktemp("head")
+    return build_head_dataset(tosca5k.parent, out), out
+
+
+def test_head_dataset_composition(head):
+    ds, _ = head
+    assert len(ds) == 38
+    counts = {c: int((ds.labels == c).sum()) for c in np.unique(ds.labels)}
+    assert counts == {"cat": 11, "cat_head": 11, "horse": 8, "horse_head": 8}
+    assert sorted(ds.parent.values()) == sorted(n for n, lab in zip(ds.names, ds.labels) if "head" not in lab)
+
+
+def test_heads_are_proper_connected_parts_with_exact_maps(head):
+    ds, _ = head
+    for h, p in ds.parent.items():
+        part, full = ds.mesh(h), ds.mesh(p)
+        pmap = ds.parent_map[h]
+        assert part.n_vertices < 0.4 * full.n_vertices and part.n_vertices > 0.1 * full.n_vertices
+        assert len(np.unique(pmap)) == part.n_vertices
+        np.testing.assert_array_equal(part.vertices, full.vertices[pmap])  # part vertex -> full-shape vertex
+        assert part.n_components == 1
+        assert 0.12 < part.area / full.area < 0.3  # chosen as 20 % of the reference's area
+
+
+def test_heads_are_the_same_part_across_a_class(head):
+    ds, _ = head
+    for cls in ("cat", "horse"):
+        heads = [h for h in ds.template if ds.parent[h].startswith(cls)]
+        inside = np.array([ds.template[h] >= 0 for h in heads])  # template points on each head
+        assert inside[:, ds.landmark[cls]].all()
+        agree = (inside == inside[0]).mean(axis=1)
+        assert agree.min() > 0.99, (cls, agree)
+
+
+def test_head_ground_truth_through_templates(head, tosca5k):
+    ds, _ = head
+    src, dst = head_ground_truth(ds, "cat_head3", "cat3", tosca5k)
+    np.testing.assert_array_equal(ds.parent_map["cat_head3"][src], dst)  # to its own parent: the cut map
+    src, dst = head_ground_truth(ds, "cat_head3", "cat7", tosca5k)
+    assert src.max() < ds.mesh("cat_head3").n_vertices and dst.max() < ds.mesh("cat7").n_vertices
+    with pytest.raises(ValueError, match="no correspondence template"):
+        head_ground_truth(ds, "cat_head3", "horse0", tosca5k)
+
+
+def test_head_dataset_round_trip(head):
+    ds, out = head
+    back = load_head_dataset(out)
+    assert back.names == ds.names and back.labels.tolist() == ds.labels.tolist()
+    for a, b in zip(ds.meshes, back.meshes):
+        assert a == b
+    for h in ds.parent:
+        np.testing.assert_array_equal(back.parent_map[h], ds.parent_map[h])
+        np.testing.assert_array_equal(back.template[h], ds.template[h])
+    s = list_shapes(out, labels=out / "labels.csv")
+    assert set(s.names) == set(ds.names)

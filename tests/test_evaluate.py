@@ -1,0 +1,262 @@
+"""Classification statistics on hand-made distance matrices, and geodesic errors where they are known."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import trimesh
+
+from wpot.evaluate import (
+    GeodesicDistances,
+    correspondence_error,
+    cumulative_curve,
+    curve_auc,
+    leave_one_out_1nn,
+    leave_one_out_levels,
+    one_shot_1nn,
+    summarize_correspondence,
+)
+from wpot.mesh import Mesh
+
+
+def line_distances(x):
+    x = np.asarray(x, dtype=float)
+    return np.abs(x[:, None] - x[None, :])
+
+
+# ----------------------------------------------------------------------------- classification
+def test_separated_classes_are_always_right():
+    d = line_distances([0, 1, 2, 10, 11, 12, 20, 21])
+    lab = ["a", "a", "a", "b", "b", "b", "c", "c"]
+    r = one_shot_1nn(d, lab, n_trials=500, seed=1)
+    assert r.mean == 1.0 and r.std == 0.0
+    assert leave_one_out_1nn(d, lab).accuracy == 1.0
+
+
+def test_leave_one_out_one_misclassified_shape():
+    # the "a" at 8 is nearer to the "b" at 10 than to any "a"; every other shape's nearest is its own class
+    x = [0, 1, 2, 8, 10, 11, 12]
+    lab = ["a", "a", "a", "a", "b", "b", "b"]
+    r = leave_one_out_1nn(line_distances(x), lab)
+    assert r.accuracy == pytest.approx(6 / 7)
+    assert r.score.tolist() == [1, 1, 1, 0, 1, 1, 1]
+    assert r.nearest[3] == 4
+
+
+def test_one_shot_expected_accuracy_analytic():
+    # A = {0, 1}, B = {3, 10}. The 4 equally likely training sets give accuracies 1, 1/2, 1, 1/2 over the
+    # 2 remaining shapes (the B at 3 is nearer the A's than the B at 10): mean 3/4, std 1/4.
+    d = line_distances([0, 1, 3, 10])
+    lab = ["A", "A", "B", "B"]
+    t = 4000
+    r = one_shot_1nn(d, lab, n_trials=t, seed=7)
+    assert set(np.unique(r.accuracies)) <= {0.5, 1.0}
+    assert abs(r.mean - 0.75) < 5 * 0.25 / np.sqrt(t)
+    assert r.std == pytest.approx(0.25, abs=0.02)
+
+
+def test_one_shot_matches_exhaustive_enumeration():
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(7, 2))
+    pts[:3] += 1.0
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    lab = np.array([0, 0, 0, 1, 1, 2, 2])
+    members = [np.nonzero(lab == c)[0] for c in range(3)]
+    accs = []
+    for train in itertools.product(*members):  # every training set, each equally likely
+        train = np.array(train)
+        test = np.setdiff1d(np.arange(7), train)
+        pred = lab[train[np.argmin(d[np.ix_(test, train)], axis=1)]]
+        accs.append(np.mean(pred == lab[test]))
+    exact_mean, exact_std = np.mean(accs), np.std(accs)
+    t = 6000
+    r = one_shot_1nn(d, lab, n_trials=t, seed=11, chunk=1000)
+    assert set(np.round(np.unique(r.accuracies), 12)) <= set(np.round(accs, 12))
+    assert abs(r.mean - exact_mean) < 5 * exact_std / np.sqrt(t) + 1e-12
+
+
+def test_ties_are_split_not_biased():
+    n = 6
+    d = np.ones((n, n))
+    np.fill_diagonal(d, 0)
+    lab = ["a", "a", "a", "b", "b", "c"]
+    # leave-one-out: every other shape ties; credit = same-class share among the n - 1 others
+    r = leave_one_out_1nn(d, lab)
+    np.testing.assert_allclose(r.score, [2 / 5] * 3 + [1 / 5] * 2 + [0])
+    # one-shot: the 3 training shapes tie, exactly one has the right class
+    assert one_shot_1nn(d, lab, n_trials=50).mean == pytest.approx(1 / 3)
+
+
+def test_relabelling_invariance_and_levels():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(12, 3))
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    genus = np.array(list("aabbccddeeff"))
+    family = np.array(list("xxxxxxyyyyyy"))
+    perm = rng.permutation(12)
+    res = leave_one_out_levels(d, {"genus": genus, "family": family})
+    res_p = leave_one_out_levels(d[np.ix_(perm, perm)], {"genus": genus[perm], "family": family[perm]})
+    for k in res:
+        assert res[k].accuracy == pytest.approx(res_p[k].accuracy)
+        np.testing.assert_allclose(res_p[k].score, res[k].score[perm])
+    # coarser grouping can only help 1-NN
+    assert res["family"].accuracy >= res["genus"].accuracy
+
+
+def test_classification_rejects_bad_input():
+    d = line_distances([0, 1, 2, 3])
+    with pytest.raises(ValueError, match="labels"):
+        leave_one_out_1nn(d, ["a", "b"])
+    bad = d.copy()
+    bad[0, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        one_shot_1nn(bad, ["a", "a", "b", "b"])
+    with pytest.raises(ValueError, match="square"):
+        leave_one_out_1nn(d[:3], ["a", "a", "b"])
+    with pytest.raises(ValueError, match="no shape is left"):
+        one_shot_1nn(d, ["a", "b", "c", "d"])
+
+
+# ----------------------------------------------------------------------------- geodesics
+def grid(n=31, size=1.0):
+    x, y = np.meshgrid(np.linspace(0, size, n), np.linspace(0, size, n), indexing="ij")
+    v = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return Mesh(v, np.r_[np.c_[a, b, c], np.c_[a, c, d]])
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    s = trimesh.creation.icosphere(3, radius=2.0)
+    return Mesh(s.vertices, s.faces)
+
+
+def great_circle(m, i, j, r=2.0):
+    v = m.vertices
+    return r * np.arccos(np.clip(np.sum(v[i] * v[j], axis=-1) / r**2, -1, 1))
+
+
+def test_flat_grid_heat_distance_is_euclidean():
+    m = grid()
+    g = GeodesicDistances(m)
+    src = np.array([0, 480, 17])
+    rows = g.from_sources(src)
+    eucl = np.linalg.norm(m.vertices[src][:, None] - m.vertices[None], axis=-1)
+    assert np.abs(rows - eucl).max() < 0.05  # heat method, 30x30 grid of a unit square
+    assert np.all(rows[np.arange(3), src] == 0)
+    assert g.diameter() == pytest.approx(np.sqrt(2), rel=0.02)
+
+
+def test_sphere_great_circle_and_normalizations(sphere):
+    m = sphere
+    g = GeodesicDistances(m)
+    rng = np.random.default_rng(0)
+    truth = rng.integers(0, m.n_vertices, 200)
+    pred = rng.integers(0, m.n_vertices, 200)
+    exact = great_circle(m, pred, truth)
+    np.testing.assert_allclose(g.pairwise(truth, pred), exact, atol=0.03 * np.pi * 2)
+    assert g.diameter() == pytest.approx(2 * np.pi, rel=0.03)  # antipodes: pi * r
+    e = correspondence_error(g, pred, truth, normalization="sqrt_area")
+    np.testing.assert_allclose(e.errors, e.raw / np.sqrt(m.area))
+    np.testing.assert_allclose(e.raw, exact, atol=0.03 * np.pi * 2)
+    d = correspondence_error(g, pred, truth, normalization="diameter")
+    assert d.scale == pytest.approx(2 * np.pi, rel=0.03)
+    s = correspondence_error(g, pred, truth, normalization="shrec19")
+    assert s.scale <= d.scale * 1.03 and s.scale > 0.9 * 2 * np.pi  # 200 random points span nearly pi * r
+    assert s.max_threshold == 0.5 and e.max_threshold == 0.25
+
+
+def test_perfect_map_and_antipodal_map(sphere):
+    m = sphere
+    v = m.vertices
+    antipode = np.argmin(np.linalg.norm(v[:, None] + v[None], axis=-1), axis=1)  # icosphere is symmetric
+    truth = np.arange(m.n_vertices)
+    perfect = correspondence_error(m, truth, truth)
+    assert perfect.auc == 1.0 and perfect.mean_error == 0.0 and np.all(perfect.curve == 1.0)
+    worst = correspondence_error(m, antipode, truth, normalization="sqrt_area")
+    # pi r / sqrt(4 pi r^2) = sqrt(pi) / 2 > 0.25: no point under the curve's range
+    np.testing.assert_allclose(worst.errors, np.sqrt(np.pi) / 2, rtol=0.03)
+    assert worst.auc == 0.0
+
+
+def test_errors_invariant_to_scale_and_flip_aware(sphere):
+    m = sphere
+    v = m.vertices
+    mirror = np.argmin(np.linalg.norm(v[:, None] - (v * [-1, 1, 1])[None], axis=-1), axis=1)
+    assert np.allclose(v[mirror], v * [-1, 1, 1])
+    truth = np.arange(0, m.n_vertices, 3)
+    pred = mirror[truth]  # a map off exactly by the left/right symmetry
+    e = correspondence_error(m, pred, truth, symmetric_truth=mirror[truth])
+    assert e.auc < 0.8 and e.flip_aware_auc == 1.0
+    np.testing.assert_array_equal(e.flip_aware_errors, 0.0)
+    big = m.transformed(scale=3.0)
+    for norm in ("sqrt_area", "diameter"):
+        a = correspondence_error(m, pred, truth, normalization=norm)
+        b = correspondence_error(big, pred, truth, normalization=norm)
+        np.testing.assert_allclose(b.raw, 3.0 * a.raw, rtol=1e-6)
+        np.testing.assert_allclose(b.errors, a.errors, rtol=1e-6, atol=1e-9)
+
+
+def test_cross_component_uses_euclidean(sphere):
+    v, f = sphere.vertices, sphere.faces
+    two = Mesh(np.r_[v, v + [10.0, 0, 0]], np.r_[f, f + len(v)], warn=False)
+    truth = np.array([0, 1, 2])
+    pred = truth + len(v)
+    e = correspondence_error(two, pred, truth)
+    assert e.n_cross_component == 3
+    np.testing.assert_allclose(e.raw, 10.0)
+
+
+def test_auc_of_known_curves():
+    t = 0.25
+    assert curve_auc(np.zeros(10), t) == 1.0
+    assert curve_auc(np.full(10, t), t) == 0.0
+    e = (np.arange(1000) + 0.5) / 1000 * t  # uniform on [0, T]: the curve is the diagonal, mean 1/2
+    assert curve_auc(e, t) == pytest.approx(0.5)
+    thr = np.linspace(0, t, 20001)
+    np.testing.assert_allclose(cumulative_curve(e, thr), np.clip(np.floor(thr / t * 1000 + 0.5) / 1000, 0, 1), atol=1e-3)
+    rng = np.random.default_rng(0)
+    e = rng.exponential(0.1, size=500)
+    assert curve_auc(e, t) == pytest.approx(np.trapezoid(cumulative_curve(e, thr), thr) / t, abs=1e-4)
+    # the curve counts errors <= threshold
+    assert cumulative_curve([0.0, 0.1, 0.2], [0.1]).tolist() == [2 / 3]
+
+
+def test_summary_averages_pairs(sphere):
+    m = sphere
+    g = GeodesicDistances(m)
+    rng = np.random.default_rng(2)
+    truth = np.arange(50)
+    rs = [correspondence_error(g, rng.integers(0, m.n_vertices, 50), truth) for _ in range(3)]
+    s = summarize_correspondence(rs)
+    assert s.n_pairs == 3 and s.auc == pytest.approx(np.mean([r.auc for r in rs]))
+    np.testing.assert_allclose(s.curve, np.mean([r.curve for r in rs], axis=0))
+    other = correspondence_error(g, truth, truth, normalization="diameter")
+    with pytest.raises(ValueError, match="normalizations"):
+        summarize_correspondence([rs[0], other])
+
+
+def test_correspondence_rejects_bad_input(sphere):
+    with pytest.raises(ValueError, match="normalization"):
+        correspondence_error(sphere, [0], [0], normalization="area")
+    with pytest.raises(ValueError, match="outside"):
+        correspondence_error(sphere, [sphere.n_vertices], [0])
+    with pytest.raises(ValueError, match="equal length"):
+        correspondence_error(sphere, [0, 1], [0])
+
+
+def test_tosca_ground_truth_and_symmetric_flip(tosca5k):
+    from wpot.datasets import tosca_ground_truth
+    from wpot.io import load_mesh
+
+    cat1 = load_mesh(tosca5k / "cat1.off")
+    src, dst = tosca_ground_truth(tosca5k, "cat0", "cat1")
+    _, sym = tosca_ground_truth(tosca5k, "cat0", "cat1", symmetric=True)
+    k = slice(0, 5000, 25)  # 200 template points keep the test fast
+    g = GeodesicDistances(cat1)
+    exact = correspondence_error(g, dst[k], dst[k], symmetric_truth=sym[k])
+    assert exact.auc == 1.0
+    flipped = correspondence_error(g, sym[k], dst[k], symmetric_truth=sym[k])
+    assert flipped.flip_aware_auc == 1.0 and flipped.auc < 0.9

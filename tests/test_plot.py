@@ -1,0 +1,87 @@
+"""Figures: class ordering, and PNGs that are written and not blank."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+import trimesh
+
+from wpot import plot
+from wpot.evaluate import correspondence_error
+from wpot.mesh import Mesh, cut
+
+
+def ink(path) -> float:
+    """Fraction of pixels that differ from the background (the corner pixel)."""
+    img = mpimg.imread(path)[..., :3]
+    return float(np.mean(np.any(np.abs(img - img[0, 0]) > 0.05, axis=-1)))
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    s = trimesh.creation.icosphere(2)
+    return Mesh(s.vertices, s.faces)
+
+
+def test_class_order_groups_classes_stably():
+    lab = np.array(["dog", "cat", "dog", "wolf", "cat", "dog"])
+    order, blocks, starts = plot.class_order(lab)
+    assert blocks == ["dog", "cat", "wolf"]
+    assert order.tolist() == [0, 2, 5, 1, 4, 3]
+    assert starts.tolist() == [0, 3, 5, 6]
+    for k, c in enumerate(blocks):
+        assert set(lab[order[starts[k] : starts[k + 1]]]) == {c}
+    order, blocks, _ = plot.class_order(lab, classes=["wolf", "cat", "dog", "horse"])
+    assert blocks == ["wolf", "cat", "dog"] and order.tolist() == [3, 1, 4, 0, 2, 5]
+    with pytest.raises(ValueError, match="does not list"):
+        plot.class_order(lab, classes=["cat", "dog"])
+
+
+def test_distance_matrix_png(tmp_path):
+    rng = np.random.default_rng(0)
+    lab = np.repeat(["a", "b", "c"], 4)[rng.permutation(12)]
+    d = rng.random((12, 12)) + (lab[:, None] != lab[None]) * 2
+    fig = plot.plot_distance_matrix(d, lab, title="D", path=tmp_path / "d.png")
+    assert (tmp_path / "d.png").stat().st_size > 0 and ink(tmp_path / "d.png") > 0.2
+    # the image shown is the class-ordered matrix
+    shown = fig.axes[0].images[0].get_array()
+    order, _, _ = plot.class_order(lab)
+    np.testing.assert_allclose(shown, d[np.ix_(order, order)])
+    with pytest.raises(ValueError, match="square"):
+        plot.plot_distance_matrix(d[:3], lab)
+
+
+def test_cumulative_errors_png(tmp_path, sphere):
+    truth = np.arange(sphere.n_vertices)
+    rng = np.random.default_rng(1)
+    e = correspondence_error(sphere, rng.integers(0, sphere.n_vertices, truth.size), truth)
+    fig = plot.plot_cumulative_errors({"random": e, "manual": ([0, 0.1, 0.25], [0, 0.5, 1.0])}, path=tmp_path / "c.png")
+    assert ink(tmp_path / "c.png") > 0.01
+    lines = fig.axes[0].get_lines()
+    np.testing.assert_allclose(lines[0].get_ydata(), 100 * e.curve)
+    assert "AUC" in fig.axes[0].get_legend().get_texts()[0].get_text()
+    with pytest.raises(ValueError, match="curve must be"):
+        plot.plot_cumulative_errors({"x": 3.0})
+
+
+def test_mesh_figures_png(tmp_path, sphere):
+    vals = sphere.vertices[:, 2]
+    plot.plot_vertex_scalar(sphere, vals, label="z", path=tmp_path / "s.png")
+    assert ink(tmp_path / "s.png") > 0.1
+    with pytest.raises(ValueError, match="one per vertex"):
+        plot.plot_vertex_scalar(sphere, vals[:-1])
+    part, _ = cut(sphere, sphere.vertices[:, 2] > 0.3)
+    plot.plot_registration(part, sphere, path=tmp_path / "r0.png")
+    reg = SimpleNamespace(scale=1.5, rotation=np.eye(3), translation=np.array([0.0, 2.0, 0.0]))
+    plot.plot_registration(part, sphere, reg, path=tmp_path / "r1.png")
+    a, b = mpimg.imread(tmp_path / "r0.png"), mpimg.imread(tmp_path / "r1.png")
+    assert ink(tmp_path / "r1.png") > 0.1 and (a.shape != b.shape or not np.allclose(a, b))
+    with pytest.raises(ValueError, match="not both"):
+        plot.plot_registration(part, sphere, reg, scale=2.0)
+    corr = np.arange(sphere.n_vertices)[::-1].copy()
+    plot.plot_correspondence(sphere, sphere, corr, path=tmp_path / "k.png")
+    assert ink(tmp_path / "k.png") > 0.1
+    with pytest.raises(ValueError, match="outside"):
+        plot.plot_correspondence(sphere, sphere, corr + 1)
