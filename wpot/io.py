@@ -148,20 +148,12 @@ def _reject_polygons(arity: np.ndarray) -> None:
 _MAX_SIZES = 5
 
 
-def _check_counts(kind: str, got_v: int, got_f: int, want_v: int, want_f: int) -> None:
-    if got_v != want_v or got_f != want_f:
-        raise _Malformed(
-            f"the {kind} file declares {want_v} vertices and {want_f} faces but the parser returned "
-            f"{got_v} and {got_f}"
-        )
-
-
 # -------------------------------------------------------------------------------------------------- OFF
 _OFF_HEAD = re.compile(r"^(ST)?(C)?(N)?(4)?n?OFF(?:\s+(.*))?$")
 
 
-def _scan_off(text: str) -> tuple[int, int, np.ndarray]:
-    """Declared vertex/face counts and each face's vertex count, from the OFF text."""
+def _scan_off(text: str) -> tuple[int, list[list[int]]]:
+    """Declared vertex count and each face's 0-based vertex list, from the OFF text."""
     lines = _strip_comments(text)
     if not lines:
         raise _Malformed("the file is empty")
@@ -193,48 +185,76 @@ def _scan_off(text: str) -> tuple[int, int, np.ndarray]:
     for i in range(nv):
         if len(body[i].split()) < 3:
             raise _Malformed(f"vertex {i} has fewer than 3 coordinates: {body[i][:60]!r}")
-    arity = np.empty(nf, dtype=np.int64)
+    faces = []
     for j in range(nf):
         toks = body[nv + j].split()
         k = _int_token(toks[0], f"face {j}")
         if k < 0 or len(toks) < k + 1:
             raise _Malformed(f"face {j} declares {k} vertices but lists {len(toks) - 1}: {body[nv + j][:60]!r}")
-        arity[j] = k
-    return nv, nf, arity
+        faces.append([_int_token(t, f"face {j}") for t in toks[1 : k + 1]])
+    return nv, faces
+
+
+def _triangles(faces: list[list[int]], nv: int) -> np.ndarray:
+    """(F, 3) int64 from per-face vertex lists, refusing polygons and out-of-range indices by name."""
+    _reject_polygons(np.array([len(x) for x in faces], dtype=np.int64))
+    f = np.array(faces, dtype=np.int64).reshape(-1, 3)
+    bad = np.nonzero(np.any((f < 0) | (f >= nv), axis=1))[0]
+    if bad.size:
+        raise _Malformed(
+            f"{bad.size} faces index vertices outside [0, {nv - 1}] (0-based): faces {_listed(bad)} "
+            f"(first: {f[bad[0]].tolist()})"
+        )
+    return f
+
+
+def _agree(kind: str, f_scan: np.ndarray, f_trimesh: np.ndarray, nv: int, v: np.ndarray) -> None:
+    """trimesh must return exactly the file's vertex count and faces (no silent re-indexing)."""
+    if len(v) != nv or f_scan.shape != f_trimesh.shape or not np.array_equal(f_scan, f_trimesh):
+        raise _Malformed(
+            f"trimesh's {kind} parser returned {len(v)} vertices and {len(f_trimesh)} faces that differ from "
+            f"the file's {nv} vertices and {len(f_scan)} faces; refusing a re-indexed mesh"
+        )
 
 
 def _read_off(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     from trimesh.exchange.off import load_off
 
-    nv, nf, arity = _scan_off(_decode(data))
-    _reject_polygons(arity)
+    nv, faces = _scan_off(_decode(data))
+    f = _triangles(faces, nv)
     kw = load_off(io.BytesIO(data))
     v = np.asarray(kw["vertices"], dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(kw["faces"], dtype=np.int64).reshape(-1, 3)
-    _check_counts("OFF", len(v), len(f), nv, nf)
+    _agree("OFF", f, np.asarray(kw["faces"], dtype=np.int64).reshape(-1, 3), nv, v)
     return v, f
 
 
 # -------------------------------------------------------------------------------------------------- OBJ
-def _scan_obj(text: str) -> tuple[int, np.ndarray]:
-    """Number of ``v`` lines and each ``f`` line's vertex count."""
+def _scan_obj(text: str) -> tuple[int, list[list[int]], bool]:
+    """Number of ``v`` lines, each ``f`` line's 0-based vertex list, and whether relative (negative)
+    indices occur (resolved here against the vertices defined so far, as the OBJ format says)."""
     text = text.replace("\\\r\n", "").replace("\\\n", "")  # line continuations, as trimesh does
     nv = 0
-    arity = []
+    faces = []
+    relative = False
     for ln in text.splitlines():
         ln = ln.split("#", 1)[0].strip()
         if ln.startswith("v ") or ln.startswith("v\t"):
             nv += 1
         elif ln.startswith("f ") or ln.startswith("f\t"):
-            arity.append(len(ln.split()) - 1)
-    return nv, np.asarray(arity, dtype=np.int64)
+            j = len(faces)
+            idx = [_int_token(t.split("/", 1)[0], f"face {j}") for t in ln.split()[1:]]
+            relative = relative or any(i < 0 for i in idx)
+            faces.append([i - 1 if i > 0 else nv + i if i < 0 else -1 for i in idx])  # OBJ has no index 0
+    return nv, faces, relative
 
 
 def _read_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     from trimesh.exchange.obj import load_obj
 
-    nv, arity = _scan_obj(_decode(data))
-    _reject_polygons(arity)
+    nv, faces, relative = _scan_obj(_decode(data))
+    f = _triangles(faces, nv)
+    if len(f) == 0:
+        return np.zeros((nv, 3)), f  # no faces: Mesh reports an empty mesh
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # trimesh's texture bookkeeping on odd UVs
         out = load_obj(
@@ -246,19 +266,25 @@ def _read_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
             split_groups=False,
         )
     geometry = out.get("geometry", {}) if isinstance(out, dict) else {}
-    if len(geometry) > 1:
-        raise _Malformed(f"trimesh split the file into {len(geometry)} meshes; expected one")
     if not geometry:
-        v = np.zeros((0, 3))
-        f = np.zeros((0, 3), dtype=np.int64)
-    else:
-        kw = next(iter(geometry.values()))
-        v = np.asarray(kw.get("vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-        f = kw.get("faces")
-        f = np.zeros((0, 3), dtype=np.int64) if f is None else np.asarray(f, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0 and arity.size == 0:
-        return v, f  # no faces: Mesh reports an empty mesh
-    _check_counts("OBJ", len(v), len(f), nv, int(arity.size))
+        raise _Malformed("trimesh found no mesh in the file")
+    parts = list(geometry.values())
+    v = np.asarray(parts[0].get("vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    for kw in parts[1:]:  # trimesh splits at 'usemtl'; with maintain_order each part has all vertices
+        if not np.array_equal(np.asarray(kw.get("vertices"), dtype=np.float64).reshape(-1, 3), v):
+            raise _Malformed(f"trimesh split the file into {len(parts)} meshes with different vertex lists")
+    ft = np.concatenate(
+        [np.asarray(kw["faces"], dtype=np.int64).reshape(-1, 3) for kw in parts if kw.get("faces") is not None]
+        or [np.zeros((0, 3), dtype=np.int64)]
+    )
+    if relative:
+        # trimesh (maintain_order=True) leaves relative indices unresolved: keep the scan's faces and
+        # check only the vertex and face counts
+        ft = f if len(ft) == len(f) else ft
+    elif len(parts) > 1 and ft.shape == f.shape:
+        # the parts come grouped by material, not in file order: compare as sets of rows, keep file order
+        ft = f if np.array_equal(f[np.lexsort(f.T)], ft[np.lexsort(ft.T)]) else ft
+    _agree("OBJ", f, ft, nv, v)
     return v, f
 
 
@@ -347,7 +373,8 @@ def _read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     _reject_polygons(arity)
     f = np.array([np.asarray(x, dtype=np.int64) for x in lists], dtype=np.int64).reshape(-1, 3)
     nv = int(raw["vertex"]["length"]) if "vertex" in raw else len(v)
-    _check_counts("PLY", len(v), len(f), nv, int(face_el["length"]))
+    f = _triangles(f.tolist(), nv)
+    _agree("PLY", f, np.asarray(kw.get("faces"), dtype=np.int64).reshape(-1, 3), nv, v)
     return v, f
 
 
@@ -461,9 +488,9 @@ def load_mesh(path: PathLike, *, warn: bool = True, variable: str | None = None)
     """
     p = Path(path)
     ext = _suffix(p)
-    p, data = _read_bytes(p)
     if variable is not None and ext != ".mat":
         raise ValueError(f"{p}: variable= applies to .mat files only, got {variable!r}")
+    p, data = _read_bytes(p)
     readers = {".off": _read_off, ".obj": _read_obj, ".ply": _read_ply}
     fmt = ext[1:].upper()
     if ext == ".mat":
