@@ -15,6 +15,7 @@ from wpot.evaluate import (
     leave_one_out_1nn,
     leave_one_out_levels,
     one_shot_1nn,
+    part_retrieval,
     summarize_correspondence,
 )
 from wpot.mesh import Mesh
@@ -116,6 +117,22 @@ def test_classification_rejects_bad_input():
         leave_one_out_1nn(d[:3], ["a", "a", "b"])
     with pytest.raises(ValueError, match="no shape is left"):
         one_shot_1nn(d, ["a", "b", "c", "d"])
+
+
+def test_part_retrieval():
+    # full shapes c0, c1 (class c) and h0 (class h); parts cut from c0, c1, h0 sit near 0.1, 1.6, 5.1
+    names = ["c0", "c1", "h0", "pc0", "pc1", "ph0"]
+    lab = ["c", "c", "h", "c_part", "c_part", "h_part"]
+    d = line_distances([0.0, 1.0, 5.0, 0.1, 1.6, 3.2])  # pc1 is nearer c1 (0.6): right; ph0 nearer h0 (1.8)
+    r = part_retrieval(d, names, lab, {"pc0": "c0", "pc1": "c1", "ph0": "h0"})
+    assert r.nearest == {"pc0": "c0", "pc1": "c1", "ph0": "h0"}
+    assert r.class_accuracy == 1.0 and r.parent_accuracy == 1.0
+    d = line_distances([0.0, 1.0, 5.0, 0.6, 0.4, 2.9])  # pc0 -> c1 (same class, wrong parent); ph0 -> c1
+    r = part_retrieval(d, names, lab, {"pc0": "c0", "pc1": "c1", "ph0": "h0"})
+    assert r.nearest == {"pc0": "c1", "pc1": "c0", "ph0": "c1"}
+    assert r.class_accuracy == pytest.approx(2 / 3) and r.parent_accuracy == 0.0
+    with pytest.raises(ValueError, match="not found"):
+        part_retrieval(d, names, lab, {"pc9": "c0"})
 
 
 # ----------------------------------------------------------------------------- geodesics

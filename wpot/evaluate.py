@@ -37,6 +37,8 @@ __all__ = [
     "one_shot_1nn",
     "leave_one_out_1nn",
     "leave_one_out_levels",
+    "PartRetrieval",
+    "part_retrieval",
     "GeodesicDistances",
     "CorrespondenceError",
     "CorrespondenceSummary",
@@ -175,6 +177,53 @@ def leave_one_out_levels(distances: ArrayLike, levels: Mapping[str, ArrayLike]) 
     if not levels:
         raise ValueError("levels is empty: give at least one label level")
     return {name: leave_one_out_1nn(distances, lab) for name, lab in levels.items()}
+
+
+@dataclass(frozen=True)
+class PartRetrieval:
+    """Which full shape each part (e.g. a HEAD head) is nearest to (paper §4.2).
+
+    ``nearest[part]`` is the name of the nearest full shape (``distances[part, full]``, first one on ties);
+    ``class_accuracy`` the fraction of parts whose nearest full shape has the parent's class, and
+    ``parent_accuracy`` the fraction whose nearest full shape is the very shape they were cut from.
+    """
+
+    nearest: dict[str, str]
+    class_accuracy: float
+    parent_accuracy: float
+
+
+def part_retrieval(
+    distances: ArrayLike, names: Sequence[str], labels: ArrayLike, parent: Mapping[str, str]
+) -> PartRetrieval:
+    """Nearest full shape of every part.
+
+    Parameters
+    ----------
+    distances : (n, n) over all shapes (parts and full shapes), row = query.
+    names : (n,) shape names; labels : (n,) their classes (a part is compared through its parent's class).
+    parent : part name -> name of the full shape it was cut from; the full shapes are the names that are not
+        parts.
+    """
+    names = list(names)
+    d, lab, _, _ = _check_distances(distances, labels)
+    if len(names) != len(d):
+        raise ValueError(f"names must have {len(d)} entries to match distances, got {len(names)}")
+    pos = {n: k for k, n in enumerate(names)}
+    missing = [f"{p}->{f}" for p, f in parent.items() if p not in pos or f not in pos]
+    if missing or not parent:
+        raise ValueError(f"parent must map parts to full shapes that are all in names; not found: {missing[:5]}")
+    full = np.array([k for k, n in enumerate(names) if n not in parent])
+    if full.size == 0:
+        raise ValueError("every shape is a part: there is no full shape to retrieve")
+    nearest, ok_class, ok_parent = {}, [], []
+    for part, par in parent.items():
+        i = pos[part]
+        j = int(full[np.argmin(d[i, full])])
+        nearest[part] = names[j]
+        ok_class.append(lab[j] == lab[pos[par]])
+        ok_parent.append(j == pos[par])
+    return PartRetrieval(nearest, float(np.mean(ok_class)), float(np.mean(ok_parent)))
 
 
 # ============================================================================ geodesics
