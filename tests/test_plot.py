@@ -62,6 +62,7 @@ def test_cumulative_errors_png(tmp_path, sphere):
     lines = fig.axes[0].get_lines()
     np.testing.assert_allclose(lines[0].get_ydata(), 100 * e.curve)
     assert "AUC" in fig.axes[0].get_legend().get_texts()[0].get_text()
+    assert fig._repr_png_().startswith(b"\x89PNG")  # shown inline by Jupyter without pyplot
     with pytest.raises(ValueError, match="curve must be"):
         plot.plot_cumulative_errors({"x": 3.0})
 

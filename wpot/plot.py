@@ -14,6 +14,7 @@ than mplot3d's ``plot_trisurf`` for meshes of thousands of faces. The view conve
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -40,8 +41,17 @@ __all__ = [
 ]
 
 
+class _Figure(Figure):
+    """A pyplot-free Figure that Jupyter shows inline (``_repr_png_``) without ``%matplotlib inline``."""
+
+    def _repr_png_(self) -> bytes:
+        buf = io.BytesIO()
+        self.savefig(buf, format="png", dpi=100)
+        return buf.getvalue()
+
+
 def _new_figure(figsize: tuple[float, float]) -> Figure:
-    fig = Figure(figsize=figsize, layout="constrained")
+    fig = _Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
