@@ -85,6 +85,7 @@ def test_list_shapes_rejects_bad_sources(tmp_path):
         list_shapes([tmp_path / "missing.off"])
 
 
+@pytest.mark.data
 def test_test_pairs_and_ground_truth(tosca5k):
     pairs = read_test_pairs(tosca5k.parent / "test_pairs.txt")
     # 285 lines, the last one blank: 284 pairs (the data README says 285), none repeated
@@ -108,6 +109,7 @@ def head(tosca5k, tmp_path_factory):
     return build_head_dataset(tosca5k.parent, out), out
 
 
+@pytest.mark.data
 def test_head_dataset_composition(head):
     ds, _ = head
     assert len(ds) == 38
@@ -116,6 +118,7 @@ def test_head_dataset_composition(head):
     assert sorted(ds.parent.values()) == sorted(n for n, lab in zip(ds.names, ds.labels) if "head" not in lab)
 
 
+@pytest.mark.data
 def test_heads_are_proper_connected_parts_with_exact_maps(head):
     ds, _ = head
     for h, p in ds.parent.items():
@@ -128,6 +131,7 @@ def test_heads_are_proper_connected_parts_with_exact_maps(head):
         assert 0.12 < part.area / full.area < 0.3  # chosen as 20 % of the reference's area
 
 
+@pytest.mark.data
 def test_heads_are_the_same_part_across_a_class(head):
     ds, _ = head
     for cls in ("cat", "horse"):
@@ -138,6 +142,7 @@ def test_heads_are_the_same_part_across_a_class(head):
         assert agree.min() > 0.99, (cls, agree)
 
 
+@pytest.mark.data
 def test_head_ground_truth_through_templates(head, tosca5k):
     ds, _ = head
     src, dst = head_ground_truth(ds, "cat_head3", "cat3", tosca5k)
@@ -148,6 +153,7 @@ def test_head_ground_truth_through_templates(head, tosca5k):
         head_ground_truth(ds, "cat_head3", "horse0", tosca5k)
 
 
+@pytest.mark.data
 def test_head_dataset_round_trip(head):
     ds, out = head
     back = load_head_dataset(out)
