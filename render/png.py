@@ -1,6 +1,7 @@
 """Depth images to 8-bit grey levels, and a tiled PNG of many of them for inspection (paper Fig. 8)."""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -32,8 +33,8 @@ def to_uint8(images: ArrayLike, *, background: float | None = None) -> np.ndarra
     nan = np.isnan(a)
     if nan.any():
         if background is None:
-            with np.errstate(invalid="ignore"), np.testing.suppress_warnings() as sup:
-                sup.filter(RuntimeWarning)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN images: handled just below
                 fill = np.nanmin(a, axis=(1, 2))
             fill = np.where(np.isnan(fill), 0.0, fill)
             a = np.where(nan, fill[:, None, None], a)

@@ -12,7 +12,7 @@ Conventions (for view k, with ``e1, e2, n = frames[k]``, ``c = centers[k]``, ``S
   the centre pixel ``(R // 2, R // 2)`` is exactly over ``c``.
 * Axes: column ``j`` runs along ``+e1`` and row ``i`` along ``-e2`` (image rows go down), i.e. the
   pixel centre ``(i, j)`` is the point ``c + u e1 + w e2`` with
-  ``u = (j - (R - 1) / 2) p`` and ``w = ((R - 1) / 2 - i) p``.
+  ``u = (j - (R - 1) / 2) p`` and ``w = ((R - 1) / 2 - i) p`` (rays pass `RAY_OFFSET` from there).
   For a right-handed frame (``e1 x e2 = n``) this is the view from ``+n``, not mirrored. A joint sign
   flip of ``e1`` and ``e2`` rotates the image by 180 degrees.
 * Value: the signed height ``h = (x - c) . n`` of the first surface point ``x`` met by the ray that
@@ -21,9 +21,14 @@ Conventions (for view k, with ``e1, e2, n = frames[k]``, ``c = centers[k]``, ``S
   (an overhanging part hides what lies under it). With a finite ``ceiling`` the ray starts at height
   ``ceiling * S`` above the plane, so surfaces higher than that are ignored (a near clipping plane).
 * Background: pixels whose ray meets no surface get ``background`` (NaN by default).
+* Ray offset: each ray passes ``RAY_OFFSET = (1e-3, 6e-4)`` pixels from its pixel centre (along
+  ``+e1`` and ``+e2``). Views are usually centred on a mesh vertex, and a float32 ray-triangle test on
+  a ray through a vertex exactly can miss all the triangles around it (measured on a bumpy sphere: 3
+  of 10 centre pixels wrong). The offset moves the ray off the vertex, in a direction unlikely to
+  follow an edge; it changes heights by at most the surface slope times 1e-3 pixel.
 * Edge pixels: a ray that passes (to float32 precision) through a triangle edge or vertex may hit
   either triangle, or, rarely, slip between them; silhouette pixels can therefore differ from an
-  exact rasterizer when a pixel centre lies within about 1e-6 (relative) of a projected edge.
+  exact rasterizer when a ray lies within about 1e-6 (relative) of a projected edge.
 
 Arithmetic is float32 (Warp's mesh BVH). The mesh is shifted to its bounding-box centre before it is
 uploaded, so the precision does not depend on where the mesh sits in space.
@@ -36,12 +41,16 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
-__all__ = ["DepthRenderer", "depth_images"]
+__all__ = ["DepthRenderer", "depth_images", "RAY_OFFSET"]
 
 wp.config.quiet = True  # the project convention (older Warp)
 if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.1x: the init banner and module-load lines are INFO messages
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 wp.set_module_options({"enable_backward": False})
+
+
+#: rays pass this far (in pixels, along +e1 and +e2) from the pixel centres; see the module docstring
+RAY_OFFSET = (1e-3, 6e-4)
 
 
 @wp.kernel
@@ -55,14 +64,16 @@ def _cast_kernel(
     top: wp.array(dtype=wp.float32),
     depth: wp.array(dtype=wp.float32),
     res: int,
+    du: wp.float32,
+    dw: wp.float32,
     background: wp.float32,
     out: wp.array3d(dtype=wp.float32),
 ):
     k, i, j = wp.tid()
     pix = 2.0 * half[k] / float(res)
     mid = float(res - 1) * 0.5
-    u = (float(j) - mid) * pix
-    w = (mid - float(i)) * pix
+    u = (float(j) - mid + du) * pix
+    w = (mid - float(i) + dw) * pix
     n = nrm[k]
     h0 = top[k]
     start = centers[k] + u * e1[k] + w * e2[k] + h0 * n
@@ -156,7 +167,8 @@ class DepthRenderer:
             dim=(n, res, res),
             inputs=[
                 self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]),
-                flt(s), flt(top), flt(depth), int(res), float(background),
+                flt(s), flt(top), flt(depth), int(res), float(RAY_OFFSET[0]), float(RAY_OFFSET[1]),
+                float(background),
             ],
             outputs=[res_wp],
             device=dev,
@@ -182,7 +194,7 @@ def _check_views(centers: ArrayLike, frames: ArrayLike, half_sizes: ArrayLike, r
         raise ValueError("centers and frames must be finite (got NaN or inf)")
     bad = np.nonzero(~(s > 0) | ~np.isfinite(s))[0]
     if bad.size:
-        raise ValueError(f"half_sizes must be finite and positive; view {bad[0]} has {s[bad[0]]!r}")
+        raise ValueError(f"half_sizes must be finite and positive; view {bad[0]} has {float(s[bad[0]])!r}")
     if n:
         gram = fr @ fr.transpose(0, 2, 1)
         err = np.abs(gram - np.eye(3)).max(axis=(1, 2))
