@@ -119,6 +119,8 @@ def _int_token(tok: str, where: str) -> int:
 
 def _strip_comments(text: str) -> list[str]:
     """Non-empty lines with ``#`` comments removed (as trimesh's OFF reader does)."""
+    if "#" not in text:
+        return [ln for ln in (x.strip() for x in text.splitlines()) if ln]
     out = []
     for ln in text.splitlines():
         ln = ln.split("#", 1)[0].strip()
@@ -152,7 +154,7 @@ _MAX_SIZES = 5
 _OFF_HEAD = re.compile(r"^(ST)?(C)?(N)?(4)?n?OFF(?:\s+(.*))?$")
 
 
-def _scan_off(text: str) -> tuple[int, list[list[int]]]:
+def _scan_off(text: str) -> tuple[int, list[list[int]] | np.ndarray]:
     """Declared vertex count and each face's 0-based vertex list, from the OFF text."""
     lines = _strip_comments(text)
     if not lines:
@@ -185,7 +187,16 @@ def _scan_off(text: str) -> tuple[int, list[list[int]]]:
     for i in range(nv):
         if len(body[i].split()) < 3:
             raise _Malformed(f"vertex {i} has fewer than 3 coordinates: {body[i][:60]!r}")
-    faces = []
+    # fast path: every face line is "3 a b c"
+    try:
+        tok = np.array(" ".join(body[nv : nv + nf]).split(), dtype=np.int64)
+    except (ValueError, OverflowError):
+        tok = np.zeros(0, dtype=np.int64)
+    if tok.size == 4 * nf:
+        rows = tok.reshape(nf, 4)
+        if np.all(rows[:, 0] == 3):
+            return nv, np.ascontiguousarray(rows[:, 1:])
+    faces = []  # slow path: per line, to name the offending face
     for j in range(nf):
         toks = body[nv + j].split()
         k = _int_token(toks[0], f"face {j}")
@@ -195,10 +206,14 @@ def _scan_off(text: str) -> tuple[int, list[list[int]]]:
     return nv, faces
 
 
-def _triangles(faces: list[list[int]], nv: int) -> np.ndarray:
-    """(F, 3) int64 from per-face vertex lists, refusing polygons and out-of-range indices by name."""
-    _reject_polygons(np.array([len(x) for x in faces], dtype=np.int64))
-    f = np.array(faces, dtype=np.int64).reshape(-1, 3)
+def _triangles(faces: list[list[int]] | np.ndarray, nv: int) -> np.ndarray:
+    """(F, 3) int64 from per-face vertex lists (or an (F, 3) array), refusing polygons and
+    out-of-range indices by name."""
+    if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3:
+        f = faces.astype(np.int64, copy=False)
+    else:
+        _reject_polygons(np.array([len(x) for x in faces], dtype=np.int64))
+        f = np.array(faces, dtype=np.int64).reshape(-1, 3)
     bad = np.nonzero(np.any((f < 0) | (f >= nv), axis=1))[0]
     if bad.size:
         raise _Malformed(
@@ -373,7 +388,7 @@ def _read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     _reject_polygons(arity)
     f = np.array([np.asarray(x, dtype=np.int64) for x in lists], dtype=np.int64).reshape(-1, 3)
     nv = int(raw["vertex"]["length"]) if "vertex" in raw else len(v)
-    f = _triangles(f.tolist(), nv)
+    f = _triangles(f, nv)
     _agree("PLY", f, np.asarray(kw.get("faces"), dtype=np.int64).reshape(-1, 3), nv, v)
     return v, f
 
