@@ -33,11 +33,29 @@ _EXPORTS: dict[str, str] = {
     "wks_energies": "wpot.signatures",
     "ldsift": "wpot.signatures",
     "cost_matrix": "wpot.cost",
+    # evaluation and datasets
+    "one_shot_1nn": "wpot.evaluate",
+    "leave_one_out_1nn": "wpot.evaluate",
+    "leave_one_out_levels": "wpot.evaluate",
+    "part_retrieval": "wpot.evaluate",
+    "correspondence_error": "wpot.evaluate",
+    "summarize_correspondence": "wpot.evaluate",
+    "GeodesicDistances": "wpot.evaluate",
+    "cumulative_curve": "wpot.evaluate",
+    "curve_auc": "wpot.evaluate",
+    "list_shapes": "wpot.datasets",
+    "class_label": "wpot.datasets",
+    "read_label_csv": "wpot.datasets",
+    "read_test_pairs": "wpot.datasets",
+    "tosca_ground_truth": "wpot.datasets",
+    "build_head_dataset": "wpot.datasets",
+    "load_head_dataset": "wpot.datasets",
+    "head_ground_truth": "wpot.datasets",
     # comparison
     "compare": "wpot.compare",
     "Comparison": "wpot.compare",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "pipeline", "plot", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 
