@@ -1,0 +1,414 @@
+"""Laplace–Beltrami operator of a triangle mesh and its smallest eigenpairs (paper §3.2).
+
+Conventions
+-----------
+* ``W`` is the cotangent **stiffness** matrix, positive semidefinite:
+  ``W[i, j] = -(cot α_ij + cot β_ij) / 2`` for an edge (i, j) (one cotangent on a boundary edge, which is
+  the natural Neumann condition), ``W[i, i] = -Σ_j W[i, j]``. So every row sums to zero and
+  ``xᵀ W x = ½ Σ_edges w_ij (x_i − x_j)² ≥ 0``. It is the *negative* of libigl's ``cotmatrix`` (which is
+  negative semidefinite).
+* ``M`` is the diagonal (lumped) Voronoi mass matrix of libigl (mixed Voronoi areas, Meyer et al. 2003),
+  whose diagonal sums to the surface area.
+* The eigenproblem is ``W φ = λ M φ`` (``L = M⁻¹W``, paper §3.2), eigenvalues ``0 = λ_0 ≤ λ_1 ≤ …``, and
+  eigenvectors M-orthonormal: ``Φᵀ M Φ = I``.
+* `eigenpairs` works on the **area-normalized** mesh (total area 1), so eigenvalues of different shapes
+  are comparable: ``λ(normalized) = area · λ(original)``. ``W`` is scale invariant, so only ``M`` changes.
+
+Solvers (chosen by `choose_solver`, always reported in `Spectrum.solver`; never swapped silently)
+------------------------------------------------------------------------------------------------
+* ``"dense"``: ``scipy.linalg.eigh`` of ``A = M^{-1/2} W M^{-1/2}`` with ``subset_by_index`` and
+  ``driver="evr"``, then ``φ = M^{-1/2} v`` (paper §3.2). Cost ~ N³, nearly independent of k.
+* ``"lanczos"``: ARPACK (``scipy.sparse.linalg.eigsh``) in shift-invert mode around a small negative
+  shift σ, with the sparse LU factorization of ``W − σM`` computed once and reused (`LaplaceBeltrami`
+  keeps it across calls). Cost ~ N·k² (orthogonalization) plus the solves.
+
+``"auto"`` uses dense when ``N ≤ max(DENSE_MIN_N, DENSE_RATIO · k)`` or when ``k ≥ N − 1`` (ARPACK
+needs k < N − 1), else Lanczos. The constants come from timings on a 2-core machine
+(``benchmarks/signatures.py --solvers``): with k = 500, dense and Lanczos tie near N = 3,400, and dense
+wins clearly below that; Lanczos wins at 5,000 and above.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import scipy.linalg as la
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from .cache import Cache
+from .mesh import Mesh
+
+__all__ = [
+    "laplace_beltrami",
+    "eigenpairs",
+    "LaplaceBeltrami",
+    "Spectrum",
+    "SpectralWarning",
+    "choose_solver",
+    "spectrum_cache",
+]
+
+#: "auto" picks the dense solver at or below this many vertices, whatever k
+DENSE_MIN_N = 1500
+#: ... and also whenever N <= DENSE_RATIO * k (dense cost ~N³ vs Lanczos ~N k²: they tie near N ≈ 7k)
+DENSE_RATIO = 7.0
+#: shift of the shift-invert Lanczos, in units of the area-normalized spectrum (λ_1 ≈ 10..50 for
+#: shapes of area 1); negative so that W − σM is positive definite even with the zero eigenvalue(s)
+DEFAULT_SHIFT = -1e-2
+#: a computed eigenvalue counts as zero when below this fraction of the first nonzero one
+ZERO_RTOL = 1e-6
+
+Solver = Literal["auto", "dense", "lanczos"]
+
+#: process-wide cache of spectra (memory; also on disk when $WPOT_CACHE_DIR is set)
+spectrum_cache = Cache("spectrum", max_entries=16, max_bytes=1 << 30)
+
+
+class SpectralWarning(UserWarning):
+    """The spectrum is usable but suspicious (several components, unexpected zero eigenvalues, ...)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Spectrum:
+    """The k smallest eigenpairs of the area-normalized mesh, ``W φ = λ M φ``.
+
+    Attributes
+    ----------
+    evals : (k,) float64, ascending; the first ``n_zero`` are the (numerically) zero eigenvalues.
+    evecs : (N, k) float64, M-orthonormal for the area-normalized mass ``M / area``.
+    area : surface area of the original (un-normalized) mesh.
+    n_zero : number of zero eigenvalues = number of connected components. WKS excludes them.
+    solver : ``"dense"`` or ``"lanczos"``: which solver produced this result.
+    fingerprint : `Mesh.fingerprint` of the source mesh ("" when built by hand).
+    seconds : wall time of the eigensolve that produced it (also when read back from the cache).
+    from_cache : True when this result was read from the cache instead of computed.
+    """
+
+    evals: np.ndarray
+    evecs: np.ndarray
+    area: float
+    n_zero: int = 1
+    solver: str = "dense"
+    fingerprint: str = ""
+    seconds: float = 0.0
+    from_cache: bool = False
+
+    def __post_init__(self) -> None:
+        ev = np.array(self.evals, dtype=np.float64)
+        vec = np.array(self.evecs, dtype=np.float64)
+        if ev.ndim != 1 or vec.ndim != 2 or vec.shape[1] != ev.shape[0]:
+            raise ValueError(f"evals must be (k,) and evecs (N, k); got {ev.shape} and {vec.shape}")
+        if not (np.all(np.isfinite(ev)) and np.all(np.isfinite(vec))):
+            raise ValueError("eigenpairs contain NaN or inf")
+        if not (0 <= int(self.n_zero) <= ev.size):
+            raise ValueError(f"n_zero must be in [0, {ev.size}], got {self.n_zero}")
+        ev.setflags(write=False)
+        vec.setflags(write=False)
+        object.__setattr__(self, "evals", ev)
+        object.__setattr__(self, "evecs", vec)
+        object.__setattr__(self, "n_zero", int(self.n_zero))
+        object.__setattr__(self, "area", float(self.area))
+
+    @property
+    def k(self) -> int:
+        return int(self.evals.size)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.evecs.shape[0])
+
+    @property
+    def nonzero_evals(self) -> np.ndarray:
+        """(k − n_zero,) the eigenvalues WKS uses."""
+        return self.evals[self.n_zero :]
+
+    @property
+    def nonzero_evecs(self) -> np.ndarray:
+        """(N, k − n_zero) their eigenvectors."""
+        return self.evecs[:, self.n_zero :]
+
+    def __repr__(self) -> str:
+        return (
+            f"Spectrum(N={self.n_vertices}, k={self.k}, n_zero={self.n_zero}, solver={self.solver!r}, "
+            f"evals=[{self.evals[0]:.3g} .. {self.evals[-1]:.4g}], area={self.area:.4g})"
+        )
+
+
+# ---------------------------------------------------------------------------------------- operator
+def laplace_beltrami(mesh: Mesh) -> tuple[sp.csr_matrix, sp.dia_matrix]:
+    """Cotangent stiffness ``W`` and Voronoi mass ``M`` of ``mesh`` (libigl), paper §3.2.
+
+    Parameters
+    ----------
+    mesh : a `Mesh` (not area-normalized here; see `LaplaceBeltrami` for that).
+
+    Returns
+    -------
+    W : (N, N) scipy CSR float64, symmetric positive semidefinite, rows summing to zero
+        (the negative of ``igl.cotmatrix``); boundary edges carry one cotangent (Neumann).
+    M : (N, N) scipy DIA float64, diagonal Voronoi (mixed) areas; ``M.diagonal().sum() == mesh.area``.
+
+    Raises
+    ------
+    ValueError : when the matrices contain NaN/inf (degenerate triangles) — repair with `Mesh.cleaned`.
+    """
+    import igl  # local import: libigl is a heavy module
+
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"laplace_beltrami expects a wpot.Mesh, got {type(mesh).__name__}")
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    L = igl.cotmatrix(v, f)
+    W = sp.csr_matrix(-L, dtype=np.float64)
+    W.sum_duplicates()
+    W.sort_indices()
+    mass = np.asarray(igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_VORONOI).diagonal(), dtype=np.float64)
+    if not np.all(np.isfinite(W.data)) or not np.all(np.isfinite(mass)):
+        bad = int(np.count_nonzero(~np.isfinite(mass))) + int(np.count_nonzero(~np.isfinite(W.data)))
+        raise ValueError(
+            f"the cotangent Laplacian has {bad} NaN/inf entries (degenerate triangles: "
+            f"{mesh.degenerate_faces.size}); repair the mesh with Mesh.cleaned()"
+        )
+    M = sp.dia_matrix((mass[None, :], [0]), shape=(mesh.n_vertices, mesh.n_vertices))
+    return W, M
+
+
+def choose_solver(n_vertices: int, k: int) -> str:
+    """The solver ``"auto"`` picks for N vertices and k eigenpairs (see the module docstring)."""
+    if k >= n_vertices - 1 or n_vertices <= max(DENSE_MIN_N, DENSE_RATIO * k):
+        return "dense"
+    return "lanczos"
+
+
+@dataclass(eq=False)
+class LaplaceBeltrami:
+    """Cached Laplace–Beltrami set-up for one mesh (potpourri3d style): W, M, area, and the LU
+    factorization of ``W − σ M`` reused by every Lanczos call with the same shift.
+
+    Parameters
+    ----------
+    mesh : the shape. Its mass matrix is divided by ``mesh.area`` (area normalization).
+
+    Attributes
+    ----------
+    W : (N, N) CSR, PSD stiffness (scale invariant).
+    M : (N, N) DIA, Voronoi mass of the area-normalized mesh (diagonal sums to 1).
+    mass : (N,) its diagonal.
+    area : the original surface area.
+    """
+
+    mesh: Mesh
+    W: sp.csr_matrix = field(init=False, repr=False)
+    M: sp.dia_matrix = field(init=False, repr=False)
+    mass: np.ndarray = field(init=False, repr=False)
+    area: float = field(init=False)
+    n_zero: int = field(init=False)
+    _lu: dict = field(init=False, repr=False, default_factory=dict)
+
+    def __post_init__(self) -> None:
+        mesh = self.mesh
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"LaplaceBeltrami expects a wpot.Mesh, got {type(mesh).__name__}")
+        W, M = laplace_beltrami(mesh)
+        mass = M.diagonal()
+        zero = np.nonzero(mass <= 0)[0]
+        if zero.size:
+            raise ValueError(
+                f"{zero.size} vertices have zero mass (unreferenced vertices or only degenerate triangles), "
+                f"e.g. vertices {zero[:10].tolist()}: the eigenproblem W φ = λ M φ is singular. "
+                "Repair the mesh with Mesh.cleaned()."
+            )
+        self.area = float(mass.sum())
+        self.mass = mass / self.area
+        self.mass.setflags(write=False)
+        self.W = W
+        self.M = sp.dia_matrix((self.mass[None, :], [0]), shape=W.shape)
+        self.n_zero = int(mesh.n_components)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.W.shape[0]
+
+    def factorization(self, shift: float = DEFAULT_SHIFT):
+        """The (cached) SuperLU factorization of ``W − shift·M`` (CSC)."""
+        key = float(shift)
+        lu = self._lu.get(key)
+        if lu is None:
+            A = (self.W - key * sp.diags(self.mass)).tocsc()
+            lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A")
+            self._lu[key] = lu
+        return lu
+
+    def eigenpairs(
+        self,
+        k: int = 500,
+        *,
+        solver: Solver = "auto",
+        shift: float = DEFAULT_SHIFT,
+        tol: float = 0.0,
+        ncv: int | None = None,
+    ) -> Spectrum:
+        """The k smallest eigenpairs of ``W φ = λ M φ`` (area-normalized), uncached.
+
+        Parameters
+        ----------
+        k : number of eigenpairs, ``1 ≤ k ≤ N``.
+        solver : ``"auto"``, ``"dense"`` or ``"lanczos"`` (see module docstring).
+        shift : Lanczos shift σ < 0 (area-normalized units).
+        tol : ARPACK relative tolerance (0 = machine precision).
+        ncv : ARPACK Lanczos basis size (default ``min(N − 1, max(2k + 1, 20))`` as in scipy).
+
+        Returns
+        -------
+        `Spectrum` with ``solver`` naming the solver actually used.
+        """
+        n = self.n_vertices
+        k = _check_k(k, n)
+        if solver not in ("auto", "dense", "lanczos"):
+            raise ValueError(f"solver must be 'auto', 'dense' or 'lanczos', got {solver!r}")
+        used = choose_solver(n, k) if solver == "auto" else solver
+        t0 = time.perf_counter()
+        if used == "dense":
+            evals, evecs = self._dense(k)
+        else:
+            if k >= n - 1:
+                raise ValueError(
+                    f"solver='lanczos' needs k < N - 1 (ARPACK), got k={k} for N={n} vertices; use solver='dense'"
+                )
+            if not shift < 0:
+                raise ValueError(f"shift must be negative (W - shift*M must be positive definite), got {shift}")
+            evals, evecs = self._lanczos(k, shift=shift, tol=tol, ncv=ncv)
+        seconds = time.perf_counter() - t0
+        n_zero = _check_zero_eigenvalues(evals, self.n_zero)
+        return Spectrum(
+            evals=evals,
+            evecs=evecs,
+            area=self.area,
+            n_zero=n_zero,
+            solver=used,
+            fingerprint=self.mesh.fingerprint,
+            seconds=seconds,
+        )
+
+    def _dense(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        d = 1.0 / np.sqrt(self.mass)
+        A = (sp.diags(d) @ self.W @ sp.diags(d)).toarray()
+        A = 0.5 * (A + A.T)
+        w, v = la.eigh(A, subset_by_index=[0, k - 1], driver="evr", overwrite_a=True, check_finite=False)
+        return w, v * d[:, None]
+
+    def _lanczos(self, k: int, *, shift: float, tol: float, ncv: int | None) -> tuple[np.ndarray, np.ndarray]:
+        n = self.n_vertices
+        lu = self.factorization(shift)
+        op = sla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+        if ncv is None:
+            ncv = min(n - 1, max(2 * k + 1, 20))
+        w, v = sla.eigsh(self.W, k=k, M=self.M.tocsr(), sigma=shift, which="LM", OPinv=op, tol=tol, ncv=ncv)
+        order = np.argsort(w)
+        w, v = w[order], v[:, order]
+        # ARPACK returns M-orthonormal vectors; re-normalize columns exactly (cheap, diagonal M)
+        v = v / np.sqrt(np.einsum("ik,ik,i->k", v, v, self.mass))[None, :]
+        return w, v
+
+
+def _check_k(k: int, n: int) -> int:
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise ValueError(f"k must be an integer, got {k!r}")
+    k = int(k)
+    if k < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    if k > n:
+        raise ValueError(f"k={k} eigenpairs requested but the mesh has only N={n} vertices (k must be <= N)")
+    return k
+
+
+def _check_zero_eigenvalues(evals: np.ndarray, n_components: int) -> int:
+    """Number of zero eigenvalues: the number of components, checked against the computed values."""
+    nz = min(n_components, evals.size)
+    if n_components > 1:
+        warnings.warn(
+            f"the mesh has {n_components} connected components, so the eigenvalue 0 repeats {n_components} "
+            "times; those eigenpairs are excluded from WKS. Signatures of disconnected pieces are not "
+            "comparable with those of a connected shape; consider Mesh.cleaned(keep_largest_component=True).",
+            SpectralWarning,
+            stacklevel=4,
+        )
+    if nz < evals.size:
+        scale = abs(evals[nz])
+        small = np.abs(evals[:nz])
+        if scale == 0 or np.any(small > ZERO_RTOL * scale) or abs(evals[nz]) <= ZERO_RTOL * max(abs(evals[-1]), 1.0):
+            warnings.warn(
+                f"expected {nz} zero eigenvalue(s) (one per component), but the computed spectrum starts "
+                f"{np.array2string(evals[: nz + 2], precision=3)}; the mesh may be badly conditioned "
+                "(near-degenerate triangles, nearly disconnected parts).",
+                SpectralWarning,
+                stacklevel=4,
+            )
+    return nz
+
+
+def eigenpairs(
+    mesh: Mesh,
+    k: int = 500,
+    *,
+    solver: Solver = "auto",
+    shift: float = DEFAULT_SHIFT,
+    tol: float = 0.0,
+    cache: Cache | bool = True,
+) -> Spectrum:
+    """The k smallest eigenpairs of the area-normalized Laplace–Beltrami problem ``W φ = λ M φ``.
+
+    Parameters
+    ----------
+    mesh : the shape (N vertices). It must have no zero-mass (unreferenced) vertex.
+    k : number of eigenpairs (including the zero one(s)), ``1 ≤ k ≤ N``; paper: 500.
+    solver : ``"auto"`` (by size, see `choose_solver`), ``"dense"`` or ``"lanczos"``; the result's
+        ``solver`` field says which one ran.
+    shift, tol : Lanczos shift (negative) and ARPACK tolerance.
+    cache : True uses the process-wide `spectrum_cache` (memory, plus disk under ``$WPOT_CACHE_DIR``);
+        a `Cache` instance uses that one; False computes afresh. The key is the mesh content and
+        (k, solver, shift, tol), so an all-vs-all computes each spectrum once.
+
+    Returns
+    -------
+    `Spectrum`: evals (k,), evecs (N, k) M-orthonormal, area, n_zero, solver.
+
+    Warns
+    -----
+    `SpectralWarning` when the mesh has several components (repeated zero eigenvalue).
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"eigenpairs expects a wpot.Mesh, got {type(mesh).__name__}")
+    k = _check_k(k, mesh.n_vertices)
+    if cache is False:
+        return LaplaceBeltrami(mesh).eigenpairs(k, solver=solver, shift=shift, tol=tol)
+    store = spectrum_cache if cache is True else cache
+    if not isinstance(store, Cache):
+        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
+    used = choose_solver(mesh.n_vertices, k) if solver == "auto" else solver
+    params = {"k": k, "solver": used, "shift": float(shift), "tol": float(tol), "normalized": True}
+    entry = store.get(mesh.fingerprint, params)
+    if entry is not None:
+        if mesh.n_components > 1:  # the same warning as a fresh computation would give
+            _check_zero_eigenvalues(entry["evals"], mesh.n_components)
+        return Spectrum(
+            evals=entry["evals"],
+            evecs=entry["evecs"],
+            area=float(entry["area"]),
+            n_zero=int(entry["n_zero"]),
+            solver=str(entry["solver"]),
+            fingerprint=mesh.fingerprint,
+            seconds=float(entry["seconds"]),
+            from_cache=True,
+        )
+    s = LaplaceBeltrami(mesh).eigenpairs(k, solver=used, shift=shift, tol=tol)
+    store.put(
+        mesh.fingerprint,
+        params,
+        {"evals": s.evals, "evecs": s.evecs, "area": s.area, "n_zero": s.n_zero, "solver": s.solver, "seconds": s.seconds},
+    )
+    return s
