@@ -57,8 +57,9 @@ SOLVER_DENSE_MATRICES = 4
 #: fraction of the device's free memory a solve may plan to use
 MEMORY_FRACTION = 0.8
 FPS_METRICS = ("geodesic", "euclidean")
-#: signatures kept in a `Comparer`'s memory cache (the disk cache has no bound)
+#: signatures kept in a `Comparer`'s memory cache, by count and bytes (the disk cache has no bound)
 MAX_CACHED_SHAPES = 128
+MAX_CACHED_BYTES = 2 << 30
 
 
 class ProblemTooLargeError(ValueError):
@@ -323,7 +324,10 @@ class Comparison:
     distance : U at convergence (balanced, Eq. 6) or SU (partial, Eq. 27, with the self-comparisons)
     correspondence : (N_A,) int64, for each vertex of A the vertex of B with the largest plan entry in its
         row (when subsampled: the row of A's nearest sample, and B's sampled vertex)
-    matched : (K, 2) int64 pairs (i in A, j in B) with ``G(i, j) > 0.9·m1(i)`` (vertex indices of the full meshes)
+    matched : (K, 2) int64 pairs (i in A, j in B) with ``G(i, j) > 0.9·m1(i)`` (vertex indices of the full
+        meshes). With balanced transport and uniform masses, a vertex of A (mass 1/N_A) fits in one vertex of
+        B (mass 1/N_B) only when N_B ≤ N_A / 0.9, so between meshes of quite different sizes few or no pairs
+        match (the paper's Fig. 1 contrast); partial transport adapts the masses.
     matched_weight : (K,) float64, the plan entries ``G(i, j)`` of the matched pairs
     mass1 : (n_A,) float64, the mass each (sampled) vertex of A sends, ``Σ_l G(k, l)`` (uniform for balanced)
     mass2 : (n_B,) float64, the mass each (sampled) vertex of B receives
@@ -431,7 +435,8 @@ class Comparer:
     energies : a fixed WKS energy grid (n_energies,) shared by all shapes; when None, the grid is built by
         `fit_energies` (from a dataset) or, for a lone pair, from the two shapes' spectra
     ldsift_K, ldsift_resolution : LD-SIFT scale constant K (paper 3) and image size (paper 21)
-    cache_dir : folder for the on-disk signature cache (content-keyed npz); None keeps signatures in memory only
+    cache_dir : folder for the on-disk signature cache (`wpot.cache.Cache`, content-keyed npz); None uses
+        ``$WPOT_CACHE_DIR`` when set (else memory only); False keeps signatures in memory only
     solver_options : extra keyword arguments for `wpot.ot.solve_balanced` / `solve_partial` (beta0, tol, ...)
     match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)
     """
@@ -450,7 +455,7 @@ class Comparer:
         energies: ArrayLike | None = None,
         ldsift_K: float = 3.0,
         ldsift_resolution: int = 21,
-        cache_dir: str | Path | None = None,
+        cache_dir: str | Path | None | bool = None,
         solver_options: Mapping[str, Any] | None = None,
         match_ratio: float = 0.9,
     ) -> None:
@@ -478,11 +483,13 @@ class Comparer:
         self.ldsift_resolution = int(ldsift_resolution)
         self.solver_options = dict(solver_options or {})
         self.match_ratio = float(match_ratio)
-        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self.cache_dir = cache_dir
+        from wpot.cache import Cache
+
+        self._sig_cache = Cache("signatures", max_entries=MAX_CACHED_SHAPES, max_bytes=MAX_CACHED_BYTES, cache_dir=cache_dir)
         self._energies: np.ndarray | None = None
         if energies is not None:
             self.energies = energies
-        self._signatures: dict[tuple[str, str], np.ndarray] = {}
         self._samples: dict[str, Subsample] = {}
         self._self_energies: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
 
@@ -520,8 +527,7 @@ class Comparer:
             raise ValueError(f"energies must be a finite increasing grid of at least 2 values, got {e.size} values")
         e.setflags(write=False)
         if self._energies is not None and not np.array_equal(self._energies, e):
-            self._signatures.clear()  # WKS depends on the grid
-            self._self_energies.clear()
+            self._self_energies.clear()  # WKS depends on the grid (signatures are keyed by it)
         self._energies = e
 
     def fit_energies(self, meshes: Sequence[Mesh]) -> np.ndarray:
@@ -534,40 +540,32 @@ class Comparer:
         return self.energies
 
     # ------------------------------------------------------------------------------ signatures
-    def _signature_key(self) -> str:
-        p = {"signature": self.signature}
+    def _signature_params(self) -> dict[str, Any]:
+        p: dict[str, Any] = {"signature": self.signature}
         if self.signature == "wks":
             p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies)
         else:
             p.update(K=self.ldsift_K, resolution=self.ldsift_resolution)
-        return _digest(p)
+        return p
+
+    def _signature_key(self) -> str:
+        return _digest(self._signature_params())
 
     def signatures(self, mesh: Mesh) -> np.ndarray:
-        """Per-vertex signatures of the full mesh, (N, d) float64, cached in memory and on disk.
+        """Per-vertex signatures of the full mesh, (N, d) float64, read-only.
 
-        WKS needs the energy grid first (`fit_energies`, the ``energies`` argument, or `compare`, which
-        fits it to the pair it is given).
+        Cached by mesh content and signature parameters (`wpot.cache.Cache`, namespace "signatures"):
+        in memory, and on disk under ``cache_dir`` (or ``$WPOT_CACHE_DIR``). WKS needs the energy grid
+        first (`fit_energies`, the ``energies`` argument, or `compare`, which fits it to its pair).
         """
         if self.signature == "wks" and self._energies is None:
             raise ValueError("the WKS energy grid is not set: call fit_energies(meshes) or pass energies=")
-        key = (mesh.fingerprint, self._signature_key())
-        sig = self._signatures.get(key)
-        if sig is not None:
-            return sig
-        path = None if self.cache_dir is None else self.cache_dir / f"sig-{key[0]}-{key[1]}.npz"
-        if path is not None and path.is_file():
-            with np.load(path, allow_pickle=False) as z:
-                sig = np.array(z["signature"], dtype=np.float64)
-        if sig is None:
-            sig = self._compute_signatures(mesh)
-            if path is not None:
-                _save_npz_atomic(path, signature=sig)
+        entry = self._sig_cache.get_or_compute(
+            mesh.fingerprint, self._signature_params(), lambda: {"signature": self._compute_signatures(mesh)}
+        )
+        sig = entry["signature"]
         if sig.shape[0] != mesh.n_vertices:
             raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
-        sig.setflags(write=False)
-        if len(self._signatures) >= MAX_CACHED_SHAPES:  # bound memory in long runs: drop the oldest
-            self._signatures.pop(next(iter(self._signatures)))
-        self._signatures[key] = sig
         return sig
 
     def _compute_signatures(self, mesh: Mesh) -> np.ndarray:
@@ -700,21 +698,6 @@ def _resolve_device(device: str | None) -> str:
 
     wp.config.quiet = True
     return str(wp.get_device(device))
-
-
-def _save_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
-    import os
-    import tempfile
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def compare(

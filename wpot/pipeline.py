@@ -370,7 +370,14 @@ _WORKER_COMPARERS: dict[str, Any] = {}
 _WORKER_MESHES: dict[str, Mesh] = {}
 
 
+def _worker_setup(config: Mapping[str, Any]) -> None:
+    """In a worker process (not the coordinator), share spectra through the run's disk cache."""
+    if os.getpid() != config.get("main_pid") and config.get("cache_dir"):
+        os.environ.setdefault("WPOT_CACHE_DIR", str(config["cache_dir"]))
+
+
 def _worker_comparer(config: Mapping[str, Any]):
+    _worker_setup(config)
     key = _canonical(config)
     c = _WORKER_COMPARERS.get(key)
     if c is None:
@@ -404,10 +411,14 @@ def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
     return mesh.n_vertices
 
 
-def _spectrum_task(spec: Any, n_eigen: int) -> Any:
-    from wpot.spectral import eigenpairs
+def _spectrum_task(spec: Any, config: Mapping[str, Any]) -> Any:
+    """One shape's spectrum, for the shared energy grid. Only the eigenvalues travel back (the
+    eigenvectors stay in the worker's spectrum cache, on disk under the run folder)."""
+    from wpot.spectral import Spectrum, eigenpairs
 
-    return eigenpairs(_worker_mesh(spec), n_eigen)
+    _worker_setup(config)
+    s = eigenpairs(_worker_mesh(spec), int(config["comparer"]["n_eigen"]))
+    return Spectrum(evals=s.evals, evecs=np.zeros((1, s.k)), area=s.area, n_zero=s.n_zero, solver=s.solver, fingerprint=s.fingerprint)
 
 
 def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
@@ -500,20 +511,20 @@ def run_all_vs_all(
     task_specs = [s.path if s.path is not None else m for s, m in zip(specs, meshes)]
     try:
         # the shared WKS energy grid (paper §3.2): one grid for the whole dataset, stored with the run
-        energies = store.get("energies")
-        if signature == "wks" and energies is None:
-            spectra = _map(executor, _spectrum_task, [(sp, comparer.n_eigen) for sp in task_specs], "spectra", progress)
+        config = {
+            "comparer": _comparer_kwargs(comparer),
+            "energies": store.get("energies"),
+            "cache_dir": cache_dir,
+            "device": device,
+            "main_pid": os.getpid(),
+        }
+        if signature == "wks" and config["energies"] is None:
+            spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
             from wpot.compare import _energy_grid
             from wpot.signatures import wks_energies
 
-            energies = _energy_grid(wks_energies(spectra)).tolist()
-            store.set("energies", energies)
-        config = {
-            "comparer": {k: v for k, v in _comparer_kwargs(comparer).items()},
-            "energies": energies,
-            "cache_dir": cache_dir,
-            "device": device,
-        }
+            config["energies"] = _energy_grid(wks_energies(spectra)).tolist()
+            store.set("energies", config["energies"])
         needed = sorted({i for t in todo for i in t})
         _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
         _run_pairs(store, executor, todo, task_specs, config, progress, max_pairs)
