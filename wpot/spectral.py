@@ -53,7 +53,7 @@ __all__ = [
 ]
 
 #: "auto" picks the dense solver at or below this many vertices, whatever k
-DENSE_MIN_N = 1500
+DENSE_MIN_N = 300
 #: ... and also whenever N <= DENSE_RATIO * k (dense cost ~N³ vs Lanczos ~N k²: they tie near N ≈ 7k)
 DENSE_RATIO = 7.0
 #: shift of the shift-invert Lanczos, in units of the area-normalized spectrum (λ_1 ≈ 10..50 for

@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike
 from ..mesh import Mesh
 from ..spectral import Spectrum, eigenpairs
 
-__all__ = ["wks", "wks_energies", "wks_from_eigenpairs", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
+__all__ = ["wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
 
 #: σ = 7δ (paper §3.2)
 SIGMA_PER_DELTA = 7.0
@@ -104,6 +104,26 @@ def wks_energies(spectra: Spectrum | Iterable[Spectrum], *, n_energies: int = 20
     return EnergyGrid(energies, float(sigma))
 
 
+def sigma_of_grid(energies: ArrayLike) -> float:
+    """σ of a grid built by `wks_energies`, recovered from the grid alone.
+
+    The grid spans ``e_M − e_1 = R − 4σ`` with ``σ = 7R/M``, so ``σ = 7 (e_M − e_1) / (M − 28)``.
+    Defined for evenly spaced, increasing grids with M > 28; otherwise pass ``sigma`` explicitly.
+    """
+    e = np.asarray(energies, dtype=np.float64)
+    m = e.size
+    if e.ndim != 1 or m <= SIGMA_PER_DELTA * 2 * MARGIN_SIGMAS or not np.all(np.isfinite(e)):
+        raise ValueError(
+            f"cannot infer sigma from an energy grid of shape {e.shape} (needs a finite 1-D grid of more than "
+            f"{int(SIGMA_PER_DELTA * 2 * MARGIN_SIGMAS)} energies); pass sigma (from wks_energies)"
+        )
+    step = np.diff(e)
+    span = e[-1] - e[0]
+    if not (span > 0 and np.allclose(step, span / (m - 1), rtol=1e-9, atol=0)):
+        raise ValueError("cannot infer sigma: energies are not an evenly spaced increasing grid; pass sigma")
+    return float(SIGMA_PER_DELTA * span / (m - SIGMA_PER_DELTA * 2 * MARGIN_SIGMAS))
+
+
 def wks_from_eigenpairs(evals: ArrayLike, evecs: ArrayLike, energies: ArrayLike, sigma: float) -> np.ndarray:
     """The WKS (Eq. 5) as a pure function of eigenpairs and an energy grid.
 
@@ -172,9 +192,10 @@ def wks(
     n_eigen : number of eigenpairs including the zero one(s) (paper: 500). A mesh with fewer vertices
         uses all N eigenpairs, with a `WKSWarning`.
     n_energies : M, the number of energies when the grid is built here (paper: 200).
-    energies, sigma : a shared grid from `wks_energies` (pass both, or neither). Needed whenever two
-        shapes' signatures are compared (Eq. 29 assumes the same energies). Without them, the grid of
-        this shape alone is used.
+    energies, sigma : a shared grid from `wks_energies`. Needed whenever two shapes' signatures are
+        compared (Eq. 29 assumes the same energies). Without ``energies``, the grid of this shape alone
+        is used. With ``energies`` but no ``sigma``, σ is recovered from the grid (`sigma_of_grid`,
+        exact for grids made by `wks_energies`).
 
     Returns
     -------
@@ -195,12 +216,11 @@ def wks(
         spectrum = mesh_or_spectrum
     else:
         raise TypeError(f"wks expects a wpot.Mesh or a wpot.spectral.Spectrum, got {type(mesh_or_spectrum).__name__}")
-    if (energies is None) != (sigma is None):
-        raise ValueError(
-            "pass energies and sigma together (from wks_energies), or neither; "
-            f"got energies={'None' if energies is None else 'array'}, sigma={sigma!r}"
-        )
     if energies is None:
+        if sigma is not None:
+            raise ValueError(f"sigma={sigma!r} was given without energies; pass both (from wks_energies) or neither")
         energies, sigma = wks_energies(spectrum, n_energies=n_energies)
+    elif sigma is None:
+        sigma = sigma_of_grid(energies)
     ev = _positive_evals(spectrum)
     return wks_from_eigenpairs(ev, spectrum.nonzero_evecs, energies, sigma)
