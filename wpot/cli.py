@@ -32,7 +32,7 @@ PAPER_TABLE1 = {
 }
 SIGNATURE_NAMES = {"wks": "WKS", "ldsift": "LD-SIFT"}
 #: small settings for `wpot demo`: a few hundred vertices and a short spectrum (runs in seconds on a CPU)
-DEMO = {"n": 400, "n_eigen": 60, "n_energies": 60}
+DEMO = {"n": 400, "n_eigen": 100, "n_energies": 100}
 
 
 class CliError(Exception):

@@ -417,7 +417,8 @@ def _spectrum_task(spec: Any, config: Mapping[str, Any]) -> Any:
     from wpot.spectral import Spectrum, eigenpairs
 
     _worker_setup(config)
-    s = eigenpairs(_worker_mesh(spec), int(config["comparer"]["n_eigen"]))
+    mesh = _worker_mesh(spec)
+    s = eigenpairs(mesh, min(int(config["comparer"]["n_eigen"]), mesh.n_vertices))
     return Spectrum(evals=s.evals, evecs=np.zeros((1, s.k)), area=s.area, n_zero=s.n_zero, solver=s.solver, fingerprint=s.fingerprint)
 
 
@@ -521,9 +522,9 @@ def run_all_vs_all(
         if signature == "wks" and config["energies"] is None:
             spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
             from wpot.compare import _energy_grid
-            from wpot.signatures import wks_energies
+            from wpot.signatures.wks import wks_energies
 
-            config["energies"] = _energy_grid(wks_energies(spectra)).tolist()
+            config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies)).tolist()
             store.set("energies", config["energies"])
         needed = sorted({i for t in todo for i in t})
         _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
