@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 import os
 import time
 from pathlib import Path
@@ -19,7 +20,11 @@ import numpy as np
 
 from wpot.mesh import Mesh
 
-L = importlib.import_module("wpot.signatures.ldsift")
+# The module wpot.signatures.ldsift shares its name with the function that wpot.signatures exports
+# lazily. Resolve the public function first, then take the module from sys.modules: importing the
+# submodule directly first would leave the package attribute bound to the module (and wpot.ldsift too).
+getattr(importlib.import_module("wpot.signatures"), "ldsift")
+L = sys.modules["wpot.signatures.ldsift"]
 
 
 def _warm_up(device: str | None) -> None:

@@ -3,6 +3,7 @@ CPU/CUDA agreement, the true match's rank on a real TOSCA pair, and input errors
 from __future__ import annotations
 
 import importlib
+import sys
 import warnings
 
 import numpy as np
@@ -11,8 +12,11 @@ import trimesh
 
 from wpot.mesh import Mesh
 
-# the module (wpot.signatures.ldsift is also the name of the function, exported lazily)
-L = importlib.import_module("wpot.signatures.ldsift")
+# The module wpot.signatures.ldsift shares its name with the function that wpot.signatures exports
+# lazily. Resolve the public function first, then take the module from sys.modules: importing the
+# submodule directly first would leave the package attribute bound to the module (and wpot.ldsift too).
+getattr(importlib.import_module("wpot.signatures"), "ldsift")
+L = sys.modules["wpot.signatures.ldsift"]
 
 
 def _rotation(rng: np.random.Generator) -> np.ndarray:

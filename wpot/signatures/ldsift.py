@@ -27,7 +27,10 @@ For every vertex v of a mesh:
    image's lowest height). Everything is relative to S(v), so the choice keeps scale invariance;
 4. descriptor: OpenCV SIFT (`cv2.SIFT_create().compute`) at the centre pixel, for the keypoint angles 0
    and 180 degrees, averaged (the paper averages the image and its 180 degree rotation; a keypoint at
-   angle 180 gives exactly the descriptor of the rotated image).
+   angle 180 gives exactly the descriptor of the rotated image). The average is what makes the
+   signature independent of the eigenvectors' joint sign; the renderer's ray offset
+   (`render.raycast.RAY_OFFSET`, 1e-3 pixel) turns with the frame, so the two choices of sign give images
+   that are 180 degree turns of each other up to a 2e-3 pixel shift.
 
 Keypoint size and VLFeat
 ------------------------
