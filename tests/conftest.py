@@ -15,7 +15,7 @@ def _cuda_available() -> bool:
     try:
         import warp as wp
 
-        wp.config.quiet = True
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no start-up banner
         wp.init()
         return wp.is_cuda_available()
     except Exception:  # pragma: no cover - no usable warp at all

@@ -24,6 +24,15 @@ _EXPORTS: dict[str, str] = {
     "save_mesh": "wpot.io",
     "load_vts": "wpot.io",
     "load_vertex_map": "wpot.io",
+    "save_vts": "wpot.io",
+    "save_vertex_map": "wpot.io",
+    "MESH_FORMATS": "wpot.io",
+    # generated example shapes
+    "example_mesh": "wpot.examples",
+    "example_pair": "wpot.examples",
+    "example_partial": "wpot.examples",
+    "ExamplePair": "wpot.examples",
+    "ExamplePartial": "wpot.examples",
     # spectral
     "laplace_beltrami": "wpot.spectral",
     "eigenpairs": "wpot.spectral",
@@ -32,6 +41,7 @@ _EXPORTS: dict[str, str] = {
     "wks": "wpot.signatures",
     "wks_energies": "wpot.signatures",
     "ldsift": "wpot.signatures",
+    "local_frames": "wpot.signatures",
     "cost_matrix": "wpot.cost",
     # evaluation and datasets
     "one_shot_1nn": "wpot.evaluate",

@@ -1,20 +1,11 @@
-"""Per-vertex shape signatures: WKS (intrinsic, spectral) and LD-SIFT (extrinsic, depth images + SIFT)."""
+"""Per-vertex shape signatures: WKS (intrinsic, spectral) and LD-SIFT (extrinsic, depth images + SIFT).
+
+The functions are imported eagerly (their modules load Warp and OpenCV only inside the functions), so
+that importing a submodule can never shadow a function of the same name on this package.
+"""
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from wpot.signatures.ldsift import LocalFrames, ldsift, local_frames
+from wpot.signatures.wks import wks, wks_energies
 
-_EXPORTS = {
-    "wks": "wpot.signatures.wks",
-    "wks_energies": "wpot.signatures.wks",
-    "ldsift": "wpot.signatures.ldsift",
-}
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'wpot.signatures' has no attribute {name!r}")
+__all__ = ["LocalFrames", "ldsift", "local_frames", "wks", "wks_energies"]
