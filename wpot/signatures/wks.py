@@ -37,6 +37,8 @@ __all__ = ["wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "Energ
 
 #: σ = 7δ (paper §3.2)
 SIGMA_PER_DELTA = 7.0
+#: an eigenvalue below this fraction of the largest one is numerically zero (a null-space pair)
+ZERO_EVAL_RTOL = 1e-9
 #: e_min = log E_1 + 2σ, e_max = log E_K − 2σ (paper §3.2)
 MARGIN_SIGMAS = 2.0
 
@@ -58,9 +60,9 @@ def _positive_evals(spectrum: Spectrum) -> np.ndarray:
         raise ValueError(
             f"a WKS needs at least 2 nonzero eigenvalues, got {ev.size} (k={spectrum.k}, n_zero={spectrum.n_zero})"
         )
-    if ev[0] <= 0:
+    if ev[0] <= ZERO_EVAL_RTOL * abs(ev[-1]):
         raise ValueError(
-            f"the first nonzero eigenvalue is {ev[0]:.3g} <= 0 (n_zero={spectrum.n_zero}); the mesh probably has "
+            f"the first nonzero eigenvalue is {ev[0]:.3g}, numerically zero (n_zero={spectrum.n_zero}); the mesh probably has "
             "more connected components than recorded, or degenerate triangles"
         )
     return ev
@@ -151,10 +153,10 @@ def wks_from_eigenpairs(evals: ArrayLike, evecs: ArrayLike, energies: ArrayLike,
         raise ValueError(f"energies must be a non-empty (M,) array, got shape {e.shape}")
     if not np.all(np.isfinite(ev)) or not np.all(np.isfinite(vec)) or not np.all(np.isfinite(e)):
         raise ValueError("evals, evecs and energies must be finite (got NaN or inf)")
-    if np.any(ev <= 0):
+    if np.any(ev <= ZERO_EVAL_RTOL * np.abs(ev).max()):
         raise ValueError(
-            f"evals must be strictly positive (exclude the zero eigenvalue(s) first, e.g. Spectrum.nonzero_evals); "
-            f"got min {ev.min():.3g}"
+            "evals must be strictly positive, not numerically zero (exclude the zero eigenvalue(s) first, e.g. "
+            f"Spectrum.nonzero_evals); got min {ev.min():.3g} with max {ev.max():.3g}"
         )
     sigma = float(sigma)
     if not (np.isfinite(sigma) and sigma > 0):
