@@ -1,0 +1,97 @@
+"""Warp cost matrices against NumPy references, on every available device."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from wpot.cost import cost_matrix
+
+
+def _ref(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
+    d = a[:, None, :] - b[None, :, :]
+    if metric == "wks":
+        s = a[:, None, :] + b[None, :, :]
+        return np.abs(np.divide(d, s, out=np.zeros_like(d), where=s != 0)).sum(-1)
+    if metric == "l2":
+        return np.sqrt((d * d).sum(-1))
+    return np.abs(d).sum(-1)
+
+
+@pytest.fixture(scope="module")
+def sigs():
+    rng = np.random.default_rng(7)
+    a = rng.random((37, 23)) ** 3  # nonnegative, spread over decades like WKS values
+    b = rng.random((29, 23)) ** 3
+    a[0] = 0.0  # a whole zero signature,
+    b[1] = 0.0
+    a[2, :5] = 0.0  # and zero entries matched against zeros (the a + b = 0 guard)
+    b[3, :5] = 0.0
+    return a, b
+
+
+@pytest.mark.parametrize("metric", ["wks", "l2", "l1"])
+def test_agrees_with_numpy_reference(sigs, metric, device):
+    a, b = sigs
+    c = cost_matrix(a, b, metric=metric, device=device)
+    assert isinstance(c, np.ndarray) and c.dtype == np.float64 and c.shape == (37, 29)
+    np.testing.assert_allclose(c, _ref(a, b, metric), rtol=1e-12, atol=1e-12)
+
+
+def test_wks_cost_properties(sigs, device):
+    a, _ = sigs
+    c = cost_matrix(a, a, metric="wks", device=device)
+    np.testing.assert_allclose(np.diag(c), 0.0, atol=0)  # d(x, x) = 0, also for zero entries
+    np.testing.assert_allclose(c, c.T, rtol=1e-15)  # symmetric
+    assert c.max() <= a.shape[1]  # each term of Eq. 29 is at most 1 for nonnegative inputs
+    # scale invariance of Eq. 29: d(λa, λb) = d(a, b)
+    np.testing.assert_allclose(cost_matrix(3.7 * a, 3.7 * a, device=device), c, rtol=1e-12, atol=1e-14)
+    # a zero signature against a nonzero one costs one per nonzero entry
+    assert c[0, 1] == pytest.approx(np.count_nonzero(a[1]))
+
+
+def test_warp_output_on_device(sigs, device):
+    a, b = sigs
+    c = cost_matrix(a, b, metric="l2", device=device, out="warp")
+    assert isinstance(c, wp.array) and c.dtype == wp.float64 and c.shape == (37, 29)
+    assert c.device == wp.get_device(device)
+    # warp arrays in: no copy round trip needed, same result
+    wa = wp.array(a, dtype=wp.float64, device=device)
+    wb = wp.array(b, dtype=wp.float64, device=device)
+    np.testing.assert_array_equal(cost_matrix(wa, wb, metric="l2", device=device), c.numpy())
+
+
+def test_bad_input(sigs, device):
+    a, b = sigs
+    with pytest.raises(ValueError, match="metric must be one of"):
+        cost_matrix(a, b, metric="cosine", device=device)
+    with pytest.raises(ValueError, match="same signature length"):
+        cost_matrix(a, b[:, :5], device=device)
+    with pytest.raises(ValueError, match="2-D"):
+        cost_matrix(a[0], b, device=device)
+    bad = a.copy()
+    bad[4, 2] = np.nan
+    with pytest.raises(ValueError, match="S1 contains NaN"):
+        cost_matrix(bad, b, metric="l2", device=device)
+    bad[4, 2] = np.inf
+    with pytest.raises(ValueError, match="NaN or inf"):
+        cost_matrix(b, bad, metric="l1", device=device)
+    with pytest.raises(ValueError, match="negative entries"):
+        cost_matrix(a - 0.5, b, metric="wks", device=device)
+    cost_matrix(a - 0.5, b, metric="l2", device=device)  # negative values are fine for l2
+    with pytest.raises(ValueError, match="empty"):
+        cost_matrix(a[:0], b, device=device)
+    with pytest.raises(ValueError, match="out must be"):
+        cost_matrix(a, b, device=device, out="torch")
+    with pytest.raises(ValueError, match="2-D float64"):
+        cost_matrix(wp.array(a.astype(np.float32), dtype=wp.float32, device=device), b, device=device)
+
+
+def test_wrong_device_is_named():
+    wp.init()
+    devices = [str(d) for d in wp.get_devices()]
+    if len(devices) < 2:
+        pytest.skip("needs two Warp devices (cpu and cuda) to place inputs on the wrong one")
+    a = wp.zeros((3, 4), dtype=wp.float64, device="cpu")
+    with pytest.raises(ValueError, match="expected cuda"):
+        cost_matrix(a, np.zeros((2, 4)), device="cuda")
