@@ -1,0 +1,267 @@
+"""Tests of wpot.ot: phi accuracy, schedule, balanced vs POT's exact emd, partial vs an independent QP,
+invariances, validation and non-convergence reporting, CPU vs CUDA."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import ot
+import pytest
+import warp as wp
+
+import wpot.ot as wo
+from wpot.ot import kernels as K
+from wpot.ot.schedule import beta_schedule, relative_change
+
+
+def _points_cost(n1, n2, d=8, seed=0):
+    rng = np.random.default_rng(seed)
+    X, Y = rng.random((n1, d)), rng.random((n2, d))
+    C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
+    return C / C.max()
+
+
+def _masses(n, seed):
+    m = np.random.default_rng(seed).random(n) + 0.2
+    return m / m.sum()
+
+
+# --------------------------------------------------------------------------- phi, phi', g
+def test_phi_dphi_g_match_longdouble_reference():
+    x = np.concatenate([-np.logspace(-12, 12, 801), [0.0], np.logspace(-12, 12, 801), np.linspace(-3, 3, 1201)])
+    xa = wp.array(x, dtype=wp.float64, device="cpu")
+    out = [wp.zeros(len(x), dtype=wp.float64, device="cpu") for _ in range(3)]
+    wp.launch(K.eval_phi, dim=len(x), inputs=[xa, *out], device="cpu")
+    p, dp, g = (o.numpy() for o in out)
+    L = np.longdouble
+    xl = x.astype(L)
+    with np.errstate(all="ignore"):
+        em1 = np.expm1(xl)
+        ph = 1 / xl - 1 / em1
+        dph = -1 / xl**2 + np.exp(xl) / em1**2
+        gg = np.log(-np.expm1(-xl) / xl)
+    s = np.abs(x) < 0.1  # series reference (longdouble direct forms cancel there)
+    xs = xl[s]
+    ph[s] = 0.5 - xs / 12 + xs**3 / 720 - xs**5 / 30240 + xs**7 / 1209600
+    dph[s] = -L(1) / 12 + xs**2 / 240 - xs**4 / 6048 + xs**6 / 172800
+    gg[s] = -xs / 2 + xs**2 / 24 - xs**4 / 2880 + xs**6 / 181440
+    big = np.abs(x) > 1e4  # closed asymptotics (e^-|x| negligible)
+    ph[big] = np.where(x[big] > 0, 1 / xl[big], 1 + 1 / xl[big])
+    dph[big] = -1 / xl[big] ** 2
+    xb = xl[big]
+    gg[big] = np.where(xb > 0, -np.log(np.abs(xb)), -xb - np.log(np.abs(xb)))
+    assert np.all(np.isfinite(p)) and np.all(np.isfinite(dp)) and np.all(np.isfinite(g))
+    assert np.all((p > 0) & (p < 1)) and np.all(dp < 0)
+    for a, r in ((p, ph), (dp, dph), (g, gg)):
+        m = r != 0
+        rel = np.abs((a[m] - r[m]) / r[m]).astype(float)
+        assert rel.max() < 1e-13
+    assert p[np.argmin(np.abs(x))] == 0.5 and abs(dp[np.argmin(np.abs(x))] + 1 / 12) < 1e-16
+    # g' = -phi (finite differences of g at moderate x)
+    h = 1e-5
+    xm = np.linspace(-5, 5, 41)
+    xa = wp.array(np.concatenate([xm - h, xm + h]), dtype=wp.float64, device="cpu")
+    out = [wp.zeros(2 * len(xm), dtype=wp.float64, device="cpu") for _ in range(3)]
+    wp.launch(K.eval_phi, dim=2 * len(xm), inputs=[xa, *out], device="cpu")
+    gv = out[2].numpy()
+    fd = (gv[len(xm):] - gv[: len(xm)]) / (2 * h)
+    xa = wp.array(xm, dtype=wp.float64, device="cpu")
+    out = [wp.zeros(len(xm), dtype=wp.float64, device="cpu") for _ in range(3)]
+    wp.launch(K.eval_phi, dim=len(xm), inputs=[xa, *out], device="cpu")
+    np.testing.assert_allclose(fd, -out[0].numpy(), atol=1e-8)
+
+
+# --------------------------------------------------------------------------- schedule
+def test_beta_schedule_is_geometric_and_bounded():
+    b = beta_schedule(2.0, 10.0, 2e5)
+    np.testing.assert_allclose(b, [2, 20, 200, 2e3, 2e4, 2e5])
+    assert beta_schedule(1.0, 3.0, 2.9).tolist() == [1.0]
+    np.testing.assert_array_equal(beta_schedule(1.5, 2.0, 100.0), beta_schedule(1.5, 2.0, 100.0))
+    with pytest.raises(ValueError, match="step"):
+        beta_schedule(1.0, 1.0, 10.0)
+    with pytest.raises(ValueError, match="beta_max"):
+        beta_schedule(10.0, 2.0, 1.0)
+    assert relative_change(2.0, 1.0) == 0.5 and relative_change(0.0, 0.0) == 0.0
+
+
+# --------------------------------------------------------------------------- balanced
+def _check_balanced(C, a, b, res, rtol=1e-6):
+    u0 = ot.emd2(a, b, C, numItermax=10**7)
+    assert res.converged
+    assert abs(res.cost - u0) <= rtol * abs(u0)
+    assert res.cost >= u0 - 1e-12  # a feasible plan costs at least the optimum
+    tot = a.sum()
+    assert np.abs(res.mass1 - a).sum() <= 1e-6 * tot
+    assert np.abs(res.mass2 - b).sum() <= 1e-6 * tot
+    assert abs((res.plan * C).sum() - res.cost) <= 1e-12 * max(1.0, abs(res.cost))
+    # the history is monotone (U(beta) decreases to U*) and its gap bound holds
+    costs = np.array([h.cost for h in res.history])
+    assert np.all(np.diff(costs) <= 1e-12 * costs[0])
+    assert res.history[-1].gap_bound >= res.cost - u0 - 1e-12
+
+
+def test_balanced_square_uniform_matches_emd(device):
+    C = _points_cost(40, 40)
+    n = 40
+    a = np.full(n, 1 / n)
+    res = wo.solve_balanced(C, device=device)
+    _check_balanced(C, a, a, res)
+
+
+def test_balanced_rectangular_nonuniform_matches_emd():
+    C = _points_cost(30, 45, seed=3) * 7.5  # arbitrary scale
+    a, b = _masses(30, 1), _masses(45, 2)
+    res = wo.solve_balanced(C, a, b, device="cpu")
+    _check_balanced(C, a, b, res)
+    # the same with the roles swapped (the solver eliminates the larger side either way)
+    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu")
+    np.testing.assert_allclose(rt.plan, res.plan.T, atol=1e-9 * res.plan.max())
+    assert abs(rt.cost - res.cost) <= 1e-9 * res.cost
+
+
+def test_balanced_planted_permutation_closed_form():
+    n = 25
+    rng = np.random.default_rng(5)
+    perm = rng.permutation(n)
+    C = 1.0 + rng.random((n, n))
+    C[np.arange(n), perm] = 0.2 * rng.random(n)  # the planted permutation is the unique optimum
+    res = wo.solve_balanced(C, device="cpu")
+    u_star = C[np.arange(n), perm].sum() / n
+    assert abs(res.cost - u_star) <= 1e-6 * u_star
+    assert np.array_equal(res.plan.argmax(axis=1), perm)
+
+
+def test_balanced_invariances():
+    C = _points_cost(20, 20, seed=7)
+    a, b = _masses(20, 8), _masses(20, 9)
+    r = wo.solve_balanced(C, a, b, device="cpu")
+    p1, p2 = np.random.default_rng(0).permutation(20), np.random.default_rng(1).permutation(20)
+    rp = wo.solve_balanced(C[p1][:, p2], a[p1], b[p2], device="cpu")
+    assert abs(rp.cost - r.cost) <= 1e-9 * r.cost
+    np.testing.assert_allclose(rp.plan, r.plan[p1][:, p2], atol=1e-9 * r.plan.max())
+    rs = wo.solve_balanced(C * 1e5, a, b, device="cpu")
+    assert abs(rs.cost - 1e5 * r.cost) <= 1e-9 * rs.cost
+    assert abs(rs.beta * 1e5 - r.beta) <= 1e-9 * r.beta
+    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu")
+    assert abs(rt.cost - r.cost) <= 1e-9 * r.cost
+
+
+def test_direct_and_cg_agree_and_warp_input_is_used_in_place():
+    C = _points_cost(15, 22, seed=4)
+    rc = wo.solve_balanced(C, device="cpu")
+    rd = wo.solve_balanced(C, device="cpu", linear_solver="direct")
+    assert abs(rc.cost - rd.cost) <= 1e-9 * rc.cost
+    Cw = wp.array(C, dtype=wp.float64, device="cpu")
+    rw = wo.solve_balanced(Cw, device="cpu")
+    assert rw.cost == rc.cost
+    np.testing.assert_array_equal(Cw.numpy(), C)
+
+
+def test_balanced_self_transport_has_zero_cost_and_stops():
+    X = np.random.default_rng(2).random((20, 3))
+    C = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    res = wo.solve_balanced(C, device="cpu")
+    assert res.converged
+    assert res.cost <= 1e-9 * C.max()
+    assert np.array_equal(res.plan.argmax(axis=1), np.arange(20))
+    assert wo.debiased(res.cost, res.cost, res.cost) == 0.0
+
+
+def test_cpu_and_cuda_agree(device):
+    if device == "cpu":
+        pytest.skip("needs a CUDA device to compare with")
+    C = _points_cost(30, 24, seed=11)
+    rc = wo.solve_balanced(C, device="cpu")
+    rg = wo.solve_balanced(C, device=device)
+    assert abs(rc.cost - rg.cost) <= 1e-10 * rc.cost
+    np.testing.assert_allclose(rg.plan, rc.plan, atol=1e-10 * rc.plan.max())
+    pc = wo.solve_partial(C, device="cpu")
+    pg = wo.solve_partial(C, device=device)
+    assert abs(pc.objective - pg.objective) <= 1e-10 * pc.objective
+
+
+# --------------------------------------------------------------------------- partial
+def _qp(C, r1, r2, mp):
+    import cvxpy as cp
+
+    G = cp.Variable(C.shape, nonneg=True)
+    m1, m2 = cp.sum(G, axis=1), cp.sum(G, axis=0)
+    obj = (cp.sum(cp.multiply(C, G)) + cp.sum(cp.multiply(mp / r1**2, cp.square(m1)))
+           + cp.sum(cp.multiply(mp / r2**2, cp.square(m2))))
+    prob = cp.Problem(cp.Minimize(obj), [cp.sum(G) == 1])
+    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+    return prob.value, m1.value, m2.value
+
+
+@pytest.mark.parametrize("mp", [1.0, 0.01])
+def test_partial_matches_independent_qp(mp):
+    rng = np.random.default_rng(1)
+    C = rng.random((12, 9))
+    r1, r2 = _masses(12, 3), _masses(9, 4)
+    res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu")
+    val, m1, m2 = _qp(C, r1, r2, mp)
+    assert res.converged
+    assert abs(res.objective - val) <= 1e-6 * val
+    np.testing.assert_allclose(res.mass1, m1, atol=1e-6)
+    np.testing.assert_allclose(res.mass2, m2, atol=1e-6)
+    assert abs(res.mass1.sum() - 1) < 1e-9
+    pen = mp * np.sum((res.mass1 / r1) ** 2) + mp * np.sum((res.mass2 / r2) ** 2)
+    assert abs(res.objective - (res.cost + pen)) <= 1e-9 * res.objective
+
+
+def test_partial_huge_penalty_recovers_balanced():
+    C = _points_cost(16, 16, seed=5)
+    rb = wo.solve_balanced(C, device="cpu")
+    rp = wo.solve_partial(C, mass_penalty=1e6, device="cpu")
+    # uniform rho: masses -> rho^2 / sum rho^2 = uniform, so the transport part -> balanced U*
+    np.testing.assert_allclose(rp.mass1, 1 / 16, atol=1e-5)
+    assert abs(rp.cost - rb.cost) <= 1e-4 * rb.cost
+    # non-uniform rho: masses -> rho^2 / sum(rho^2), not rho
+    r1 = _masses(16, 6)
+    rq = wo.solve_partial(C, r1, None, mass_penalty=1e6, device="cpu")
+    np.testing.assert_allclose(rq.mass1, r1**2 / np.sum(r1**2), atol=1e-4)
+
+
+# --------------------------------------------------------------------------- validation
+def test_bad_inputs_raise_value_errors_naming_the_problem():
+    C = np.random.default_rng(0).random((5, 6))
+    bad = C.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        wo.solve_balanced(bad, device="cpu")
+    with pytest.raises(ValueError, match="non-negative"):
+        wo.solve_balanced(C - 0.5, device="cpu")
+    with pytest.raises(ValueError, match="negative entries"):
+        wo.solve_balanced(C, np.array([0.5, -0.1, 0.2, 0.2, 0.2]), device="cpu")
+    with pytest.raises(ValueError, match="equal total masses"):
+        wo.solve_balanced(C, np.full(5, 0.2), np.full(6, 0.2), device="cpu")
+    with pytest.raises(ValueError, match="length 4"):
+        wo.solve_balanced(C, np.full(4, 0.25), device="cpu")
+    with pytest.raises(ValueError, match="2-D"):
+        wo.solve_balanced(np.ones(5), device="cpu")
+    with pytest.raises(ValueError, match="empty"):
+        wo.solve_balanced(np.zeros((0, 3)), device="cpu")
+    with pytest.raises(ValueError, match="float64"):
+        wo.solve_balanced(wp.array(C, dtype=wp.float32, device="cpu"), device="cpu")
+    with pytest.raises(ValueError, match="linear_solver"):
+        wo.solve_balanced(C, device="cpu", linear_solver="lu")
+    with pytest.raises(ValueError, match="mass_penalty"):
+        wo.solve_partial(C, mass_penalty=0.0, device="cpu")
+    with pytest.raises(ValueError, match="zero entries"):
+        wo.solve_partial(C, np.array([0.5, 0.0, 0.2, 0.2, 0.1]), device="cpu")
+    with pytest.raises(ValueError, match="finite"):
+        wo.debiased(1.0, np.nan, 0.0)
+
+
+def test_non_convergence_is_reported():
+    C = _points_cost(10, 10)
+    with pytest.warns(RuntimeWarning, match="max_iter"):
+        res = wo.solve_balanced(C, device="cpu", max_iter=1)
+    assert not res.converged and len(res.history) == 1
+    with pytest.warns(RuntimeWarning, match="Newton"):
+        res = wo.solve_partial(C, device="cpu", max_newton=1)
+    assert not res.converged
+
+
+def test_debiased_eq27():
+    assert wo.debiased(3.0, 1.0, 2.0) == 1.5

@@ -1,0 +1,366 @@
+"""Newton's method at fixed beta and the annealing loop of Algorithm 1 (shared by balanced and partial).
+
+State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (phi, phi', row and
+column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. Length-N vectors are handled on the host
+(zero-copy views on "cpu"), where the CG recurrences and the sparse preconditioner run.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from wpot.ot import kernels as K
+from wpot.ot import linear
+from wpot.ot.problem import Internal
+from wpot.ot.result import BetaStep
+from wpot.ot.schedule import beta_schedule, relative_change
+
+
+@dataclass
+class Options:
+    beta0: float  # normalized units
+    beta_max: float
+    step: float
+    tol: float
+    atol: float  # normalized units (fraction of the cost scale)
+    max_iter: int  # annealing steps
+    max_newton: int
+    newton_tol: float
+    linear_solver: str
+    cg_rtol: float
+    cg_max_iter: int
+    topk: int
+    extrapolate: bool
+    verbose: int
+
+
+@dataclass
+class Timers:
+    eval: float = 0.0
+    prep: float = 0.0
+    precond: float = 0.0
+    cg: float = 0.0
+    direct: float = 0.0
+    other: float = 0.0
+    n_eval: int = 0
+    n_matvec: int = 0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Point:
+    """Values at one (lam, y): host copies of the length-N quantities and the scalar sums."""
+
+    g1: np.ndarray
+    g2: np.ndarray
+    merit: float
+    residual: float
+    u: float = math.nan
+    f_sum: float = math.nan
+    xphi: float = math.nan
+    x: float = 0.0
+
+
+class Engine:
+    """Preallocated solver state for one internal problem (see `wpot.ot.problem.Internal`)."""
+
+    def __init__(self, prob: Internal, opts: Options):
+        self.p = prob
+        self.o = opts
+        d = prob.device
+        n_r, n_c = prob.n_r, prob.n_c
+        z = lambda n, dt=wp.float64: wp.zeros(n, dtype=dt, device=d)  # noqa: E731
+        self.lam = [z(n_r), z(n_r)]  # hi, lo
+        self.y = [z(n_c), z(n_c)]
+        self.lam_t = [z(n_r), z(n_r)]
+        self.y_t = [z(n_c), z(n_c)]
+        self.W = wp.zeros((n_r, n_c), dtype=wp.float64, device=d)
+        self.row_g, self.col_g = z(n_r), z(n_c)
+        self.row_w, self.tail = z(n_r), z(n_r)
+        self.piv = z(n_r, wp.int32)
+        self.row_u, self.row_f, self.row_xphi, self.s_piv = z(n_r), z(n_r), z(n_r), z(n_r)
+        self.row_ws, self.col_ws = z(n_r), z(n_c)
+        self.e1, self.b, self.g1 = z(n_r), z(n_r), z(n_r)
+        self.diag_s, self.wtg = z(n_c), z(n_c)
+        kk = max(2, min(opts.topk, n_c))
+        self.kk = kk
+        self.top_val = wp.zeros((n_r, kk), dtype=wp.float64, device=d)
+        self.top_idx = wp.zeros((n_r, kk), dtype=wp.int32, device=d)
+        kc = max(1, min(opts.topk, n_r))
+        self.ctop_val = wp.zeros((n_c, kc), dtype=wp.float64, device=d)
+        self.ctop_idx = wp.zeros((n_c, kc), dtype=wp.int32, device=d)
+        self.v, self.mv = z(n_c), z(n_c)
+        self.d_a, self.d_b = z(n_r), z(n_r)
+        self.dy_a, self.zero_c = z(n_c), z(n_c)
+        self.b.assign(wp.array(prob.b_r, dtype=wp.float64, device=d))
+        self.t = Timers()
+        self.beta = 0.0
+        self._n_tangent = 0
+        self.C = prob.cost.C
+        self.inv_scale = 1.0 / prob.scale
+        self.a_sum = float(prob.a_c.sum())
+
+    # ------------------------------------------------------------------ evaluation
+    def _x_of_y(self, y: np.ndarray) -> float:
+        """Partial: the scalar x eliminated in closed form, x = (a . y - 1) / sum(a) (then sum m2 = 1)."""
+        if not self.p.partial:
+            return 0.0
+        return (float(self.p.a_c @ y) - 1.0) / self.a_sum
+
+    def evaluate(self, lam, y, beta: float, full: bool = True, with_f: bool = False) -> Point:
+        t0 = time.perf_counter()
+        p = self.p
+        self.col_g.zero_()
+        if with_f:
+            self.col_ws.zero_()
+        wp.launch(
+            K.eval_rows,
+            dim=p.n_r,
+            inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1], 1 if with_f else 0],
+            outputs=[self.W, self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u, self.row_f,
+                     self.row_xphi, self.s_piv, self.row_ws, self.col_ws],
+            device=p.device,
+        )
+        rg, cg = self.row_g.numpy(), self.col_g.numpy()
+        lam_h = lam[0].numpy() + lam[1].numpy()
+        y_h = y[0].numpy() + y[1].numpy()
+        x = self._x_of_y(y_h)
+        tgt1 = p.m_r + p.b_r * lam_h
+        tgt2 = p.m_c + p.a_c * (y_h - x)
+        g1 = tgt1 - rg
+        g2 = tgt2 - cg
+        merit = float(np.sqrt(g1 @ g1 + g2 @ g2))
+        res = 0.5 * float(np.abs(g1).sum() + np.abs(g2).sum())
+        pt = Point(g1, g2, merit, res, x=x)
+        if full:
+            pt.u = float(self.row_u.numpy().sum())
+            pt.f_sum = float(self.row_f.numpy().sum())
+            pt.xphi = float(self.row_xphi.numpy().sum())
+        self.t.eval += time.perf_counter() - t0
+        self.t.n_eval += 1
+        return pt
+
+    # ------------------------------------------------------------------ Newton direction
+    def _matvec(self, v: np.ndarray) -> np.ndarray:
+        p = self.p
+        self.v.assign(v)
+        self.mv.zero_()
+        wp.launch(K.schur_matvec, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
+                  device=p.device)
+        out = self.mv.numpy().copy()
+        if p.partial:
+            a = p.a_c
+            out += a * v - a * (float(a @ v) / self.a_sum)
+        self.t.n_matvec += 1
+        return out
+
+    def direction(self, pt: Point) -> tuple[int, bool]:
+        """Solve the Newton system; leaves dlam = d_a + d_b and dy = dy_a on the device. Returns
+        (linear iterations, linear solve converged)."""
+        p = self.p
+        t0 = time.perf_counter()
+        e1 = self.row_w.numpy() + p.b_r
+        self.e1.assign(wp.array(e1, dtype=wp.float64, device=p.device))
+        self.g1.assign(wp.array(pt.g1, dtype=wp.float64, device=p.device))
+        self.diag_s.zero_()
+        self.wtg.zero_()
+        wp.launch(K.schur_prep, dim=p.n_r,
+                  inputs=[self.W, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk],
+                  outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
+        rhs = -pt.g2 + self.wtg.numpy()
+        data = linear.SchurData(self.diag_s.numpy().copy(), e1, self.piv.numpy().copy(), p.a_c, not p.partial)
+        self.t.prep += time.perf_counter() - t0
+        n_lin, ok = 0, True
+        if self.o.linear_solver == "direct":
+            t0 = time.perf_counter()
+            dy = linear.direct_solve(self.W.numpy(), data, rhs)
+            self.t.direct += time.perf_counter() - t0
+            n_lin = 1
+        else:
+            t0 = time.perf_counter()
+            wp.launch(K.col_topk, dim=p.n_c, inputs=[self.W, p.n_r, self.piv, self.ctop_val.shape[1]],
+                      outputs=[self.ctop_val, self.ctop_idx], device=p.device)
+            P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
+                                             self.ctop_val.numpy(), self.ctop_idx.numpy())
+            M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
+            self.t.precond += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            dy, info = linear.pcg(self._matvec, rhs, M, rtol=self.o.cg_rtol,
+                                   max_iter=self.o.cg_max_iter, gauge=not p.partial)
+            self.t.cg += time.perf_counter() - t0
+            n_lin, ok = info.iterations, info.converged
+        t0 = time.perf_counter()
+        self.dy_a.assign(wp.array(dy, dtype=wp.float64, device=p.device))
+        wp.launch(K.recover_rows, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
+                  outputs=[self.d_a, self.d_b], device=p.device)
+        self.t.other += time.perf_counter() - t0
+        return n_lin, ok
+
+    def _scaled(self, pt: Point) -> Point:
+        """Residuals scaled by (marginal / target): Newton on 1/marginal = 1/target instead of
+        marginal = target. For a plan entry G = 1/(beta s) the reciprocal is linear in s, so the step
+        does not overshoot when a marginal is far too small (the warm start after beta *= step); near
+        the solution the scale tends to 1 and the iteration is Newton's. The direction stays a descent
+        direction of ||g||^2 (J^-1 times a positive diagonal)."""
+        p = self.p
+        rg, cg = self.row_g.numpy(), self.col_g.numpy()
+        t1 = rg + pt.g1
+        t2 = cg + pt.g2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f1 = np.where(t1 > 0, rg / t1, 1.0)
+            f2 = np.where(t2 > 0, cg / t2, 1.0)
+        f1 = np.clip(f1, 1e-3, 1e3)
+        f2 = np.clip(f2, 1e-3, 1e3)
+        return Point(pt.g1 * f1, pt.g2 * f2, pt.merit, pt.residual)
+
+    def _trial(self, alpha: float):
+        p = self.p
+        wp.launch(K.dd_axpy, dim=p.n_r, inputs=[self.lam[0], self.lam[1], alpha, self.d_a, self.d_b],
+                  outputs=[self.lam_t[0], self.lam_t[1]], device=p.device)
+        wp.launch(K.dd_axpy, dim=p.n_c, inputs=[self.y[0], self.y[1], alpha, self.dy_a, self.zero_c],
+                  outputs=[self.y_t[0], self.y_t[1]], device=p.device)
+
+    def newton(self, beta: float, pt: Point) -> tuple[Point, int, int, bool]:
+        """Newton's method with backtracking on the residual norm ||g||_2 (accurate at any beta: the
+        marginal sums are sums of positive terms). Returns (point, newton iterations, linear iterations,
+        converged)."""
+        n_newton = n_lin = 0
+        while pt.residual > self.o.newton_tol:
+            if n_newton >= self.o.max_newton:
+                return pt, n_newton, n_lin, False
+            k_lin, _ = self.direction(self._scaled(pt))
+            n_lin += k_lin
+            n_newton += 1
+            # fraction to the boundary s = 0 on each row's pivot entry (its reduced cost moves by d_b
+            # exactly): the full step overshoots when a plan entry is too small (G ~ 1/(beta s))
+            db = self.d_b.numpy()
+            spv = self.s_piv.numpy()
+            neg = (db < 0) & (spv > 0)
+            alpha = 1.0
+            if np.any(neg):
+                alpha = min(1.0, 0.9 * float(np.min(spv[neg] / -db[neg])))
+            accepted = False
+            for _ in range(60):
+                self._trial(alpha)
+                tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
+                if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:
+                # no decrease possible at working precision: keep the best point we have
+                pt = self.evaluate(self.lam, self.y, beta, full=True)
+                return pt, n_newton, n_lin, pt.residual <= self.o.newton_tol
+            self.lam, self.lam_t = self.lam_t, self.lam
+            self.y, self.y_t = self.y_t, self.y
+            if self.o.verbose > 1:
+                print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
+                      f"res {tp.residual:.2e} cg={k_lin}")
+            pt = tp
+        return pt, n_newton, n_lin, True
+
+    # ------------------------------------------------------------------ annealing (Algorithm 1)
+    def init_point(self, lam0: np.ndarray, y0: np.ndarray):
+        d = self.p.device
+        self.lam[0].assign(wp.array(lam0, dtype=wp.float64, device=d))
+        self.lam[1].zero_()
+        self.y[0].assign(wp.array(y0, dtype=wp.float64, device=d))
+        self.y[1].zero_()
+
+    def _copy(self, src, dst):
+        for s, t in zip(src, dst):
+            wp.copy(t, s)
+
+    def anneal(self, free_energy_fn) -> dict:
+        o = self.o
+        betas = beta_schedule(o.beta0, o.step, o.beta_max)
+        history: list[BetaStep] = []
+        raw: list[dict] = []
+        all_newton_ok = True
+        stopped = False
+        u_prev = None
+        n_newton_tot = n_lin_tot = 0
+        for it, beta in enumerate(betas):
+            if it >= o.max_iter:
+                break
+            pt = self.evaluate(self.lam, self.y, beta)
+            if raw and o.extrapolate:
+                # tangent predictor: (lam, y) + (1 - 1/q) * d(lam, y)/d(log beta), i.e. linear in 1/beta
+                # (exact when the duals behave like v* + a/beta); kept only when it lowers the residual
+                alpha = 1.0 - raw[-1]["beta"] / beta
+                for _ in range(4):
+                    self._trial(alpha)
+                    tp = self.evaluate(self.lam_t, self.y_t, beta)
+                    if tp.merit < pt.merit:
+                        self.lam, self.lam_t = self.lam_t, self.lam
+                        self.y, self.y_t = self.y_t, self.y
+                        pt = tp
+                        break
+                    alpha *= 0.5
+                n_lin_tot += self._n_tangent
+            pt, nn, nl, ok = self.newton(beta, pt)
+            pt = self.evaluate(self.lam, self.y, beta, with_f=True)
+            if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
+                # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
+                self._n_tangent, _ = self.direction(Point(self.row_ws.numpy().copy(), self.col_ws.numpy().copy(), 0.0, 0.0))
+            else:
+                self._n_tangent = 0
+            all_newton_ok &= ok
+            n_newton_tot += nn
+            n_lin_tot += nl
+            obj = pt.u + self._penalty(pt)
+            fe = free_energy_fn(self, pt, beta)
+            rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
+            raw.append(rec)
+            if o.verbose:
+                print(f"  beta={beta:.3e} U={pt.u:.12g} res={pt.residual:.2e} newton={nn} cg={nl} "
+                      f"gap<={pt.xphi / beta:.2e} t_eval={self.t.eval:.2f}s")
+            self.beta = beta
+            self.last = pt
+            if u_prev is not None and ok:
+                # Algorithm 1 on the transport cost U (for the partial problem the penalty would mask it)
+                if relative_change(u_prev, pt.u) < o.tol or abs(pt.u - u_prev) <= o.atol:
+                    stopped = True
+                    break
+            u_prev = pt.u
+        if o.verbose:
+            print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
+        return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
+                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history)
+
+    def _penalty(self, pt: Point) -> float:
+        """Partial: sum alpha1' m1^2 + sum alpha2' m2^2 (normalized units) with m = the plan's marginals."""
+        if not self.p.partial:
+            return 0.0
+        m1 = self.row_g.numpy()
+        m2 = self.col_g.numpy()
+        return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))
+
+    def plan(self) -> np.ndarray:
+        p = self.p
+        shape = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
+        G = wp.zeros(shape, dtype=wp.float64, device=p.device)
+        wp.launch(K.plan_kernel, dim=p.n_r,
+                  inputs=[self.C, p.trans, self.inv_scale, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
+                          self.y[1]], outputs=[G], device=p.device)
+        return G.numpy()
+
+
+def warn_not_converged(kind: str, info: dict, beta_max_user: float):
+    if info["converged"]:
+        return
+    if not info["newton_ok"]:
+        msg = (f"{kind}: a Newton solve did not reach its tolerance (see result.history residuals); "
+               "increase max_newton, use a smaller step, or try linear_solver='direct'")
+    else:
+        msg = (f"{kind}: annealing stopped before the relative change of U fell below tol "
+               f"(reached beta={info['raw'][-1]['beta'] if info['raw'] else float('nan'):.3g} normalized); "
+               "increase max_iter or beta_max, or loosen tol")
+    warnings.warn(msg, RuntimeWarning, stacklevel=3)

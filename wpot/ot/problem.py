@@ -1,0 +1,133 @@
+"""Input validation and the internal (normalized, oriented) form of an OT problem."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from wpot.ot import kernels as K
+
+
+def resolve_device(device) -> str:
+    """``None`` -> Warp's default device; otherwise the named device (checked once)."""
+    wp.init()
+    try:
+        return str(wp.get_device(device))
+    except Exception as exc:  # noqa: BLE001 - re-raised with the received value
+        raise ValueError(f"unknown Warp device {device!r}: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class CostInput:
+    """The validated cost: a 2-D float64 wp.array on the solve device (the caller's, never copied when
+    it already is one) and its scale max C (the solver works on C / max C: results are then invariant to a scaling of C)."""
+
+    C: wp.array
+    n1: int
+    n2: int
+    scale: float
+    c_max: float
+
+
+def prepare_cost(C, device: str) -> CostInput:
+    """Validate C ((N1, N2), finite, >= 0) and bring it to ``device`` as float64 (no copy if it already is)."""
+    if isinstance(C, wp.array):
+        if C.ndim != 2:
+            raise ValueError(f"cost matrix must be 2-D (N1, N2), got a wp.array of shape {C.shape}")
+        if C.dtype != wp.float64:
+            raise ValueError(f"cost matrix wp.array must be float64, got {wp.types.type_repr(C.dtype)}")
+        if str(C.device) != device:
+            raise ValueError(f"cost matrix is on device {C.device}, expected {device} (pass device=)")
+        if not C.is_contiguous:
+            raise ValueError("cost matrix wp.array must be contiguous")
+        Cw = C
+    else:
+        try:
+            Cn = np.asarray(C, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"cost matrix must be a numeric (N1, N2) array, got {type(C).__name__}") from exc
+        if Cn.ndim != 2:
+            raise ValueError(f"cost matrix must be 2-D (N1, N2), got shape {Cn.shape}")
+        Cw = wp.array(np.ascontiguousarray(Cn), dtype=wp.float64, device=device)
+    n1, n2 = int(Cw.shape[0]), int(Cw.shape[1])
+    if n1 == 0 or n2 == 0:
+        raise ValueError(f"cost matrix is empty, got shape {(n1, n2)}")
+    rmin = wp.zeros(n1, dtype=wp.float64, device=device)
+    rmax = wp.zeros(n1, dtype=wp.float64, device=device)
+    rbad = wp.zeros(n1, dtype=wp.int32, device=device)
+    wp.launch(K.cost_stats, dim=n1, inputs=[Cw, n2, rmin, rmax, rbad], device=device)
+    nbad = int(rbad.numpy().sum())
+    if nbad:
+        raise ValueError(f"cost matrix has {nbad} non-finite (NaN or inf) entries")
+    cmin, cmax = float(rmin.numpy().min()), float(rmax.numpy().max())
+    if cmin < 0:
+        raise ValueError(f"cost matrix must be non-negative, got min(C) = {cmin}")
+    scale = 1.0 if cmax <= 0 else cmax
+    return CostInput(Cw, n1, n2, scale, cmax)
+
+
+def prepare_masses(m, n: int, name: str, default_uniform: bool = True) -> np.ndarray:
+    """(n,) float64 strictly positive finite masses (uniform 1/n when ``m`` is None)."""
+    if m is None:
+        return np.full(n, 1.0 / n)
+    if isinstance(m, wp.array):
+        m = m.numpy()
+    a = np.asarray(m, dtype=np.float64)
+    if a.ndim != 1:
+        raise ValueError(f"{name} must be 1-D, got shape {a.shape}")
+    if a.shape[0] != n:
+        raise ValueError(f"{name} has length {a.shape[0]}, but the cost matrix needs {n}")
+    if a.size == 0:
+        raise ValueError(f"{name} is empty")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} has non-finite entries: {a[~np.isfinite(a)][:5]}")
+    if np.any(a < 0):
+        raise ValueError(f"{name} has negative entries: {a[a < 0][:5]}")
+    if np.any(a == 0):
+        raise ValueError(
+            f"{name} has {int(np.sum(a == 0))} zero entries (of {n}); remove those points from the problem"
+        )
+    return a
+
+
+def check_balanced(a: np.ndarray, b: np.ndarray, rtol: float = 1e-9) -> float:
+    """The common total mass of a and b; ValueError when the sums differ (relative rtol)."""
+    sa, sb = float(a.sum()), float(b.sum())
+    if abs(sa - sb) > rtol * max(sa, sb):
+        raise ValueError(f"balanced OT needs equal total masses, got sum(a) = {sa!r} and sum(b) = {sb!r}")
+    return 0.5 * (sa + sb)
+
+
+@dataclass
+class Internal:
+    """The oriented, normalized problem the engine solves.
+
+    Rows (size n_r >= n_c) are eliminated in the Schur complement; ``trans`` says whether the rows are
+    the user's columns. Costs are C' = C / scale. Balanced: fixed masses m_r, m_c (sum 1), b = a = 0.
+    Partial: m = 0, b_r = 1/(2 alpha_r'), a_c = 1/(2 alpha_c') with alpha' = alpha / scale.
+    """
+
+    cost: CostInput
+    trans: int
+    n_r: int
+    n_c: int
+    m_r: np.ndarray
+    m_c: np.ndarray
+    b_r: np.ndarray
+    a_c: np.ndarray
+    partial: bool
+    device: str
+
+    @property
+    def scale(self) -> float:
+        return self.cost.scale
+
+
+def orient(cost: CostInput, m1, m2, b1, a2, partial: bool, device: str) -> Internal:
+    """Put the larger side first (it is eliminated: each of its points tends to a single partner)."""
+    trans = 1 if cost.n1 < cost.n2 else 0
+    if trans:
+        return Internal(cost, 1, cost.n2, cost.n1, m2, m1, a2, b1, partial, device)
+    return Internal(cost, 0, cost.n1, cost.n2, m1, m2, b1, a2, partial, device)

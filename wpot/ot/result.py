@@ -1,0 +1,72 @@
+"""Result types of the OT solvers (frozen dataclasses; the return type never depends on a flag)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BetaStep:
+    """One annealing step (Algorithm 1), everything in the user's units.
+
+    beta : inverse temperature (user's cost units: beta * C is dimensionless)
+    cost : U(beta) = sum_kl G(k,l) C(k,l), the transport part (Eq. 6 / first term of Eq. 17)
+    free_energy : F at the saddle point (Eq. 12 balanced, Eq. 23 partial)
+    n_newton, n_linear : Newton iterations and linear (CG) iterations spent at this beta
+    residual : marginal residual at the end of the Newton solve, sum of |row-sum errors| and
+        |column-sum errors| divided by 2 x total mass (relative, dimensionless)
+    gap_bound : certified bound on U(beta) - U* (user units; the duality gap (1/beta) sum x phi(x),
+        valid whenever every plan entry is < 1/2 of its marginal, always the case for N >= 3); for the
+        partial problem the same quantity bounds the gap of the objective
+    """
+
+    beta: float
+    cost: float
+    free_energy: float
+    n_newton: int
+    n_linear: int
+    residual: float
+    gap_bound: float = float("nan")
+
+
+@dataclass(frozen=True)
+class OTResult:
+    """Solution of a balanced (Eq. 6-16) or partial (Eq. 17-26) OT problem by annealing.
+
+    plan : (N1, N2) float64, the mean-field plan G = phi(beta (C + lam + mu [+ x])) at the final beta
+    cost : U = sum G C (user's units), Eq. 6 (balanced) or the transport part of Eq. 17 (partial)
+    objective : the minimized objective: = cost (balanced); cost + sum alpha1 m1^2 + sum alpha2 m2^2 (partial)
+    free_energy : F at the saddle point, Eq. 12 / Eq. 23 (user's units)
+    lam : (N1,) float64, mu : (N2,) float64, x : float (0.0 for balanced) -- the dual variables in user's
+        units (balanced: one gauge is free; ours is whatever the solve reached)
+    mass1 : (N1,) float64 row sums of the plan; mass2 : (N2,) float64 column sums
+    beta : final inverse temperature (user's units); converged : annealing stopped by `tol` with every
+        Newton solve converged; n_newton, n_linear : totals; history : one `BetaStep` per beta
+    """
+
+    plan: np.ndarray
+    cost: float
+    objective: float
+    free_energy: float
+    lam: np.ndarray
+    mu: np.ndarray
+    x: float
+    mass1: np.ndarray
+    mass2: np.ndarray
+    beta: float
+    converged: bool
+    n_newton: int
+    n_linear: int
+    history: tuple[BetaStep, ...]
+
+
+def debiased(u12: float, u11: float, u22: float) -> float:
+    """Debiased transport cost SU (paper Eq. 27): u12 - 0.5 (u11 + u22).
+
+    Works the same for U and for the free energy F. Raises ValueError on non-finite input.
+    """
+    vals = (float(u12), float(u11), float(u22))
+    if not all(np.isfinite(v) for v in vals):
+        raise ValueError(f"debiased needs finite values, got u12={u12}, u11={u11}, u22={u22}")
+    return vals[0] - 0.5 * (vals[1] + vals[2])
