@@ -191,3 +191,154 @@ def test_history_at_reads_the_last_value_at_or_below_each_beta():
     np.testing.assert_array_equal(history_at(h, np.array([1e2, 1e3, 1e4, 1e6])), [np.nan, 5.0, 4.0, 3.5])
     su = debias_history(np.array([[1e3, 10.0], [1e4, 9.0]]), h, np.array([[1e3, 1.0]]))
     np.testing.assert_allclose(su[:, 1], [10 - 0.5 * (5 + 1), 9 - 0.5 * (4 + 1)])
+
+
+# ------------------------------------------------------------------------ end to end (solver + WKS)
+# Small settings: 300 vertices and 100 eigenpairs/energies (fewer energies widen the WKS Gaussians,
+# sigma = 7 delta, and blur the correspondence: 50 energies give a median error of ~5 edge lengths here).
+FAST = {"n_eigen": 100, "n_energies": 100}
+
+
+@pytest.fixture(scope="module")
+def pair():
+    from wpot.examples import example_pair
+
+    # equal vertex counts: a balanced plan can then put a vertex's whole mass on one vertex (G > 0.9 m1)
+    return example_pair(300, seed=1, n_target=300)
+
+
+@pytest.fixture(scope="module")
+def comparer(pair):
+    from wpot.compare import Comparer
+
+    c = Comparer(signature="wks", transport="balanced", **FAST)
+    c.fit_energies([pair.source, pair.target])
+    return c
+
+
+@pytest.fixture(scope="module")
+def ab(comparer, pair):
+    return comparer.compare(pair.source, pair.target)
+
+
+def _errors(pair, correspondence):
+    """Distance (in the source frame, in mean edge lengths) between each source vertex and the surface point
+    sampled by the target vertex it was matched to."""
+    d = np.linalg.norm(pair.target_in_source_frame[correspondence] - pair.source.vertices, axis=1)
+    return d / pair.source.mean_edge_length
+
+
+def test_correspondence_is_mostly_right(ab, pair):
+    assert ab.correspondence.shape == (pair.source.n_vertices,)
+    err = _errors(pair, ab.correspondence)
+    assert np.median(err) < 1.5
+    assert np.mean(err < 3.0) > 0.65
+
+
+def test_matched_pairs_and_masses_are_consistent_with_the_plan(ab):
+    plan = np.asarray(ab.result.plan)
+    np.testing.assert_allclose(ab.mass1, plan.sum(1), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(ab.mass2, plan.sum(0), rtol=1e-6, atol=1e-12)
+    i, j = ab.matched.T
+    assert np.all(plan[i, j] > 0.9 * ab.mass1[i])
+    np.testing.assert_allclose(ab.matched_weight, plan[i, j])
+    # a row with a matched pair has it at its argmax
+    np.testing.assert_array_equal(ab.correspondence[i], j)
+    assert len(ab.matched) > 0.5 * len(plan)
+    assert ab.distance == pytest.approx(float(ab.result.cost))
+    assert ab.history.shape[1] == 2 and ab.history[-1, 1] == pytest.approx(ab.distance, rel=1e-6)
+
+
+def test_registration_recovers_the_rigid_motion_between_the_pair(ab, pair):
+    reg = ab.registration
+    assert reg is not None
+    # target = source surface rotated and translated: the fitted similarity is that motion
+    angle = np.degrees(Rotation.from_matrix(reg.rotation @ pair.rotation.T).magnitude())
+    assert angle < 3.0
+    # least squares over all matches, including the wrong ones, pulls the scale below 1 (those pairs
+    # point across the shape), but not far
+    assert 0.6 < reg.scale < 1.05
+    assert np.linalg.norm(reg.translation - pair.translation) < 0.1 * pair.source.bounding_box_diagonal
+
+
+def test_distance_to_itself_is_smallest(comparer, pair, ab):
+    other = pair.source.transformed(np.diag([1.0, 1.0, 1.0]), scale=1.0)
+    blob = Mesh(pair.source.vertices * np.array([1.8, 0.6, 1.0]), pair.source.faces)  # another shape
+    d_aa = comparer.compare(pair.source, other).distance
+    d_ac = comparer.compare(pair.source, blob).distance
+    assert d_aa < 0.2 * ab.distance
+    assert ab.distance < d_ac
+
+
+def test_rigid_motion_of_b_leaves_the_wks_comparison_unchanged(comparer, pair, ab):
+    rot = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
+    moved = pair.target.transformed(rot, np.array([3.0, -2.0, 5.0]))
+    c = comparer.compare(pair.source, moved)
+    assert c.distance == pytest.approx(ab.distance, rel=1e-8)
+    np.testing.assert_array_equal(c.correspondence, ab.correspondence)
+
+
+def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch):
+    from wpot.compare import Comparer
+
+    calls = []
+    orig = Comparer._compute_signatures
+
+    def counting(self, mesh):
+        calls.append(mesh.fingerprint)
+        return orig(self, mesh)
+
+    monkeypatch.setattr(Comparer, "_compute_signatures", counting)
+    c1 = Comparer(cache_dir=tmp_path, **FAST)
+    c1.fit_energies([pair.source, pair.target])
+    s1 = c1.signatures(pair.source)
+    c1.signatures(pair.source)
+    assert len(calls) == 1
+    c2 = Comparer(cache_dir=tmp_path, energies=c1.energies, **FAST)
+    np.testing.assert_array_equal(c2.signatures(pair.source), s1)
+    assert len(calls) == 1  # read from disk
+    c3 = Comparer(cache_dir=tmp_path, energies=c1.energies[:-1], **FAST)  # another grid: recomputed
+    c3.signatures(pair.source)
+    assert len(calls) == 2
+
+
+def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
+    from wpot.compare import Comparer
+
+    c = Comparer(max_vertices=150, energies=comparer.energies, **FAST).compare(pair.source, pair.target)
+    assert c.sample_a.n_samples == c.sample_b.n_samples == 150
+    assert np.asarray(c.result.plan).shape == (150, 150)
+    assert c.correspondence.shape == (pair.source.n_vertices,)
+    assert np.isin(c.correspondence, c.sample_b.indices).all()
+    assert np.isin(c.matched[:, 0], c.sample_a.indices).all() and np.isin(c.matched[:, 1], c.sample_b.indices).all()
+    assert np.median(_errors(pair, c.correspondence)) < 3.0
+
+
+def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):
+    import wpot.compare as wc
+
+    monkeypatch.setattr(wc, "_free_memory", lambda device: 4 * 8 * 200 * 200)  # room for 200 x 200 only
+    c = wc.Comparer(energies=comparer.energies, **FAST)
+    with pytest.raises(ProblemTooLargeError, match="max_vertices"):
+        c.compare(pair.source, pair.target)
+    c = wc.Comparer(energies=comparer.energies, max_vertices=120, **FAST)
+    assert c.compare(pair.source, pair.target).correspondence.shape == (pair.source.n_vertices,)
+
+
+def test_partial_distance_is_debiased_and_zero_on_itself():
+    from wpot.compare import Comparer
+    from wpot.examples import example_partial
+
+    ex = example_partial(250, seed=2, fraction=0.5)
+    c = Comparer(transport="partial", **FAST)
+    c.fit_energies([ex.full, ex.part])
+    r = c.compare(ex.part, ex.full)
+    uaa, ubb = r.self_energies
+    assert r.distance == pytest.approx(transport_energy_of(r) - 0.5 * (uaa + ubb), rel=1e-12, abs=1e-15)
+    assert c.compare(ex.full, ex.full).distance == pytest.approx(0.0, abs=1e-12)
+    assert r.mass1.shape == (ex.part.n_vertices,) and r.mass2.shape == (ex.full.n_vertices,)
+    assert r.mass1.sum() == pytest.approx(1.0, rel=1e-6)
+
+
+def transport_energy_of(c):
+    return float(c.result.objective)

@@ -1,0 +1,113 @@
+"""The `wpot` command end to end (subprocesses), on a handful of small generated shapes."""
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_pipeline import FAST_CLI, make_dataset
+
+
+def wpot(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "wpot.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("cli-data"), n_per_class=2)
+
+
+def _one_line_error(r: subprocess.CompletedProcess, *fragments: str) -> None:
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    # one line from wpot (Warp itself may print a device notice on start-up, e.g. no CUDA driver)
+    lines = [ln for ln in r.stderr.strip().splitlines() if not ln.startswith("Warp ")]
+    assert len(lines) == 1 and lines[0].startswith("wpot: error:"), r.stderr
+    assert "Traceback" not in r.stderr
+    for f in fragments:
+        assert f in lines[0], lines[0]
+
+
+def test_demo_prints_a_distance_and_saves_a_picture(tmp_path):
+    r = wpot("demo", "--out", str(tmp_path / "demo"), "--n", "200")  # the default is 400 vertices
+    assert r.returncode == 0, r.stderr
+    printed = float(re.search(r"^distance: (\S+)", r.stdout, re.M).group(1))
+    info = json.loads((tmp_path / "demo" / "comparison.json").read_text())
+    assert printed == pytest.approx(info["distance"], rel=1e-5)
+    png = (tmp_path / "demo" / "correspondence.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert info["median_error_edge_lengths"] < 2.0  # the example pair's ground truth
+    angle = float(re.search(r"rotation off by (\S+) degrees", r.stdout).group(1))
+    assert angle < 5.0
+
+
+def test_compare_two_files(dataset, tmp_path):
+    r = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--out", str(tmp_path / "c"))
+    assert r.returncode == 0, r.stderr
+    printed = float(re.search(r"^distance: (\S+)", r.stdout, re.M).group(1))
+    info = json.loads((tmp_path / "c" / "comparison.json").read_text())
+    assert printed == pytest.approx(info["distance"], rel=1e-5)
+    assert info["history"][-1][1] == pytest.approx(info["distance"], rel=1e-6)
+    z = np.load(tmp_path / "c" / "correspondence.npz")
+    assert z["correspondence"].shape == z["mass1"].shape and z["correspondence"].max() < len(z["mass2"])
+    assert (tmp_path / "c" / "correspondence.png").is_file()
+
+
+def test_all_vs_all_classify_report(dataset, tmp_path):
+    run = tmp_path / "run"
+    r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress", *FAST_CLI)
+    assert r.returncode == 0, r.stderr
+    assert "6 of 6 pairs" in r.stdout
+    r = wpot("classify", str(run), "--trials", "200")
+    assert r.returncode == 0, r.stderr
+    # two well-separated classes: every query's nearest training shape is of its class
+    assert re.search(r"200 trials: 100\.0%", r.stdout), r.stdout
+    assert re.search(r"leave-one-out 1-NN at level 'class' \(2 groups\): 100\.0%", r.stdout), r.stdout
+    info = json.loads((run / "classification.json").read_text())
+    assert info["one_shot"]["mean"] == 1.0
+    r = wpot("report", str(run), "--trials", "200")
+    assert r.returncode == 0, r.stderr
+    text = (run / "report.md").read_text()
+    assert "| OT (balanced) | — | 83.3 | 100.0 | 100.0 |" in text
+    assert "| OT (partial) | — | 97.3 | — | 98.6 |" in text
+    assert (run / "distance_matrix.png").is_file()
+    # the same folder with other parameters is refused, in one line
+    r = wpot("all-vs-all", str(dataset), "--transport", "partial", "--out", str(run), "--no-progress", *FAST_CLI)
+    _one_line_error(r, "other parameters", "transport")
+
+
+def test_partial_all_vs_all_with_labels(dataset, tmp_path):
+    csv = tmp_path / "labels.csv"
+    names = sorted(p.stem for p in dataset.glob("*.off"))
+    csv.write_text("name,kind,shape\n" + "".join(f"{n},{n[:4]},{'round' if n.startswith('blob') else 'long'}\n" for n in names))
+    run = tmp_path / "prun"
+    r = wpot("all-vs-all", str(dataset), "--transport", "partial", "--labels", str(csv), "--out", str(run), "--no-progress", *FAST_CLI)
+    assert r.returncode == 0, r.stderr
+    assert "10 of 10 pairs" in r.stdout  # 6 pairs + 4 self-comparisons
+    r = wpot("classify", str(run), "--trials", "100")
+    assert r.returncode == 0, r.stderr
+    assert "level 'kind'" in r.stdout and "level 'shape'" in r.stdout
+
+
+@pytest.mark.parametrize(
+    "args, fragments",
+    [
+        (["compare", "missing-a.off", "missing-b.off"], ["not found", "missing-a.off"]),
+        (["all-vs-all", "no-such-folder", "--out", "r"], ["no such folder", "no-such-folder"]),
+        (["classify", "no-such-run"], ["no wpot run", "no-such-run"]),
+        (["report", "no-such-run"], ["no wpot run"]),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
+    _one_line_error(wpot(*args, cwd=tmp_path), *fragments)
+
+
+def test_labels_csv_missing_and_unparsable_mesh(dataset, tmp_path):
+    _one_line_error(wpot("all-vs-all", str(dataset), "--out", str(tmp_path / "r"), "--labels", "nope.csv", cwd=tmp_path), "label CSV not found")
+    bad = tmp_path / "bad.off"
+    bad.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")
+    _one_line_error(wpot("compare", str(bad), str(dataset / "blob1.off")), "bad.off")
