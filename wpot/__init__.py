@@ -64,6 +64,16 @@ _EXPORTS: dict[str, str] = {
     # comparison
     "compare": "wpot.compare",
     "Comparison": "wpot.compare",
+    "Comparer": "wpot.compare",
+    "Registration": "wpot.compare",
+    "Subsample": "wpot.compare",
+    "fit_similarity": "wpot.compare",
+    "farthest_point_sampling": "wpot.compare",
+    "ProblemTooLargeError": "wpot.compare",
+    # dataset runs
+    "run_all_vs_all": "wpot.pipeline",
+    "RunStore": "wpot.pipeline",
+    "RunMismatchError": "wpot.pipeline",
 }
 _SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
 
