@@ -90,8 +90,12 @@ def wks_energies(spectra: Spectrum | Iterable[Spectrum], *, n_energies: int = 20
     for s in spectra:
         if not isinstance(s, Spectrum):
             raise TypeError(f"wks_energies expects wpot.spectral.Spectrum objects, got {type(s).__name__}")
-    if isinstance(n_energies, bool) or not isinstance(n_energies, (int, np.integer)) or n_energies < 2:
-        raise ValueError(f"n_energies must be an integer >= 2, got {n_energies!r}")
+    min_m = int(2 * MARGIN_SIGMAS * SIGMA_PER_DELTA)  # 28: below, the 2σ margins cross (σ = 7R/M)
+    if isinstance(n_energies, bool) or not isinstance(n_energies, (int, np.integer)) or n_energies <= min_m:
+        raise ValueError(
+            f"n_energies must be an integer > {min_m} (with σ = 7δ and 2σ margins the §3.2 grid is empty "
+            f"otherwise; paper: 200), got {n_energies!r}"
+        )
     lo = max(float(np.log(_positive_evals(s)[0])) for s in spectra)
     hi = min(float(np.log(_positive_evals(s)[-1])) for s in spectra)
     if not hi > lo:
