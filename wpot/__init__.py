@@ -37,9 +37,13 @@ _EXPORTS: dict[str, str] = {
     "laplace_beltrami": "wpot.spectral",
     "eigenpairs": "wpot.spectral",
     "LaplaceBeltrami": "wpot.spectral",
+    "Spectrum": "wpot.spectral",
+    "Cache": "wpot.cache",
     # signatures and costs
     "wks": "wpot.signatures",
     "wks_energies": "wpot.signatures",
+    "wks_from_eigenpairs": "wpot.signatures.wks",
+    "EnergyGrid": "wpot.signatures.wks",
     "ldsift": "wpot.signatures",
     "local_frames": "wpot.signatures",
     "cost_matrix": "wpot.cost",
