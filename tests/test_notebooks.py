@@ -40,6 +40,8 @@ def kernel_env(tmp_path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     # keep the user's signature cache out of it: notebooks choose their own (temporary) caches
     monkeypatch.delenv("WPOT_CACHE_DIR", raising=False)
+    # the small runs write into tempfile.mkdtemp() folders: put them under pytest's (self-pruning) tmp_path
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
     return tmp_path
 
 
