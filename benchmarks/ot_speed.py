@@ -1,0 +1,110 @@
+"""Speed and accuracy of wpot.ot against POT, side by side in one run (issue 3).
+
+Problem: C = Euclidean distances between uniform random points in R^8, normalized to max 1, uniform masses.
+Solvers: wpot.ot.solve_balanced (Warp; default CG and optionally the dense direct solve), POT's exact
+ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
+Printed: wall time, relative gap of <C, plan> to ot.emd's optimum, L1 marginal error (relative to the
+total mass), wpot's Newton/CG counts and where its time goes. Timings on a shared machine are noisy.
+
+    python benchmarks/ot_speed.py                 # N = 500, 1000, 3400
+    python benchmarks/ot_speed.py --sizes 500 1000 --quick
+"""
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import numpy as np
+
+
+def problem(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    X, Y = rng.random((n, 8)), rng.random((n, 8))
+    C = np.sqrt(((X[:, None, :] - Y[None, :, :]) ** 2).sum(-1))
+    return C / C.max()
+
+
+def row(name, t, gap, merr, extra=""):
+    print(f"  {name:<34} {t:9.2f} s   gap {gap:10.2e}   marg.err {merr:9.2e}   {extra}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 3400])
+    ap.add_argument("--quick", action="store_true", help="skip the slow peers (Sinkhorns, direct solve)")
+    ap.add_argument("--direct", action="store_true", help="also run wpot with linear_solver='direct'")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+
+    import ot
+    import warp as wp
+
+    import wpot.ot as wo
+    from wpot.ot import newton as wnewton
+
+    wp.config.quiet = True
+    wo.solve_balanced(problem(20), device=args.device)  # compile the kernels outside the timings
+
+    # capture the engine's timers (the solver keeps them on its Engine object)
+    timers = {}
+    orig = wnewton.Engine.anneal
+
+    def anneal(self, fe):
+        out = orig(self, fe)
+        timers.clear()
+        timers.update(self.t.as_dict())
+        return out
+
+    wnewton.Engine.anneal = anneal
+
+    for n in args.sizes:
+        C = problem(n)
+        a = np.full(n, 1.0 / n)
+        print(f"\nN = {n}  (C {n}x{n}, float64 {C.nbytes / 2**20:.0f} MiB)")
+        t = time.perf_counter()
+        G0 = ot.emd(a, a, C, numItermax=10**9)
+        t_emd = time.perf_counter() - t
+        u0 = float((G0 * C).sum())
+        row("POT ot.emd (exact)", t_emd, 0.0, np.abs(G0.sum(1) - a).sum() + np.abs(G0.sum(0) - a).sum())
+
+        def report(name, G, t):
+            gap = ((G * C).sum() - u0) / u0
+            merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - a).sum()
+            return gap, merr
+
+        t = time.perf_counter()
+        r = wo.solve_balanced(C, device=args.device)
+        tw = time.perf_counter() - t
+        gap, merr = report("wpot", r.plan, tw)
+        tm = {k: v for k, v in timers.items()}
+        row(f"wpot solve_balanced cg ({args.device})", tw, gap, merr,
+            f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}")
+        print("      time split: " + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
+              + f"; {tm['n_eval']} passes of phi over C, {tm['n_matvec']} Schur matvecs")
+        print("      per beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
+        if args.direct and n <= 2000:
+            t = time.perf_counter()
+            rd = wo.solve_balanced(C, device=args.device, linear_solver="direct")
+            td = time.perf_counter() - t
+            gap, merr = report("direct", rd.plan, td)
+            row(f"wpot solve_balanced direct ({args.device})", td, gap, merr, f"newton={rd.n_newton}")
+        if args.quick:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t = time.perf_counter()
+            Gs = ot.bregman.sinkhorn_stabilized(a, a, C, 1e-3, tau=1e8, numItermax=100000, stopThr=1e-9)
+            ts = time.perf_counter() - t
+            gap, merr = report("sink", Gs, ts)
+            row("POT sinkhorn_stabilized reg=1e-3", ts, gap, merr)
+            t = time.perf_counter()
+            Gu = ot.unbalanced.sinkhorn_unbalanced(a, a, C, 1e-3, 10.0, method="sinkhorn_stabilized",
+                                                   numItermax=100000, stopThr=1e-9, tau=1e8)
+            tu = time.perf_counter() - t
+            gap, merr = report("unb", Gu, tu)
+            row("POT sinkhorn_unbalanced reg=1e-3 m=10", tu, gap, merr, "(unbalanced: marginals not enforced)")
+
+
+if __name__ == "__main__":
+    main()
