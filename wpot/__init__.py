@@ -65,6 +65,12 @@ _EXPORTS: dict[str, str] = {
     "build_head_dataset": "wpot.datasets",
     "load_head_dataset": "wpot.datasets",
     "head_ground_truth": "wpot.datasets",
+    # optimal transport (also reachable as wpot.ot.*)
+    "solve_balanced": "wpot.ot",
+    "solve_partial": "wpot.ot",
+    "OTResult": "wpot.ot",
+    "BetaStep": "wpot.ot",
+    "debiased": "wpot.ot",
     # comparison
     "compare": "wpot.compare",
     "Comparison": "wpot.compare",
