@@ -11,6 +11,11 @@ The pieces (paper §2–§5):
 * the correspondence (argmax of each plan row, §4.1.3), the matched pairs ``G(i, j) > 0.9·m1(i)`` and a
   similarity transform (scale, rotation, translation) fitted to them (§5.1, Fig. 1).
 
+Partial transport's mass penalty is, by default, relative to the cost scale and to the problem size
+(`solver_mass_penalty`, ``penalty_scale="relative"``), so that one value means the same trade-off for
+every signature, cost unit and ``max_vertices``; ``penalty_scale="paper"`` is exactly Eq. 17 with
+``α = mass_penalty/ρ²``.
+
 `Comparer` is the caching set-up class (signatures per shape in memory and on disk, one WKS energy grid
 shared by every shape it sees); `compare` is the one-shot function.
 
@@ -36,6 +41,8 @@ from numpy.typing import ArrayLike
 from wpot.mesh import Mesh
 
 __all__ = [
+    "DEFAULT_MASS_PENALTY",
+    "PENALTY_SCALES",
     "Comparison",
     "Comparer",
     "ProblemTooLargeError",
@@ -44,11 +51,17 @@ __all__ = [
     "compare",
     "farthest_point_sampling",
     "fit_similarity",
+    "solver_mass_penalty",
     "solver_memory_bytes",
 ]
 
 SIGNATURES = ("wks", "ldsift")
 TRANSPORTS = ("balanced", "partial")
+#: how `mass_penalty` is read for partial transport (see `solver_mass_penalty`)
+PENALTY_SCALES = ("relative", "paper")
+#: default relative mass penalty κ (``penalty_scale="relative"``), chosen by the HEAD experiment
+#: (benchmarks/head_partial.py): the value for which a head's mass lands on the head of its full shape
+DEFAULT_MASS_PENALTY = 0.1
 #: the signature distance each signature uses (paper §3.1: L2 for LD-SIFT; §3.2, Eq. 29 for WKS)
 SIGNATURE_METRIC = {"wks": "wks", "ldsift": "l2"}
 #: how many dense N1×N2 float64 arrays the solver keeps at once (C, the plan G, φ' for the Hessian and one
@@ -287,6 +300,76 @@ def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", sta
     return Subsample(idx, nearest, float(dist.max()), metric)
 
 
+# ----------------------------------------------------------------------------------------- mass penalty
+def cost_scale(C: Any) -> float:
+    """The cost scale ``s(C)`` of the relative mass penalty: the mean of ``C`` over all pairs.
+
+    It is the transport cost of the independent plan ``ρ1 ⊗ ρ2`` (the β → 0 limit of the annealing), scales
+    linearly with ``C``, and does not change when points are duplicated (and barely when they are
+    resampled), which is what makes the relative penalty scale- and size-free. ``C`` is an (N1, N2)
+    NumPy array or a float64 ``wp.array``.
+    """
+    if hasattr(C, "numpy") and not isinstance(C, np.ndarray):
+        C = C.numpy()
+    c = np.asarray(C, dtype=np.float64)
+    if c.ndim != 2 or c.size == 0:
+        raise ValueError(f"the cost matrix must be a non-empty (N1, N2) array, got shape {c.shape}")
+    return float(c.mean())
+
+
+def solver_mass_penalty(C: Any, mass_penalty: float, *, penalty_scale: str = "relative") -> float:
+    """The factor ``a`` handed to `wpot.ot.solve_partial`, whose χ² penalty is ``α_i(k) = a / ρ_i(k)²`` (Eq. 17).
+
+    ``penalty_scale="paper"`` returns ``mass_penalty`` itself: ``mass_penalty = 1`` is exactly the paper's
+    ``α = 1/ρ²`` (§2.5). ``penalty_scale="relative"`` (the default of `Comparer`) returns
+
+        a = κ · s(C) / N̄,     s(C) = mean_{k,l} C(k, l) (`cost_scale`),   N̄ = √(N1 N2),   κ = mass_penalty.
+
+    Why. Compare uses uniform references ρ_i = 1/N_i. Write the masses as densities ``w_i = m_i / ρ_i``
+    (``E_ρ[w] = 1``). The penalty of side i is then ``Σ_k a N_i² m_i(k)² = a N_i · E_ρi[w_i²]``, and
+    ``E_ρ[w²] = 1 + χ²(m‖ρ)`` (Pearson). With the paper's ``a = 1`` it is ``N_i (1 + χ²)``: putting all
+    the mass uniformly on a fraction f of the points costs ``N_i (1/f − 1)``, which grows with N and is
+    compared with transport costs ``Σ C G`` of the order of ``s(C)``, in whatever unit the signature
+    distance has. With ``a = κ s / N̄`` the objective becomes
+
+        U = Σ C G + κ s(C) [ (N1/N̄) E_ρ1[w1²] + (N2/N̄) E_ρ2[w2²] ],
+
+    so (for N1 = N2, or when both sides are resampled together)
+
+    * scaling C by λ scales U by λ: the plan and masses do not change (scale-free);
+    * duplicating every point (or resampling both shapes at another density) leaves the densities w, the
+      transport cost and s(C) unchanged: the plan is the same up to the splitting (size-free);
+    * κ alone sets the trade-off: concentrating side i on a fraction f costs ``κ (1/f − 1)`` mean costs.
+      Closed form: if a fraction f of B costs 0 to every point of A and the rest costs c, the mass
+      B's fraction receives is ``q = min(1, f + f / (2κ))``; it takes all the mass once ``κ ≤ f / (2(1 − f))``.
+      In general a region whose cost is lower by Δ receives ``f + f(1 − f) Δ / (2 κ s)``.
+
+    κ → ∞ is balanced transport with the reference masses; κ → 0 collapses onto the cheapest pairs.
+    When N1 ≠ N2 the solver's single factor cannot give both sides the weight κ s exactly; the geometric
+    mean N̄ weights side i by ``√(N_i / N_j)`` (symmetric in A and B, exact when N1 = N2).
+
+    Raises
+    ------
+    ValueError : unknown ``penalty_scale``, ``mass_penalty`` not positive and finite, or (relative) a cost
+        matrix with zero mean (every signature identical: there is no cost scale).
+    """
+    if penalty_scale not in PENALTY_SCALES:
+        raise ValueError(f"penalty_scale must be one of {PENALTY_SCALES}, got {penalty_scale!r}")
+    mp = float(mass_penalty)
+    if not (np.isfinite(mp) and mp > 0):
+        raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
+    if penalty_scale == "paper":
+        return mp
+    n1, n2 = (int(x) for x in C.shape)
+    s = cost_scale(C)
+    if not s > 0:
+        raise ValueError(
+            f"the relative mass penalty needs a cost matrix with a positive mean, got mean {s!r} for a {n1} x {n2} "
+            "cost (all signatures identical?); use penalty_scale='paper' to give the factor directly"
+        )
+    return mp * s / math.sqrt(n1 * n2)
+
+
 # ----------------------------------------------------------------------------------------------- memory
 def solver_memory_bytes(n1: int, n2: int) -> int:
     """Estimated peak memory of one dense solve: `SOLVER_DENSE_MATRICES` float64 ``(n1, n2)`` arrays."""
@@ -430,7 +513,14 @@ class Comparer:
         then a problem too large for the device raises `ProblemTooLargeError`)
     fps_metric : "geodesic" or "euclidean", see `farthest_point_sampling`
     device : Warp device for signatures, cost and solver; None is Warp's default, resolved once here
-    mass_penalty : partial transport's χ² penalty factor, α(k) = mass_penalty / ρ(k)² (1.0 is the paper)
+    mass_penalty : partial transport's χ² penalty factor. With ``penalty_scale="relative"`` (default) it is
+        κ in ``α(k) = κ · mean(C) / (√(N1 N2) ρ(k)²)``: spreading all of a side's mass on a fraction f of its
+        points costs κ (1/f − 1) mean costs, whatever the cost's unit and the number of points (see
+        `solver_mass_penalty`); default `DEFAULT_MASS_PENALTY`, chosen by the HEAD experiment. Smaller values
+        allow more partial matches (κ ≤ f/(2(1−f)) lets a region of fraction f that is clearly cheaper
+        take all the mass); large values approach balanced transport.
+    penalty_scale : "relative" (default, above) or "paper": ``α(k) = mass_penalty / ρ(k)²``, so
+        ``penalty_scale="paper", mass_penalty=1.0`` is exactly the paper's Eq. 17.
     n_eigen, n_energies : WKS parameters (paper: 500 eigenpairs, 200 energies)
     energies : a fixed WKS energy grid (n_energies,) shared by all shapes; when None, the grid is built by
         `fit_energies` (from a dataset) or, for a lone pair, from the two shapes' spectra
@@ -449,7 +539,8 @@ class Comparer:
         max_vertices: int | None = None,
         fps_metric: str = "geodesic",
         device: str | None = None,
-        mass_penalty: float = 1.0,
+        mass_penalty: float = DEFAULT_MASS_PENALTY,
+        penalty_scale: str = "relative",
         n_eigen: int = 500,
         n_energies: int = 200,
         energies: ArrayLike | None = None,
@@ -469,6 +560,8 @@ class Comparer:
             raise ValueError(f"fps_metric must be one of {FPS_METRICS}, got {fps_metric!r}")
         if not (np.isfinite(mass_penalty) and mass_penalty > 0):
             raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
+        if penalty_scale not in PENALTY_SCALES:
+            raise ValueError(f"penalty_scale must be one of {PENALTY_SCALES}, got {penalty_scale!r}")
         if not 0 < match_ratio <= 1:
             raise ValueError(f"match_ratio must be in (0, 1], got {match_ratio!r}")
         self.signature = signature
@@ -477,6 +570,7 @@ class Comparer:
         self.fps_metric = fps_metric
         self.device = _resolve_device(device)
         self.mass_penalty = float(mass_penalty)
+        self.penalty_scale = penalty_scale
         self.n_eigen = int(n_eigen)
         self.n_energies = int(n_energies)
         self.ldsift_K = float(ldsift_K)
@@ -506,11 +600,38 @@ class Comparer:
         }
         if self.transport == "partial":
             p["mass_penalty"] = self.mass_penalty
+            p["penalty_scale"] = self.penalty_scale
         if self.signature == "wks":
             p.update(n_eigen=self.n_eigen, n_energies=self.n_energies)
         else:
             p.update(ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution)
         return p
+
+    def with_options(self, **changes: Any) -> "Comparer":
+        """A new `Comparer` with some settings changed (e.g. ``mass_penalty`` in a sweep).
+
+        It shares this one's signature cache (keyed by the signature parameters, so always safe) unless
+        ``cache_dir`` changes, its WKS
+        energy grid unless ``energies`` is given, and its farthest-point samples when ``max_vertices`` and
+        ``fps_metric`` are unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
+        """
+        kw: dict[str, Any] = dict(
+            signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
+            fps_metric=self.fps_metric, device=self.device, mass_penalty=self.mass_penalty,
+            penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
+            energies=self._energies, ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution,
+            cache_dir=self.cache_dir, solver_options=self.solver_options, match_ratio=self.match_ratio,
+        )
+        unknown = sorted(set(changes) - set(kw))
+        if unknown:
+            raise ValueError(f"unknown Comparer options {unknown}; known: {sorted(kw)}")
+        kw.update(changes)
+        new = Comparer(**kw)
+        if new.cache_dir == self.cache_dir:
+            new._sig_cache = self._sig_cache
+        if (new.max_vertices, new.fps_metric) == (self.max_vertices, self.fps_metric):
+            new._samples = self._samples
+        return new
 
     @property
     def energies(self) -> np.ndarray | None:
@@ -608,7 +729,8 @@ class Comparer:
         c = cost_matrix(sa, sb, metric=SIGNATURE_METRIC[self.signature], device=self.device)
         if self.transport == "balanced":
             return ot.solve_balanced(c, device=self.device, **self.solver_options)
-        return ot.solve_partial(c, mass_penalty=self.mass_penalty, device=self.device, **self.solver_options)
+        a = solver_mass_penalty(c, self.mass_penalty, penalty_scale=self.penalty_scale)
+        return ot.solve_partial(c, mass_penalty=a, device=self.device, **self.solver_options)
 
     def self_transport(self, mesh: Mesh) -> Any:
         """Solve ``mesh`` against itself (the self-comparison of Eq. 27); returns the `OTResult`, not cached."""
@@ -709,7 +831,8 @@ def compare(
     transport: str = "balanced",
     max_vertices: int | None = None,
     device: str | None = None,
-    mass_penalty: float = 1.0,
+    mass_penalty: float = DEFAULT_MASS_PENALTY,
+    penalty_scale: str = "relative",
     **options: Any,
 ) -> Comparison:
     """Compare two meshes by statistical-physics optimal transport of their vertex signatures.
@@ -724,5 +847,6 @@ def compare(
         and the solver's `OTResult`.
     """
     return Comparer(
-        signature=signature, transport=transport, max_vertices=max_vertices, device=device, mass_penalty=mass_penalty, **options
+        signature=signature, transport=transport, max_vertices=max_vertices, device=device, mass_penalty=mass_penalty,
+        penalty_scale=penalty_scale, **options
     ).compare(mesh_a, mesh_b)
