@@ -470,7 +470,8 @@ def run_all_vs_all(
     shapes : folder, list file, or sequence of paths / meshes (see `discover_shapes`)
     out : run folder; created if needed. An existing run with the same parameters and shapes is resumed.
     signature, transport, **comparer_options : as `wpot.compare.Comparer` (max_vertices, mass_penalty,
-        n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` defaults to ``out/cache``.
+        n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` (the signature and spectrum
+        cache, shared by runs over the same shapes) defaults to ``$WPOT_CACHE_DIR``, else ``out/cache``.
     jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores)
     executor : any `concurrent.futures.Executor` (e.g. a Dask ``client.get_executor()``); overrides ``jobs``
     labels : a label CSV (`wpot.datasets.read_label_csv`: a ``name`` column and one column per level); its
@@ -489,7 +490,7 @@ def run_all_vs_all(
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
     specs = discover_shapes(shapes, labels=labels)
     out = Path(out)
-    cache_dir = str((out / "cache").resolve())
+    cache_dir = str(Path(comparer_options.get("cache_dir") or os.environ.get("WPOT_CACHE_DIR") or out / "cache").resolve())
     comparer = Comparer(signature=signature, transport=transport, device=device, **{k: v for k, v in comparer_options.items() if k != "cache_dir"})
     params = comparer.params()
 
