@@ -17,11 +17,10 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
+from wpot._warp import resolve_device
+
 __all__ = ["cost_matrix", "METRICS"]
 
-wp.config.quiet = True
-if hasattr(wp, "LOG_WARNING") and getattr(wp.config, "log_level", wp.LOG_WARNING) < wp.LOG_WARNING:
-    wp.config.log_level = wp.LOG_WARNING  # Warp >= 1.19 reads log_level, not quiet, for its greeting
 wp.set_module_options({"enable_backward": False})
 
 METRICS = ("wks", "l2", "l1")
@@ -70,14 +69,6 @@ def _scan_bad(a: wp.array2d(dtype=wp.float64), check_negative: int, flags: wp.ar
 
 
 _KERNELS = {"wks": _cost_wks, "l2": _cost_l2, "l1": _cost_l1}
-
-
-def _resolve_device(device) -> wp.context.Device:
-    wp.init()
-    try:
-        return wp.get_device(device)
-    except Exception as exc:  # warp raises RuntimeError/ValueError for unknown names
-        raise ValueError(f"unknown Warp device {device!r}: {exc}") from None
 
 
 def _as_signatures(name: str, s, dev) -> wp.array:
@@ -139,7 +130,7 @@ def cost_matrix(
         raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     if out not in ("numpy", "warp"):
         raise ValueError(f"out must be 'numpy' or 'warp', got {out!r}")
-    dev = _resolve_device(device)
+    dev = resolve_device(device)
     a = _as_signatures("S1", S1, dev)
     b = _as_signatures("S2", S2, dev)
     if a.shape[1] != b.shape[1]:
