@@ -3,6 +3,7 @@
     wpot demo --out DIR                        compare the two generated example shapes, save a picture
     wpot compare A B [--signature --transport --out DIR]
     wpot all-vs-all FOLDER|LIST --signature wks --transport balanced --out RUN [--jobs N] [--labels CSV]
+                    [--scheduler local|tcp://HOST:PORT]
     wpot classify RUN                          1-NN one-shot (Table 1) and leave-one-out (Tables 2-4)
     wpot report RUN [RUN ...]                  Markdown summary beside the paper's tables
 
@@ -85,7 +86,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder")
     p.add_argument("source", help="a folder of meshes, or a text file listing one mesh path per line")
     p.add_argument("--out", required=True, help="run folder (resumed if it holds the same run)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1; 0 = all cores)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="worker processes (default 1; 0 = all cores); with --scheduler local, Dask workers (default: all cores)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help='run the pairs on Dask: "local" (an embedded cluster of --jobs processes) or a running '
+                   "scheduler tcp://HOST:PORT; each worker uses its own GPU when it has one "
+                   "(needs pip install 'wpot[cluster]')")
     p.add_argument("--labels", default=None, help="label CSV: a 'name' column and one column per label level")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_method_options(p)
@@ -225,17 +231,29 @@ def cmd_compare(a: argparse.Namespace) -> None:
 def cmd_all_vs_all(a: argparse.Namespace) -> None:
     from wpot.pipeline import run_all_vs_all
 
-    if a.jobs < 0:
+    if a.jobs is not None and a.jobs < 0:
         raise CliError(f"--jobs must be >= 0, got {a.jobs}")
+    if a.scheduler is not None:
+        if a.scheduler != "local" and "://" not in a.scheduler:
+            raise CliError(f'--scheduler must be "local" or a Dask address like tcp://HOST:8786, got {a.scheduler!r}')
+        if a.scheduler != "local" and a.jobs is not None:
+            raise CliError(f"--jobs sets local processes; a running cluster ({a.scheduler}) has the workers it was started with")
+    jobs = (1 if a.scheduler is None else 0) if a.jobs is None else a.jobs
     if a.labels is not None and not Path(a.labels).is_file():
         raise CliError(f"label CSV not found: {a.labels}")
     if not Path(a.source).exists():
         raise CliError(f"no such folder or list file: {a.source}")
     t0 = time.perf_counter()
     opts = _comparer_options(a)
-    store = run_all_vs_all(
-        a.source, a.out, jobs=(a.jobs or None), labels=a.labels, progress=not a.no_progress, **opts
-    )
+    try:
+        store = run_all_vs_all(
+            a.source, a.out, jobs=(jobs or None), scheduler=a.scheduler, labels=a.labels,
+            progress=not a.no_progress, **opts,
+        )
+    except ImportError as exc:
+        if a.scheduler is None:
+            raise
+        raise CliError(str(exc)) from exc
     with store:
         total, done = len(store.tasks()), len(store.done())
         fails = store.failures()

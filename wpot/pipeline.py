@@ -21,10 +21,34 @@ Execution is pluggable: ``jobs=1`` runs pairs inline; ``jobs>1`` uses a `Process
 processes, safe with CUDA); any `concurrent.futures.Executor` can be passed instead, e.g. a Dask
 cluster's ``client.get_executor()``. Workers receive self-contained tasks (mesh path or arrays, settings,
 energy grid) and share an on-disk signature cache in ``out/cache``.
+
+Dask (``scheduler=`` / ``wpot all-vs-all --scheduler``; needs ``pip install 'wpot[cluster]'``):
+
+* ``scheduler="local"`` starts an embedded `distributed.LocalCluster` of ``jobs`` single-threaded worker
+  processes; ``scheduler="tcp://host:port"`` uses a running cluster (``dask scheduler`` + ``dask worker``).
+  Without ``scheduler`` nothing changes and Dask is never imported.
+* The coordinator (this process) is the only writer of the store. Each pair is one Dask task; when a worker
+  dies mid-pair, the scheduler hands its tasks to another worker, so the pair is computed again and only
+  that pair's work is lost. A pair whose task kills its worker more than
+  ``distributed.scheduler.allowed-failures`` times (Dask's default: 3) comes back as ``KilledWorker`` and is
+  recorded in ``failures``, like a pair that raised; the run goes on, and rerunning the command retries it.
+  Each future yields one result and `RunStore.commit` ignores a pair already stored, so a pair is committed
+  once (the ``computations`` table shows it).
+* Each worker picks its own Warp device when ``device`` is None (`choose_worker_device`): ``$WPOT_DEVICE``
+  if set on the worker; else ``cpu`` on a worker without CUDA; else ``cuda:0`` when the worker's
+  ``CUDA_VISIBLE_DEVICES`` is set (launchers such as dask-cuda give each worker its own GPU first in that
+  list); else ``cuda:<rank mod n_gpus>`` from the worker's name (`LocalCluster` names its workers 0, 1, ...;
+  ``dask worker --name host --nworkers 4`` gives host-0 ... host-3); else Warp's default device. The
+  device a pair ran on is stored with its worker (``host:pid@device``). An explicit ``device`` is used by
+  every worker.
+* Workers read the meshes by path and share the signature cache through the run folder (or
+  ``$WPOT_CACHE_DIR``), so on several machines the dataset and the run folder must be on a filesystem that
+  every worker sees at the same path.
 """
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import hashlib
 import json
 import os
@@ -34,13 +58,21 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from wpot.mesh import Mesh
 
-__all__ = ["RunMismatchError", "RunStore", "ShapeSpec", "discover_shapes", "run_all_vs_all"]
+__all__ = [
+    "RunMismatchError",
+    "RunStore",
+    "ShapeSpec",
+    "choose_worker_device",
+    "dask_executor",
+    "discover_shapes",
+    "run_all_vs_all",
+]
 
 STORE_NAME = "wpot.sqlite"
 SCHEMA_VERSION = 1
@@ -372,8 +404,84 @@ _WORKER_MESHES: dict[str, Mesh] = {}
 
 def _worker_setup(config: Mapping[str, Any]) -> None:
     """In a worker process (not the coordinator), share spectra through the run's disk cache."""
-    if os.getpid() != config.get("main_pid") and config.get("cache_dir"):
+    coordinator = os.getpid() == config.get("main_pid") and socket.gethostname() == config.get("main_host", socket.gethostname())
+    if not coordinator and config.get("cache_dir"):
         os.environ.setdefault("WPOT_CACHE_DIR", str(config["cache_dir"]))
+
+
+def _worker_rank(name: Any) -> int | None:
+    """A worker's index from its Dask name: 3, "3" or "host-3" give 3; anything else None."""
+    if isinstance(name, bool):
+        return None
+    if isinstance(name, int):
+        return name if name >= 0 else None
+    if isinstance(name, str):
+        tail = name.rsplit("-", 1)[-1]
+        if tail.isdigit():
+            return int(tail)
+    return None
+
+
+def choose_worker_device(*, worker_name: Any, cuda_count: int, env: Mapping[str, str]) -> str | None:
+    """The Warp device a Dask worker uses when the run names none (a pure function of the worker's view).
+
+    Parameters
+    ----------
+    worker_name : the worker's Dask name (`LocalCluster`: 0, 1, ...; ``dask worker --name h --nworkers 2``:
+        "h-0", "h-1"; otherwise often its address)
+    cuda_count : CUDA devices the worker's process sees (Warp's ``get_cuda_device_count()``)
+    env : the worker's environment
+
+    Returns
+    -------
+    ``env["WPOT_DEVICE"]`` when set (an operator's explicit choice); ``"cpu"`` without CUDA; ``"cuda:0"``
+    when ``CUDA_VISIBLE_DEVICES`` is set (the launcher chose this worker's GPUs and put its own first, as
+    dask-cuda does); ``"cuda:<rank mod cuda_count>"`` when the name ends in a worker rank (several workers
+    of one machine then spread over its GPUs); otherwise None: Warp's default device.
+    """
+    explicit = (env.get("WPOT_DEVICE") or "").strip()
+    if explicit:
+        return explicit
+    if cuda_count < 0:
+        raise ValueError(f"cuda_count must be >= 0, got {cuda_count!r}")
+    if cuda_count == 0:
+        return "cpu"
+    if (env.get("CUDA_VISIBLE_DEVICES") or "").strip():
+        return "cuda:0"
+    rank = _worker_rank(worker_name)
+    if rank is not None:
+        return f"cuda:{rank % cuda_count}"
+    return None
+
+
+def _dask_worker_name() -> tuple[bool, Any]:
+    """(True, name) inside a Dask worker, else (False, None). Never imports Dask when it is not loaded."""
+    import sys
+
+    if "distributed" not in sys.modules:
+        return False, None
+    try:
+        from distributed import get_worker
+
+        return True, get_worker().name
+    except (ImportError, ValueError):  # ValueError: not running in a worker
+        return False, None
+
+
+def _task_device(config: Mapping[str, Any]) -> str | None:
+    """The device of this task: the run's ``device``; when None, the Dask worker's own choice
+    (`choose_worker_device`); elsewhere (inline, process pool) Warp's default."""
+    if config.get("device") is not None:
+        return config["device"]
+    on_dask, name = _dask_worker_name()
+    if not on_dask:
+        return None
+    import warp as wp
+
+    from wpot._warp import resolve_device
+
+    resolve_device(None)  # initializes Warp
+    return choose_worker_device(worker_name=name, cuda_count=wp.get_cuda_device_count(), env=os.environ)
 
 
 def _worker_comparer(config: Mapping[str, Any]):
@@ -384,7 +492,7 @@ def _worker_comparer(config: Mapping[str, Any]):
         from wpot.compare import Comparer
 
         opts = dict(config["comparer"])
-        c = Comparer(**opts, energies=config.get("energies"), cache_dir=config.get("cache_dir"), device=config.get("device"))
+        c = Comparer(**opts, energies=config.get("energies"), cache_dir=config.get("cache_dir"), device=_task_device(config))
         _WORKER_COMPARERS.clear()
         _WORKER_COMPARERS[key] = c
     return c
@@ -444,7 +552,7 @@ def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, An
         "n_newton": int(getattr(res, "n_newton", 0) or 0),
         "n_linear": int(getattr(res, "n_linear", 0) or 0),
         "seconds": time.perf_counter() - t0,
-        "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "worker": f"{socket.gethostname()}:{os.getpid()}@{comp.device}",
     }
 
 
@@ -457,6 +565,7 @@ def run_all_vs_all(
     transport: str = "balanced",
     jobs: int | None = 1,
     executor: cf.Executor | None = None,
+    scheduler: str | None = None,
     labels: str | Path | Mapping[str, Mapping[str, str]] | None = None,
     device: str | None = None,
     progress: bool = True,
@@ -472,11 +581,15 @@ def run_all_vs_all(
     signature, transport, **comparer_options : as `wpot.compare.Comparer` (max_vertices, mass_penalty,
         n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` (the signature and spectrum
         cache, shared by runs over the same shapes) defaults to ``$WPOT_CACHE_DIR``, else ``out/cache``.
-    jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores)
+    jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores);
+        with ``scheduler="local"``, the number of Dask workers
     executor : any `concurrent.futures.Executor` (e.g. a Dask ``client.get_executor()``); overrides ``jobs``
+    scheduler : run the tasks on Dask (see `dask_executor`): ``"local"`` (an embedded `LocalCluster` of
+        ``jobs`` processes) or a scheduler address ``"tcp://host:port"``. None (default): no Dask.
     labels : a label CSV (`wpot.datasets.read_label_csv`: a ``name`` column and one column per level); its
         first column is also level "class". Without it, "class" comes from the file names.
-    device : Warp device each worker uses (None: its default)
+    device : Warp device every worker uses (None: Warp's default; on Dask, each worker's own choice,
+        see `choose_worker_device`)
     progress : show a tqdm bar with pairs per second and the ETA
     max_pairs : stop after committing this many new pairs (for tests and partial runs)
 
@@ -486,6 +599,14 @@ def run_all_vs_all(
     """
     from wpot.compare import Comparer
 
+    if scheduler is not None:
+        if executor is not None:
+            raise ValueError(f"give either executor or scheduler, not both (got scheduler={scheduler!r})")
+        with dask_executor(scheduler, n_workers=jobs) as ex:
+            return run_all_vs_all(
+                shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, labels=labels,
+                device=device, progress=progress, max_pairs=max_pairs, **comparer_options,
+            )
     if labels is not None and not isinstance(labels, (str, Path)):
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
     specs = discover_shapes(shapes, labels=labels)
@@ -519,6 +640,7 @@ def run_all_vs_all(
             "cache_dir": cache_dir,
             "device": device,
             "main_pid": os.getpid(),
+            "main_host": socket.gethostname(),
         }
         if signature == "wks" and config["energies"] is None:
             spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
@@ -536,6 +658,59 @@ def run_all_vs_all(
     return store
 
 
+@contextlib.contextmanager
+def dask_executor(scheduler: str, *, n_workers: int | None = None, connect_timeout: float = 30.0) -> Iterator[cf.Executor]:
+    """A `concurrent.futures.Executor` on a Dask cluster, for `run_all_vs_all` (a context manager).
+
+    Parameters
+    ----------
+    scheduler : ``"local"``: start an embedded `distributed.LocalCluster` of ``n_workers`` worker processes
+        (one thread each; None: one per CPU core), closed on exit. ``"tcp://host:port"`` (or another Dask
+        address such as ``tls://``): connect to that running scheduler; its workers are used as they are.
+    n_workers : workers of the local cluster (ignored for an address)
+    connect_timeout : seconds to wait for a remote scheduler
+
+    Tasks are submitted impure (``pure=False``): every submission runs, none is deduplicated by key.
+
+    Raises
+    ------
+    ImportError : Dask's ``distributed`` is not installed (names the extra: ``pip install 'wpot[cluster]'``)
+    ValueError : ``scheduler`` is neither "local" nor an address, or ``n_workers < 1``
+    OSError : the scheduler cannot be reached
+    """
+    if not isinstance(scheduler, str) or not (scheduler == "local" or "://" in scheduler):
+        raise ValueError(f'scheduler must be "local" or a Dask address like "tcp://host:8786", got {scheduler!r}')
+    if n_workers is not None and n_workers < 1:
+        raise ValueError(f"n_workers must be >= 1 or None, got {n_workers!r}")
+    try:
+        import dask
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise ImportError(
+            f"running on a Dask cluster (scheduler={scheduler!r}) needs Dask's distributed package: "
+            "pip install 'wpot[cluster]' (or 'dask[distributed]')"
+        ) from exc
+    with contextlib.ExitStack() as stack:
+        if scheduler == "local":
+            # one task per worker at a time (no prefetched second pair): pairs are long, and a worker that
+            # dies then takes only the pair it was computing with it (Dask blames every task assigned to it)
+            with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
+                cluster = stack.enter_context(
+                    LocalCluster(
+                        n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                        dashboard_address=None,
+                    )
+                )
+            client = stack.enter_context(Client(cluster))
+        else:
+            client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
+        executor = client.get_executor(pure=False)
+        try:
+            yield executor
+        finally:
+            executor.shutdown(wait=False)
+
+
 def _comparer_kwargs(c: Any) -> dict[str, Any]:
     return {
         "signature": c.signature,
@@ -543,6 +718,7 @@ def _comparer_kwargs(c: Any) -> dict[str, Any]:
         "max_vertices": c.max_vertices,
         "fps_metric": c.fps_metric,
         "mass_penalty": c.mass_penalty,
+        "penalty_scale": c.penalty_scale,
         "n_eigen": c.n_eigen,
         "n_energies": c.n_energies,
         "ldsift_K": c.ldsift_K,
