@@ -98,6 +98,8 @@ def _check_balanced(C, a, b, res, rtol=1e-6):
     costs = np.array([h.cost for h in res.history])
     assert np.all(np.diff(costs) <= 1e-12 * costs[0])
     assert res.history[-1].gap_bound >= res.cost - u0 - 1e-12
+    # balanced: the per-beta objective is the transport cost
+    assert all(h.objective == h.cost for h in res.history)
 
 
 def test_balanced_square_uniform_matches_emd(device):
@@ -207,6 +209,9 @@ def test_partial_matches_independent_qp(mp):
     assert abs(res.mass1.sum() - 1) < 1e-9
     pen = mp * np.sum((res.mass1 / r1) ** 2) + mp * np.sum((res.mass2 / r2) ** 2)
     assert abs(res.objective - (res.cost + pen)) <= 1e-9 * res.objective
+    # the per-beta objective (cost + chi^2 penalty) ends at the result's and exceeds the transport part
+    assert abs(res.history[-1].objective - res.objective) <= 1e-12 * res.objective
+    assert all(h.objective > h.cost for h in res.history)
 
 
 def test_partial_huge_penalty_recovers_balanced():

@@ -99,7 +99,8 @@ def _result(eng: Engine, info: dict, total: float, kind: str, partial: bool) -> 
     warn_not_converged(kind, info, p.scale)
     hist = tuple(
         BetaStep(beta=r["beta"] / s, cost=r["u"] * s * total, free_energy=r["f"] * s * total, n_newton=r["nn"],
-                 n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * s * total)
+                 n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * s * total,
+                 objective=r["obj"] * s * total)
         for r in info["raw"]
     )
     plan = eng.plan() * total

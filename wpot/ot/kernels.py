@@ -136,9 +136,10 @@ def gfun(x: wp.float64) -> wp.float64:
         p = p * x2 + _G4
         p = p * x2 + _G2
         return -_HALF * x + x2 * p
-    e = wp.exp(-ax)
     # x > 0: log(1 - e^-x) - log x ;  x < 0: |x| + log(1 - e^-|x|) - log|x|
-    r = wp.log(_ONE - e) - wp.log(ax)
+    r = -wp.log(ax)
+    if ax <= _TAIL:  # beyond, log(1 - e^-|x|) ~ -e^-40 is below rounding
+        r = r + wp.log(_ONE - wp.exp(-ax))
     if x < _ZERO:
         r = r + ax
     return r
@@ -180,7 +181,6 @@ def eval_rows(
     lam_lo: wp.array(dtype=wp.float64),
     y_hi: wp.array(dtype=wp.float64),
     y_lo: wp.array(dtype=wp.float64),
-    with_f: int,
     # outputs
     W: wp.array2d(dtype=wp.float64),
     row_g: wp.array(dtype=wp.float64),
@@ -189,29 +189,22 @@ def eval_rows(
     piv: wp.array(dtype=wp.int32),
     tail: wp.array(dtype=wp.float64),
     row_u: wp.array(dtype=wp.float64),
-    row_f: wp.array(dtype=wp.float64),
     row_xphi: wp.array(dtype=wp.float64),
     s_piv: wp.array(dtype=wp.float64),
-    row_ws: wp.array(dtype=wp.float64),
-    col_ws: wp.array(dtype=wp.float64),
 ):
     """One pass over row k: G = phi(beta s), its row sum (and column sums, atomically), W = beta |phi'|
     (stored), W's row sum, argmax (pivot), the row sum without the pivot (``tail``, accumulated without
-    cancellation), the pivot's s, sum G C' (U), sum x phi(x) (beta x duality gap) and, when ``with_f``,
-    sum g(beta s) (for F) and the
-    row and column sums of W s (for the tangent predictor)."""
+    cancellation), the pivot's s, sum G C' (U) and sum x phi(x) (beta x duality gap)."""
     k = wp.tid()
     lh = lam_hi[k]
     ll = lam_lo[k]
     sg = _ZERO
     su = _ZERO
-    sf = _ZERO
     sx = _ZERO
     wmax = wp.float64(-1.0)
     wrest = _ZERO
     p = int(0)
     sp = _ZERO
-    sws = _ZERO
     for l in range(n_c):
         c = cost_at(C, k, l, trans, inv_scale)
         x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
@@ -231,21 +224,48 @@ def eval_rows(
             wrest += w
         su += g * c
         sx += x * g
-        if with_f != 0:
-            sf += gfun(x)
-            # W s = |phi'(x)| x: right-hand side of the tangent d(lam, y)/d(log beta) of the path
-            ws = gw[1] * x
-            sws += ws
-            wp.atomic_add(col_ws, l, ws)
     row_g[k] = sg
-    row_ws[k] = sws
     piv[k] = p
     tail[k] = wrest
     row_w[k] = wrest + wmax
     row_u[k] = su
-    row_f[k] = sf
     row_xphi[k] = sx
     s_piv[k] = sp
+
+
+@wp.kernel
+def free_rows(
+    C: wp.array2d(dtype=wp.float64),
+    trans: int,
+    inv_scale: wp.float64,
+    n_c: int,
+    beta: wp.float64,
+    lam_hi: wp.array(dtype=wp.float64),
+    lam_lo: wp.array(dtype=wp.float64),
+    y_hi: wp.array(dtype=wp.float64),
+    y_lo: wp.array(dtype=wp.float64),
+    # outputs
+    row_f: wp.array(dtype=wp.float64),
+    row_ws: wp.array(dtype=wp.float64),
+    col_ws: wp.array(dtype=wp.float64),
+):
+    """Once per beta, at the saddle point: sum_l g(beta s) (for F, Eq. 12 / 23) and the row and column
+    sums of W s = beta |phi'(x)| s = |phi'(x)| x (right-hand side of the tangent d(lam, y)/d(log beta)).
+    ``col_ws`` must be zeroed beforehand."""
+    k = wp.tid()
+    lh = lam_hi[k]
+    ll = lam_lo[k]
+    sf = _ZERO
+    sws = _ZERO
+    for l in range(n_c):
+        c = cost_at(C, k, l, trans, inv_scale)
+        x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
+        sf += gfun(x)
+        ws = phi_w(x)[1] * x
+        sws += ws
+        wp.atomic_add(col_ws, l, ws)
+    row_f[k] = sf
+    row_ws[k] = sws
 
 
 @wp.kernel
@@ -266,7 +286,8 @@ def schur_prep(
 ):
     """Row k's contributions to the Schur complement S = E2 - W^T E1^-1 W onto the columns:
     diag(S_W)(l) += W(k,l) (E1(k) - W(k,l)) / E1(k) (the pivot term uses tail + b: no cancellation),
-    wtg(l) += W(k,l) g1(k) / E1(k) (for the right-hand side), and row k's ``topk`` largest W entries."""
+    wtg(l) += W(k,l) g1(k) / E1(k) (for the right-hand side), and row k's ``topk`` largest W entries
+    (``topk`` = 0: no selection, when the preconditioner is not rebuilt)."""
     k = wp.tid()
     p = piv[k]
     ek = e1[k]
@@ -282,8 +303,35 @@ def schur_prep(
             rest = tail[k] + b[k]
         wp.atomic_add(diag_s, l, w * rest / ek)
         wp.atomic_add(wtg, l, w * gk)
-        if w > tmin:
+        if topk > 0 and w > tmin:
             # insertion into the descending list top_val[k, :]
+            j = topk - 1
+            while j > 0 and top_val[k, j - 1] < w:
+                top_val[k, j] = top_val[k, j - 1]
+                top_idx[k, j] = top_idx[k, j - 1]
+                j -= 1
+            top_val[k, j] = w
+            top_idx[k, j] = l
+            tmin = top_val[k, topk - 1]
+
+
+@wp.kernel
+def schur_prep_topk(
+    W: wp.array2d(dtype=wp.float64),
+    n_c: int,
+    topk: int,
+    top_val: wp.array2d(dtype=wp.float64),
+    top_idx: wp.array2d(dtype=wp.int32),
+):
+    """Row k's ``topk`` largest W entries alone (the selection part of `schur_prep`)."""
+    k = wp.tid()
+    for j in range(topk):
+        top_val[k, j] = wp.float64(-1.0)
+        top_idx[k, j] = -1
+    tmin = wp.float64(-1.0)
+    for l in range(n_c):
+        w = W[k, l]
+        if w > tmin:
             j = topk - 1
             while j > 0 and top_val[k, j - 1] < w:
                 top_val[k, j] = top_val[k, j - 1]

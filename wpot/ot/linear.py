@@ -111,7 +111,10 @@ class SchurPreconditioner:
         self.gauge = gauge
         if gauge:
             P = P[: n - 1, : n - 1]
-        self.lu = spla.splu(sp.csc_matrix(P), permc_spec="MMD_AT_PLUS_A")
+        # P is symmetric and diagonally dominant (SPD once the gauge is fixed): no pivoting is needed, and
+        # a symmetric elimination keeps the minimum-degree ordering's fill
+        self.lu = spla.splu(sp.csc_matrix(P), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options=dict(SymmetricMode=True))
         self.sm = None
         if np.any(a > 0):
             A = float(a.sum())

@@ -21,6 +21,11 @@ from wpot.ot.result import BetaStep
 from wpot.ot.schedule import beta_schedule, relative_change
 
 
+#: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
+#: this many iterations beyond the count of its first solve; then it is rebuilt at the current point
+REFRESH_EXTRA_CG = 2
+
+
 @dataclass
 class Options:
     beta0: float  # normalized units
@@ -49,6 +54,8 @@ class Timers:
     other: float = 0.0
     n_eval: int = 0
     n_matvec: int = 0
+    n_factor: int = 0
+    n_free: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -106,6 +113,9 @@ class Engine:
         self.C = prob.cost.C
         self.inv_scale = 1.0 / prob.scale
         self.a_sum = float(prob.a_c.sum())
+        self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
+        self._M_iters = 0
+        self._M_stale = False
 
     # ------------------------------------------------------------------ evaluation
     def _x_of_y(self, y: np.ndarray) -> float:
@@ -114,18 +124,16 @@ class Engine:
             return 0.0
         return (float(self.p.a_c @ y) - 1.0) / self.a_sum
 
-    def evaluate(self, lam, y, beta: float, full: bool = True, with_f: bool = False) -> Point:
+    def evaluate(self, lam, y, beta: float, full: bool = True) -> Point:
         t0 = time.perf_counter()
         p = self.p
         self.col_g.zero_()
-        if with_f:
-            self.col_ws.zero_()
         wp.launch(
             K.eval_rows,
             dim=p.n_r,
-            inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1], 1 if with_f else 0],
-            outputs=[self.W, self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u, self.row_f,
-                     self.row_xphi, self.s_piv, self.row_ws, self.col_ws],
+            inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
+            outputs=[self.W, self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
+                     self.row_xphi, self.s_piv],
             device=p.device,
         )
         rg, cg = self.row_g.numpy(), self.col_g.numpy()
@@ -141,11 +149,22 @@ class Engine:
         pt = Point(g1, g2, merit, res, x=x)
         if full:
             pt.u = float(self.row_u.numpy().sum())
-            pt.f_sum = float(self.row_f.numpy().sum())
             pt.xphi = float(self.row_xphi.numpy().sum())
         self.t.eval += time.perf_counter() - t0
         self.t.n_eval += 1
         return pt
+
+    def free_pass(self, lam, y, beta: float, pt: Point):
+        """At the saddle point of a beta: sum g (into ``pt.f_sum``) and the row/column sums of W s."""
+        t0 = time.perf_counter()
+        p = self.p
+        self.col_ws.zero_()
+        wp.launch(K.free_rows, dim=p.n_r,
+                  inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
+                  outputs=[self.row_f, self.row_ws, self.col_ws], device=p.device)
+        pt.f_sum = float(self.row_f.numpy().sum())
+        self.t.eval += time.perf_counter() - t0
+        self.t.n_free += 1
 
     # ------------------------------------------------------------------ Newton direction
     def _matvec(self, v: np.ndarray) -> np.ndarray:
@@ -171,8 +190,11 @@ class Engine:
         self.g1.assign(wp.array(pt.g1, dtype=wp.float64, device=p.device))
         self.diag_s.zero_()
         self.wtg.zero_()
+        cg = self.o.linear_solver != "direct"
+        fresh = cg and (self._M is None or self._M_stale)
+        # row top-k selection only when the preconditioner is rebuilt
         wp.launch(K.schur_prep, dim=p.n_r,
-                  inputs=[self.W, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk],
+                  inputs=[self.W, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
                   outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
         rhs = -pt.g2 + self.wtg.numpy()
         data = linear.SchurData(self.diag_s.numpy().copy(), e1, self.piv.numpy().copy(), p.a_c, not p.partial)
@@ -184,24 +206,48 @@ class Engine:
             self.t.direct += time.perf_counter() - t0
             n_lin = 1
         else:
+            if fresh:
+                self._build_preconditioner(data)
             t0 = time.perf_counter()
-            wp.launch(K.col_topk, dim=p.n_c, inputs=[self.W, p.n_r, self.piv, self.ctop_val.shape[1]],
-                      outputs=[self.ctop_val, self.ctop_idx], device=p.device)
-            P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
-                                             self.ctop_val.numpy(), self.ctop_idx.numpy())
-            M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
-            self.t.precond += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            dy, info = linear.pcg(self._matvec, rhs, M, rtol=self.o.cg_rtol,
+            dy, info = linear.pcg(self._matvec, rhs, self._M, rtol=self.o.cg_rtol,
                                    max_iter=self.o.cg_max_iter, gauge=not p.partial)
             self.t.cg += time.perf_counter() - t0
             n_lin, ok = info.iterations, info.converged
+            if fresh:  # the reference count of this preconditioner
+                self._M_iters = info.iterations
+            elif not ok or info.iterations > self._M_iters + REFRESH_EXTRA_CG:
+                # a preconditioner from an earlier point has gone stale: rebuild it at the next point
+                self._M_stale = True
+                if not ok:  # and re-solve now if this solve failed (with a fresh row top-k)
+                    wp.launch(K.schur_prep_topk, dim=p.n_r, inputs=[self.W, p.n_c, self.kk],
+                              outputs=[self.top_val, self.top_idx], device=p.device)
+                    self._build_preconditioner(data)
+                    t0 = time.perf_counter()
+                    dy, info = linear.pcg(self._matvec, rhs, self._M, rtol=self.o.cg_rtol,
+                                           max_iter=self.o.cg_max_iter, gauge=not p.partial)
+                    self.t.cg += time.perf_counter() - t0
+                    n_lin += info.iterations
+                    ok = info.converged
+                    self._M_iters = info.iterations
         t0 = time.perf_counter()
         self.dy_a.assign(wp.array(dy, dtype=wp.float64, device=p.device))
         wp.launch(K.recover_rows, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
                   outputs=[self.d_a, self.d_b], device=p.device)
         self.t.other += time.perf_counter() - t0
         return n_lin, ok
+
+    def _build_preconditioner(self, data: linear.SchurData):
+        """Top-k selection per column (Warp), assembly and factorization of the sparse approximation."""
+        p = self.p
+        t0 = time.perf_counter()
+        wp.launch(K.col_topk, dim=p.n_c, inputs=[self.W, p.n_r, self.piv, self.ctop_val.shape[1]],
+                  outputs=[self.ctop_val, self.ctop_idx], device=p.device)
+        P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
+                                         self.ctop_val.numpy(), self.ctop_idx.numpy())
+        self._M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
+        self._M_stale = False
+        self.t.precond += time.perf_counter() - t0
+        self.t.n_factor += 1
 
     def _scaled(self, pt: Point) -> Point:
         """Residuals scaled by (marginal / target): Newton on 1/marginal = 1/target instead of
@@ -290,23 +336,14 @@ class Engine:
         for it, beta in enumerate(betas):
             if it >= o.max_iter:
                 break
-            pt = self.evaluate(self.lam, self.y, beta)
             if raw and o.extrapolate:
-                # tangent predictor: (lam, y) + (1 - 1/q) * d(lam, y)/d(log beta), i.e. linear in 1/beta
-                # (exact when the duals behave like v* + a/beta); kept only when it lowers the residual
-                alpha = 1.0 - raw[-1]["beta"] / beta
-                for _ in range(4):
-                    self._trial(alpha)
-                    tp = self.evaluate(self.lam_t, self.y_t, beta)
-                    if tp.merit < pt.merit:
-                        self.lam, self.lam_t = self.lam_t, self.lam
-                        self.y, self.y_t = self.y_t, self.y
-                        pt = tp
-                        break
-                    alpha *= 0.5
+                pt = self._predict(beta, raw[-1]["beta"])
                 n_lin_tot += self._n_tangent
+            else:
+                pt = self.evaluate(self.lam, self.y, beta)
             pt, nn, nl, ok = self.newton(beta, pt)
-            pt = self.evaluate(self.lam, self.y, beta, with_f=True)
+            # the device state (W, marginals, ...) is that of the current point: add F and W s
+            self.free_pass(self.lam, self.y, beta, pt)
             if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
                 # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
                 self._n_tangent, _ = self.direction(Point(self.row_ws.numpy().copy(), self.col_ws.numpy().copy(), 0.0, 0.0))
@@ -334,6 +371,33 @@ class Engine:
             print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
         return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
                     n_newton=n_newton_tot, n_linear=n_lin_tot, history=history)
+
+    def _predict(self, beta: float, beta_prev: float) -> Point:
+        """Tangent predictor: (lam, y) + alpha d(lam, y)/d(log beta) with alpha = 1 - 1/q, i.e. linear in
+        1/beta (exact when the duals behave like v* + a/beta). Without it the plan's entries (~ 1/(beta s))
+        all shrink by q and the residual is ~ 1 - 1/q; the prediction is kept at once when its residual is
+        below half of that, otherwise it is compared with the unmoved point and halved (3 times at most).
+        Returns the evaluated point; the device state is left at it."""
+        q = beta / beta_prev
+        alpha = 1.0 - 1.0 / q
+        self._trial(alpha)
+        tp = self.evaluate(self.lam_t, self.y_t, beta)
+        if tp.residual <= 0.5 * alpha:
+            self._accept_trial()
+            return tp
+        pt = self.evaluate(self.lam, self.y, beta)
+        for _ in range(3):
+            alpha *= 0.5
+            self._trial(alpha)
+            tp = self.evaluate(self.lam_t, self.y_t, beta)
+            if tp.merit < pt.merit:
+                self._accept_trial()
+                return tp
+        return self.evaluate(self.lam, self.y, beta)
+
+    def _accept_trial(self):
+        self.lam, self.lam_t = self.lam_t, self.lam
+        self.y, self.y_t = self.y_t, self.y
 
     def _penalty(self, pt: Point) -> float:
         """Partial: sum alpha1' m1^2 + sum alpha2' m2^2 (normalized units) with m = the plan's marginals."""

@@ -19,6 +19,9 @@ class BetaStep:
     gap_bound : certified bound on U(beta) - U* (user units; the duality gap (1/beta) sum x phi(x),
         valid whenever every plan entry is < 1/2 of its marginal, always the case for N >= 3); for the
         partial problem the same quantity bounds the gap of the objective
+    objective : the full objective at this beta (user units): ``cost`` plus the chi^2 mass penalties
+        sum alpha1 m1^2 + sum alpha2 m2^2 of the plan's marginals (Eq. 17); equal to ``cost`` for balanced
+        transport. It is the per-beta counterpart of `OTResult.objective`.
     """
 
     beta: float
@@ -28,6 +31,7 @@ class BetaStep:
     n_linear: int
     residual: float
     gap_bound: float = float("nan")
+    objective: float = float("nan")
 
 
 @dataclass(frozen=True)
