@@ -35,6 +35,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="skip the slow peers (Sinkhorns, direct solve)")
     ap.add_argument("--direct", action="store_true", help="also run wpot with linear_solver='direct'")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--small", type=int, nargs="*", default=[],
+                    help="also time repeated calls at these small N (per-call overhead; e.g. --small 200 250)")
     args = ap.parse_args()
 
     import ot
@@ -57,6 +59,21 @@ def main():
         return out
 
     wnewton.Engine.anneal = anneal
+
+    for n in args.small:
+        C = problem(n)
+        a = np.full(n, 1.0 / n)
+        u0 = ot.emd2(a, a, C, numItermax=10**9)
+        t = time.perf_counter()
+        for _ in range(3):
+            ot.emd(a, a, C, numItermax=10**9)
+        t_emd = (time.perf_counter() - t) / 3
+        t = time.perf_counter()
+        for _ in range(3):
+            r = wo.solve_balanced(C, device=args.device)
+        tw = (time.perf_counter() - t) / 3
+        print(f"N = {n} (mean of 3 calls): wpot {tw:.3f} s (gap {(r.cost - u0) / u0:.1e}, newton={r.n_newton}"
+              f" cg={r.n_linear}), ot.emd {t_emd:.3f} s")
 
     for n in args.sizes:
         C = problem(n)
@@ -81,7 +98,8 @@ def main():
         row(f"wpot solve_balanced cg ({args.device})", tw, gap, merr,
             f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}")
         print("      time split: " + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
-              + f"; {tm['n_eval']} passes of phi over C, {tm['n_matvec']} Schur matvecs")
+              + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
+              f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
         print("      per beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
         if args.direct and n <= 2000:
             t = time.perf_counter()

@@ -7,6 +7,13 @@ from wpot.ot.newton import Options
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2
 
 LINEAR_SOLVERS = ("cg", "direct")
+#: weights kept per row and per column of W for the sparse preconditioner. Measured at N = 1000
+#: (benchmarks/ot_speed.py problem): 4 gives the same CG counts as 8 (5 per solve at high beta) with half
+#: the LU fill; 2 needs ~30% more CG iterations
+DEFAULT_TOPK = 4
+#: Newton iterations allowed per beta: the transition from a spread-out plan to a near-permutation takes
+#: the most (measured: 29 at N = 1000 and 50 at N = 3400 for the step of 10; 1-6 at the other betas)
+DEFAULT_MAX_NEWTON = 100
 
 
 def make_options(*, n1: int, n2: int, scale: float, beta0, beta_max, step, tol, atol, max_iter, max_newton,

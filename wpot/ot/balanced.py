@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wpot.ot._common import make_options
+from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_TOPK, make_options
 from wpot.ot.newton import Engine, warn_not_converged
 from wpot.ot.problem import check_balanced, orient, prepare_cost, prepare_masses, resolve_device
 from wpot.ot.result import BetaStep, OTResult
@@ -29,12 +29,12 @@ def solve_balanced(
     tol: float = DEFAULT_TOL,
     atol: float = DEFAULT_ATOL,
     max_iter: int = 100,
-    max_newton: int = 50,
+    max_newton: int = DEFAULT_MAX_NEWTON,
     newton_tol: float = 1e-11,
     linear_solver: str = "cg",
     cg_rtol: float = 1e-3,
     cg_max_iter: int = 1000,
-    topk: int = 8,
+    topk: int = DEFAULT_TOPK,
     extrapolate: bool = True,
     device: str | None = None,
     verbose: bool = False,
@@ -58,10 +58,12 @@ def solve_balanced(
     step : beta multiplier (default 10; see `wpot.ot.schedule.DEFAULT_STEP`).
     tol, atol : stop when |dU| <= tol |U_prev| or |dU| <= atol s. Default tol = 1e-6 gives a gap to the
         exact optimum of ~1e-7 relative.
-    max_iter : maximum number of betas; max_newton, newton_tol : Newton iterations per beta and their
+    max_iter : maximum number of betas; max_newton (default 100), newton_tol : Newton iterations per beta and their
         stopping residual (sum of |marginal errors| / (2 total mass)).
-    linear_solver : "cg" (PCG on the Schur complement, sparse top-``topk`` preconditioner; default) or
-        "direct" (dense Cholesky of the Schur complement, O(N^3) per Newton step; for comparison).
+    linear_solver : "cg" (PCG on the Schur complement, sparse top-``topk`` preconditioner, default topk = 4;
+        the factorization is reused across Newton steps and betas until CG slows down by more than 2
+        iterations) or "direct" (dense Cholesky of the Schur complement, O(N^3) per Newton step; for
+        comparison).
     cg_rtol, cg_max_iter : CG relative tolerance and cap per Newton step.
     device : Warp device (None: Warp's default).
 

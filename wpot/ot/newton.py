@@ -113,6 +113,10 @@ class Engine:
         self.C = prob.cost.C
         self.inv_scale = 1.0 / prob.scale
         self.a_sum = float(prob.a_c.sum())
+        self._host = wp.get_device(d).is_cpu
+        self._v_view = self.v.numpy() if self._host else None
+        self._mv_view = self.mv.numpy() if self._host else None
+        self._matvec_cmd = None
         self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
         self._M_iters = 0
         self._M_stale = False
@@ -169,10 +173,17 @@ class Engine:
     # ------------------------------------------------------------------ Newton direction
     def _matvec(self, v: np.ndarray) -> np.ndarray:
         p = self.p
-        self.v.assign(v)
-        self.mv.zero_()
-        wp.launch(K.schur_matvec, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
-                  device=p.device)
+        if self._host:  # zero-copy views of the device arrays
+            self._v_view[:] = v
+            self._mv_view[:] = 0.0
+        else:
+            self.v.assign(v)
+            self.mv.zero_()
+        if self._matvec_cmd is None:  # recorded once: the arrays are fixed, only their contents change
+            self._matvec_cmd = wp.launch(K.schur_matvec, dim=p.n_r,
+                                         inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
+                                         device=p.device, record_cmd=True)
+        self._matvec_cmd.launch()
         out = self.mv.numpy().copy()
         if p.partial:
             a = p.a_c
@@ -186,8 +197,8 @@ class Engine:
         p = self.p
         t0 = time.perf_counter()
         e1 = self.row_w.numpy() + p.b_r
-        self.e1.assign(wp.array(e1, dtype=wp.float64, device=p.device))
-        self.g1.assign(wp.array(pt.g1, dtype=wp.float64, device=p.device))
+        self.e1.assign(e1)
+        self.g1.assign(pt.g1)
         self.diag_s.zero_()
         self.wtg.zero_()
         cg = self.o.linear_solver != "direct"
@@ -230,7 +241,7 @@ class Engine:
                     ok = info.converged
                     self._M_iters = info.iterations
         t0 = time.perf_counter()
-        self.dy_a.assign(wp.array(dy, dtype=wp.float64, device=p.device))
+        self.dy_a.assign(dy)
         wp.launch(K.recover_rows, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
                   outputs=[self.d_a, self.d_b], device=p.device)
         self.t.other += time.perf_counter() - t0
@@ -281,6 +292,7 @@ class Engine:
         while pt.residual > self.o.newton_tol:
             if n_newton >= self.o.max_newton:
                 return pt, n_newton, n_lin, False
+            reused = self._M is not None and not self._M_stale
             k_lin, _ = self.direction(self._scaled(pt))
             n_lin += k_lin
             n_newton += 1
@@ -309,6 +321,10 @@ class Engine:
             if self.o.verbose > 1:
                 print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
                       f"res {tp.residual:.2e} cg={k_lin}")
+            if reused and alpha == 1.0 and tp.merit > 0.25 * pt.merit:
+                # a full step that gained little: the reused preconditioner may have steered CG (stopped at
+                # its relative tolerance) to a poor direction; rebuild it at the next step
+                self._M_stale = True
             pt = tp
         return pt, n_newton, n_lin, True
 

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from wpot.ot._common import make_options
+from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_TOPK, make_options
 from wpot.ot.balanced import DEFAULT_ATOL, DEFAULT_TOL, _result
 from wpot.ot.newton import Engine
 from wpot.ot.problem import orient, prepare_cost, prepare_masses, resolve_device
@@ -25,12 +25,12 @@ def solve_partial(
     tol: float = DEFAULT_TOL,
     atol: float = DEFAULT_ATOL,
     max_iter: int = 100,
-    max_newton: int = 50,
+    max_newton: int = DEFAULT_MAX_NEWTON,
     newton_tol: float = 1e-11,
     linear_solver: str = "cg",
     cg_rtol: float = 1e-3,
     cg_max_iter: int = 1000,
-    topk: int = 8,
+    topk: int = DEFAULT_TOPK,
     extrapolate: bool = True,
     device: str | None = None,
     verbose: bool = False,
