@@ -370,6 +370,26 @@ def col_topk(
             tmin = top_val[l, topk - 1]
 
 
+@wp.func
+def row_dot_diff(W: wp.array2d(dtype=wp.float64), k: int, n_c: int, v: wp.array(dtype=wp.float64),
+                 vp: wp.float64) -> wp.float64:
+    """sum_l W(k, l) (v(l) - vp) with four independent accumulators (the single-accumulator loop is
+    bound by the latency of the additions on the CPU backend)."""
+    a0 = _ZERO
+    a1 = _ZERO
+    a2 = _ZERO
+    a3 = _ZERO
+    n4 = n_c - n_c % 4
+    for l in range(0, n4, 4):
+        a0 += W[k, l] * (v[l] - vp)
+        a1 += W[k, l + 1] * (v[l + 1] - vp)
+        a2 += W[k, l + 2] * (v[l + 2] - vp)
+        a3 += W[k, l + 3] * (v[l + 3] - vp)
+    for l in range(n4, n_c):
+        a0 += W[k, l] * (v[l] - vp)
+    return (a0 + a1) + (a2 + a3)
+
+
 @wp.kernel
 def schur_matvec(
     W: wp.array2d(dtype=wp.float64),
@@ -385,9 +405,7 @@ def schur_matvec(
     p = piv(k) the row's largest weight. ``out`` must be zeroed (or hold the other terms) beforehand."""
     k = wp.tid()
     vp = v[piv[k]]
-    acc = _ZERO
-    for l in range(n_c):
-        acc += W[k, l] * (v[l] - vp)
+    acc = row_dot_diff(W, k, n_c, v, vp)
     delta = (acc - b[k] * vp) / e1[k]
     for l in range(n_c):
         wp.atomic_add(out, l, W[k, l] * ((v[l] - vp) - delta))
@@ -410,9 +428,7 @@ def recover_rows(
     k = wp.tid()
     p = piv[k]
     vp = dy[p]
-    acc = _ZERO
-    for l in range(n_c):
-        acc += W[k, l] * (dy[l] - vp)
+    acc = row_dot_diff(W, k, n_c, dy, vp)
     d_a[k] = -vp
     d_b[k] = (-g1[k] - acc + b[k] * vp) / e1[k]
 
