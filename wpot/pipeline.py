@@ -68,6 +68,7 @@ __all__ = [
     "RunMismatchError",
     "RunStore",
     "ShapeSpec",
+    "DaskExecutor",
     "choose_worker_device",
     "dask_executor",
     "discover_shapes",
@@ -658,28 +659,53 @@ def run_all_vs_all(
     return store
 
 
+class DaskExecutor(cf.Executor):
+    """A `concurrent.futures.Executor` on a Dask ``distributed.Client`` that `run_all_vs_all` keeps busy
+    without over-committing: it holds at most one task per worker thread in flight (`max_in_flight`).
+
+    Each worker then holds only the pair it is computing: when a worker dies, Dask blames (counts towards
+    ``allowed-failures``) only that pair, not pairs queued behind it, and the loss is that one pair. Tasks
+    are impure (``pure=False``): every submission runs. A plain ``client.get_executor()`` also works
+    with `run_all_vs_all`, but then every pair is submitted at once.
+    """
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self._inner = client.get_executor(pure=False)
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> cf.Future:
+        return self._inner.submit(fn, *args, **kwargs)
+
+    def max_in_flight(self) -> int:
+        """Worker threads of the cluster now (at least 1, so that a run waits for workers to come back)."""
+        return max(1, int(sum(self.client.nthreads().values())))
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._inner.shutdown(wait=wait and not cancel_futures)
+
+
 @contextlib.contextmanager
-def dask_executor(scheduler: str, *, n_workers: int | None = None, connect_timeout: float = 30.0) -> Iterator[cf.Executor]:
-    """A `concurrent.futures.Executor` on a Dask cluster, for `run_all_vs_all` (a context manager).
+def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeout: float = 30.0) -> Iterator[DaskExecutor]:
+    """A `DaskExecutor` for `run_all_vs_all` (a context manager).
 
     Parameters
     ----------
     scheduler : ``"local"``: start an embedded `distributed.LocalCluster` of ``n_workers`` worker processes
         (one thread each; None: one per CPU core), closed on exit. ``"tcp://host:port"`` (or another Dask
         address such as ``tls://``): connect to that running scheduler; its workers are used as they are.
-    n_workers : workers of the local cluster (ignored for an address)
+        A ``distributed.Client``: use it (it is left open).
+    n_workers : workers of the local cluster (ignored otherwise)
     connect_timeout : seconds to wait for a remote scheduler
-
-    Tasks are submitted impure (``pure=False``): every submission runs, none is deduplicated by key.
 
     Raises
     ------
     ImportError : Dask's ``distributed`` is not installed (names the extra: ``pip install 'wpot[cluster]'``)
-    ValueError : ``scheduler`` is neither "local" nor an address, or ``n_workers < 1``
+    ValueError : ``scheduler`` is neither "local" nor an address nor a client, or ``n_workers < 1``
     OSError : the scheduler cannot be reached
     """
-    if not isinstance(scheduler, str) or not (scheduler == "local" or "://" in scheduler):
-        raise ValueError(f'scheduler must be "local" or a Dask address like "tcp://host:8786", got {scheduler!r}')
+    is_client = type(scheduler).__name__ == "Client" and hasattr(scheduler, "get_executor")
+    if not is_client and not (isinstance(scheduler, str) and (scheduler == "local" or "://" in scheduler)):
+        raise ValueError(f'scheduler must be "local", a Dask address like "tcp://host:8786" or a Client, got {scheduler!r}')
     if n_workers is not None and n_workers < 1:
         raise ValueError(f"n_workers must be >= 1 or None, got {n_workers!r}")
     try:
@@ -691,24 +717,23 @@ def dask_executor(scheduler: str, *, n_workers: int | None = None, connect_timeo
             "pip install 'wpot[cluster]' (or 'dask[distributed]')"
         ) from exc
     with contextlib.ExitStack() as stack:
-        if scheduler == "local":
-            # one task per worker at a time (no prefetched second pair): pairs are long, and a worker that
-            # dies then takes only the pair it was computing with it (Dask blames every task assigned to it)
-            with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
-                cluster = stack.enter_context(
-                    LocalCluster(
-                        n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                        dashboard_address=None,
-                    )
+        if is_client:
+            client = scheduler
+        elif scheduler == "local":
+            cluster = stack.enter_context(
+                LocalCluster(
+                    n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                    dashboard_address="127.0.0.1:0",  # a free port (8787 may be taken)
                 )
+            )
             client = stack.enter_context(Client(cluster))
         else:
             client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
-        executor = client.get_executor(pure=False)
+        executor = DaskExecutor(client)
         try:
             yield executor
         finally:
-            executor.shutdown(wait=False)
+            executor.shutdown(wait=False, cancel_futures=True)
 
 
 def _comparer_kwargs(c: Any) -> dict[str, Any]:
@@ -728,6 +753,42 @@ def _comparer_kwargs(c: Any) -> dict[str, Any]:
     }
 
 
+def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -> Iterator[tuple[Any, cf.Future]]:
+    """Submit ``fn(*args)`` for each (key, fn, args) and yield (key, future) as they finish.
+
+    An executor with ``max_in_flight()`` (`DaskExecutor`) gets no more tasks than that at a time (asked
+    again every second, as workers come and go); others get every task at once. A finished future is
+    dropped as soon as it has been yielded, so a cluster does not keep (or recompute) its result."""
+    limit = getattr(executor, "max_in_flight", None)
+    pending: dict[cf.Future, Any] = {}
+    calls = iter(calls)
+    exhausted = False
+    try:
+        if limit is None:
+            for key, fn, args in calls:
+                pending[executor.submit(fn, *args)] = key
+            for f in cf.as_completed(list(pending)):
+                yield pending.pop(f), f
+            return
+        while True:
+            cap = limit()
+            while not exhausted and len(pending) < cap:
+                try:
+                    key, fn, args = next(calls)
+                except StopIteration:
+                    exhausted = True
+                    break
+                pending[executor.submit(fn, *args)] = key
+            if not pending:
+                return
+            done, _ = cf.wait(list(pending), timeout=1.0, return_when=cf.FIRST_COMPLETED)
+            for f in done:
+                yield pending.pop(f), f
+    finally:
+        for f in pending:  # max_pairs reached, or the coordinator stopped: the rest is not needed
+            f.cancel()
+
+
 def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: bool) -> list[Any]:
     """Run ``fn(*args)`` for each args (inline or on the executor), in order, with a progress bar."""
     from tqdm.auto import tqdm
@@ -740,10 +801,12 @@ def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str,
                 out.append(fn(*a))
                 bar.update()
             return out
-        futs = [executor.submit(fn, *a) for a in arglist]
-        for _ in cf.as_completed(futs):
-            bar.update()
-        return [f.result() for f in futs]
+        results: list[Any] = [None] * len(arglist)
+        with contextlib.closing(_completed(executor, ((k, fn, a) for k, a in enumerate(arglist)))) as finished:
+            for k, f in finished:
+                results[k] = f.result()
+                bar.update()
+        return results
     finally:
         bar.close()
 
@@ -780,13 +843,12 @@ def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: bo
                     continue
                 handle(i, j, rec)
         else:
-            futs = {executor.submit(_pair_task, i, j, task_specs[i], task_specs[j], config): (i, j) for i, j in todo}
-            for f in cf.as_completed(futs):
-                handle(*futs[f], f)
-                if max_pairs is not None and n_new >= max_pairs:
-                    for g in futs:
-                        g.cancel()
-                    break
+            calls = (((i, j), _pair_task, (i, j, task_specs[i], task_specs[j], config)) for i, j in todo)
+            with contextlib.closing(_completed(executor, calls)) as finished:  # closing cancels the rest
+                for (i, j), f in finished:
+                    handle(i, j, f)
+                    if max_pairs is not None and n_new >= max_pairs:
+                        break
     finally:
         bar.close()
     fails = store.failures()
