@@ -84,6 +84,9 @@ _EXPORTS: dict[str, str] = {
     "run_all_vs_all": "wpot.pipeline",
     "RunStore": "wpot.pipeline",
     "RunMismatchError": "wpot.pipeline",
+    "DaskExecutor": "wpot.pipeline",
+    "dask_executor": "wpot.pipeline",
+    "choose_worker_device": "wpot.pipeline",
 }
 _SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
 
