@@ -8,8 +8,8 @@ from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2
 
 LINEAR_SOLVERS = ("cg", "direct")
 #: weights kept per row and per column of W for the sparse preconditioner. Measured at N = 1000
-#: (benchmarks/ot_speed.py problem): 4 gives the same CG counts as 8 (5 per solve at high beta) with half
-#: the LU fill; 2 needs ~30% more CG iterations
+#: (benchmarks/ot_speed.py problem): 4 needs about as many CG iterations as 8 (508 vs 484 in all; 5 per
+#: solve at high beta) with half the LU fill (SuperLU time 42 vs 80 ms); 2 needs ~30% more
 DEFAULT_TOPK = 4
 #: Newton iterations allowed per beta: the transition from a spread-out plan to a near-permutation takes
 #: the most (measured: 29 at N = 1000 and 50 at N = 3400 for the step of 10; 1-6 at the other betas)
