@@ -171,6 +171,7 @@ def figure(results: dict, path: Path) -> None:
         axes[0].plot(k, get("ref", rel), ":", c=c, lw=1)
         axes[1].plot(k, get("f_eff", rel), "o-", c=c, label=f"{sig}: parent")
         axes[1].plot(k, get("f_eff_head", rel), "s--", c=c, mfc="none", label=f"{sig}: head")
+        axes[1].plot(k, get("ref", rel), ":", c=c, lw=1)
         axes[2].plot(k, get("class_acc", rel), "o-", c=c, label=f"{sig}: class")
         axes[2].plot(k, get("parent_acc", rel), "s--", c=c, mfc="none", label=f"{sig}: parent")
         axes[3].plot(k, get("err", rel), "o-", c=c, label=sig)
@@ -182,7 +183,7 @@ def figure(results: dict, path: Path) -> None:
             axes[2].plot([kp], [r["summary"]["parent_acc"]], "*", c=c, ms=8, mfc="none")
             axes[3].plot([kp], [r["summary"]["err"]], "*", c=c, ms=12)
     titles = ["head's mass landing on the parent's head\n(dotted: fraction of samples in the head)",
-              "matched region size (participation ratio)",
+              "matched region size (participation ratio)\n(dotted: the head's share of the full shape)",
               "nearest full shape: right class / the parent", "median correspondence error / √area"]
     for ax, t in zip(axes, titles):
         ax.set_xscale("log")

@@ -45,7 +45,14 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--signature", choices=("wks", "ldsift"), default="wks", help="vertex signature (default: wks)")
     p.add_argument("--transport", choices=("balanced", "partial"), default="balanced", help="transport (default: balanced)")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
-    p.add_argument("--mass-penalty", type=float, default=1.0, help="partial transport: chi^2 penalty factor (1 = paper)")
+    from wpot.compare import DEFAULT_MASS_PENALTY
+
+    p.add_argument(
+        "--mass-penalty", type=float, default=DEFAULT_MASS_PENALTY,
+        help=("partial transport: relative chi^2 mass penalty kappa, alpha = kappa*mean(C)/(sqrt(N1*N2)*rho^2): "
+              "spreading a side's mass on a fraction f of its points costs kappa*(1/f-1) mean costs "
+              f"(default {DEFAULT_MASS_PENALTY:g}, chosen on HEAD: benchmarks/head_partial.py; smaller = more partial)"),
+    )
     p.add_argument("--n-eigen", type=int, default=n_eigen, help=f"WKS: Laplace-Beltrami eigenpairs (default {n_eigen})")
     p.add_argument("--n-energies", type=int, default=n_energies, help=f"WKS: energies (default {n_energies})")
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
