@@ -29,7 +29,7 @@ Usage (2 busy CPU cores: ~30 min for the default sweep; ``--confirm K`` then run
 full shapes at κ = K):
 
     python benchmarks/head_partial.py --out /tmp/head_partial
-    python benchmarks/head_partial.py --out /tmp/head_partial --confirm 0.1 --signatures ldsift
+    python benchmarks/head_partial.py --out /tmp/head_partial --confirm 0.01 --signatures ldsift
 """
 from __future__ import annotations
 
@@ -212,8 +212,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-vertices", type=int, default=250)
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS eigenpairs (paper 500; fewer to run here)")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies (paper 200)")
-    ap.add_argument("--confirm", type=float, default=None,
-                    help="instead of the sweep: every head against every full shape at this kappa")
+    ap.add_argument("--confirm", type=float, nargs="+", default=None,
+                    help="instead of the sweep: every head against every full shape at these kappas "
+                         "(and the paper's alpha unless --no-paper)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     a = ap.parse_args(argv)
@@ -240,7 +241,9 @@ def main(argv=None) -> int:
     if a.confirm is not None:
         heads = [n for n in ds.names if n in ds.parent]
         fulls = [n for n in ds.names if n not in ds.parent]
-        settings = [("relative", a.confirm)]
+        settings = [("relative", k) for k in sorted(a.confirm, reverse=True)]
+        if not a.no_paper:
+            settings.append(("paper", 1.0))
     else:
         heads = list(a.heads)
         fulls = list(dict.fromkeys([ds.parent[h] for h in heads] + list(a.extra_full)))
