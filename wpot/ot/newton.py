@@ -184,6 +184,13 @@ class Engine:
         self.t.n_free += 1
 
     # ------------------------------------------------------------------ Newton direction
+    def _put(self, dst: wp.array, src: np.ndarray):
+        """Host vector -> device array: a copy into the zero-copy view on "cpu", ``assign`` elsewhere."""
+        if self._host:
+            dst.numpy()[:] = src
+        else:
+            dst.assign(src)
+
     def _matvec(self, v: np.ndarray) -> np.ndarray:
         p = self.p
         if self._host:  # zero-copy views of the device arrays
@@ -210,8 +217,8 @@ class Engine:
         p = self.p
         t0 = time.perf_counter()
         e1 = self.row_w.numpy() + p.b_r
-        self.e1.assign(e1)
-        self.g1.assign(pt.g1)
+        self._put(self.e1, e1)
+        self._put(self.g1, pt.g1)
         self.diag_s.zero_()
         self.wtg.zero_()
         cg = self.o.linear_solver != "direct"
@@ -254,7 +261,7 @@ class Engine:
                     ok = info.converged
                     self._M_iters = info.iterations
         t0 = time.perf_counter()
-        self.dy_a.assign(dy)
+        self._put(self.dy_a, dy)
         wp.launch(K.recover_rows, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
                   outputs=[self.d_a, self.d_b], device=p.device)
         self.t.other += time.perf_counter() - t0
