@@ -29,7 +29,9 @@ from wpot.ot.schedule import beta_schedule, relative_change
 
 
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
-#: this many iterations beyond the count of its first solve; then it is rebuilt at the current point
+#: this many iterations beyond the count of its first solve (or a full Newton step with it gains less than
+#: 4x); it is then rebuilt at the next Newton point (at once, with a re-solve, when CG failed). Measured
+#: at N = 1000: 20 factorizations instead of 74, 513 CG iterations instead of 246
 REFRESH_EXTRA_CG = 2
 
 
