@@ -2,7 +2,7 @@
 
 Builds HEAD (`wpot.datasets.build_head_dataset`) into ``--out`` (never into the repository), then compares
 heads against full shapes with partial transport (WKS and LD-SIFT) for a sweep of relative mass penalties κ
-(`wpot.compare.solver_mass_penalty`, ``penalty_scale="relative"``) and, for contrast, the paper's
+(`wpot.comparison.solver_mass_penalty`, ``penalty_scale="relative"``) and, for contrast, the paper's
 ``α = 1/ρ²`` (``penalty_scale="paper", mass_penalty=1``). Both meshes are subsampled to ``--max-vertices``
 points by farthest-point sampling (signatures are computed on the full meshes first).
 
@@ -125,7 +125,7 @@ def run_setting(base, ds, heads, fulls, label: str, log) -> dict:
 
 def paper_kappa(base, ds, heads, fulls) -> float:
     """The relative κ that the paper's α = 1/ρ² amounts to, √(N1 N2)/mean(C), median over the parent pairs."""
-    from wpot.compare import cost_scale, SIGNATURE_METRIC
+    from wpot.comparison import cost_scale, SIGNATURE_METRIC
     from wpot.cost import cost_matrix
 
     ks = []
@@ -265,7 +265,7 @@ def main(argv=None) -> int:
     import warp as wp
 
     wp.config.quiet = True
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
     from wpot.datasets import build_head_dataset, load_head_dataset
 
     dsdir = out / "head_dataset"

@@ -1,4 +1,4 @@
-"""wpot.compare: registration (closed form), farthest-point sampling, memory guard, and end-to-end comparisons."""
+"""wpot.comparison: registration (closed form), farthest-point sampling, memory guard, and end-to-end comparisons."""
 from __future__ import annotations
 
 import importlib.util
@@ -9,7 +9,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from wpot.compare import (
+from wpot.comparison import (
     ProblemTooLargeError,
     Registration,
     _edge_graph,
@@ -209,7 +209,7 @@ def pair():
 
 @pytest.fixture(scope="module")
 def comparer(pair):
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
 
     c = Comparer(signature="wks", transport="balanced", **FAST)
     c.fit_energies([pair.source, pair.target])
@@ -279,7 +279,7 @@ def test_rigid_motion_of_b_leaves_the_wks_comparison_unchanged(comparer, pair, a
 
 
 def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch):
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
 
     calls = []
     orig = Comparer._compute_signatures
@@ -303,7 +303,7 @@ def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch
 
 
 def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
 
     c = Comparer(max_vertices=150, energies=comparer.energies, **FAST).compare(pair.source, pair.target)
     assert c.sample_a.n_samples == c.sample_b.n_samples == 150
@@ -315,7 +315,7 @@ def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
 
 
 def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):
-    import wpot.compare as wc
+    import wpot.comparison as wc
 
     monkeypatch.setattr(wc, "_free_memory", lambda device: 4 * 8 * 200 * 200)  # room for 200 x 200 only
     c = wc.Comparer(energies=comparer.energies, **FAST)
@@ -326,7 +326,7 @@ def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypat
 
 
 def test_partial_distance_is_debiased_and_zero_on_itself():
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
     from wpot.examples import example_partial
 
     ex = example_partial(250, seed=2, fraction=0.5)

@@ -1,4 +1,4 @@
-"""The relative mass penalty of partial transport (wpot.compare.solver_mass_penalty): its formula, closed-form
+"""The relative mass penalty of partial transport (wpot.comparison.solver_mass_penalty): its formula, closed-form
 limits, and that the regime it picks does not depend on the cost's scale or on the number of points."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from wpot import ot
-from wpot.compare import (
+from wpot.comparison import (
     DEFAULT_MASS_PENALTY,
     PENALTY_SCALES,
     Comparer,

@@ -155,7 +155,7 @@ def clean_run(dataset, tmp_path_factory):
 
 
 def test_run_matches_pairwise_compare_with_the_shared_grid(clean_run, dataset):
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
     from wpot.io import load_mesh
 
     d = clean_run.distance_matrix()

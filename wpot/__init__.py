@@ -72,14 +72,18 @@ _EXPORTS: dict[str, str] = {
     "BetaStep": "wpot.ot",
     "debiased": "wpot.ot",
     # comparison
-    "compare": "wpot.compare",
-    "Comparison": "wpot.compare",
-    "Comparer": "wpot.compare",
-    "Registration": "wpot.compare",
-    "Subsample": "wpot.compare",
-    "fit_similarity": "wpot.compare",
-    "farthest_point_sampling": "wpot.compare",
-    "ProblemTooLargeError": "wpot.compare",
+    "compare": "wpot.comparison",
+    "Comparison": "wpot.comparison",
+    "Comparer": "wpot.comparison",
+    "Registration": "wpot.comparison",
+    "Subsample": "wpot.comparison",
+    "fit_similarity": "wpot.comparison",
+    "farthest_point_sampling": "wpot.comparison",
+    "ProblemTooLargeError": "wpot.comparison",
+    "solver_mass_penalty": "wpot.comparison",
+    "cost_scale": "wpot.comparison",
+    "DEFAULT_MASS_PENALTY": "wpot.comparison",
+    "PENALTY_SCALES": "wpot.comparison",
     # dataset runs
     "run_all_vs_all": "wpot.pipeline",
     "RunStore": "wpot.pipeline",
@@ -88,7 +92,7 @@ _EXPORTS: dict[str, str] = {
     "dask_executor": "wpot.pipeline",
     "choose_worker_device": "wpot.pipeline",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "compare", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 

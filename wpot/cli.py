@@ -45,7 +45,7 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--signature", choices=("wks", "ldsift"), default="wks", help="vertex signature (default: wks)")
     p.add_argument("--transport", choices=("balanced", "partial"), default="balanced", help="transport (default: balanced)")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
-    from wpot.compare import DEFAULT_MASS_PENALTY
+    from wpot.comparison import DEFAULT_MASS_PENALTY
 
     p.add_argument(
         "--mass-penalty", type=float, default=DEFAULT_MASS_PENALTY,
@@ -197,7 +197,7 @@ def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = Non
 
 
 def cmd_demo(a: argparse.Namespace) -> None:
-    from wpot.compare import compare
+    from wpot.comparison import compare
     from wpot.examples import example_pair
 
     t0 = time.perf_counter()
@@ -223,7 +223,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
 
 
 def cmd_compare(a: argparse.Namespace) -> None:
-    from wpot.compare import compare
+    from wpot.comparison import compare
 
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
     c = compare(ma, mb, **_comparer_options(a))

@@ -367,7 +367,7 @@ class RunStore:
             monotone in β and settle); NaN where missing. Partial: SU_β of Eq. 27, with the self
             energies read at the same β. Diagonal 0.
         """
-        from wpot.compare import debias_history, history_at
+        from wpot.comparison import debias_history, history_at
 
         rows = self.con.execute("SELECT i, j, history FROM pairs").fetchall()
         hist = {(i, j): np.asarray(json.loads(h), dtype=np.float64).reshape(-1, 2) for i, j, h in rows}
@@ -490,7 +490,7 @@ def _worker_comparer(config: Mapping[str, Any]):
     key = _canonical(config)
     c = _WORKER_COMPARERS.get(key)
     if c is None:
-        from wpot.compare import Comparer
+        from wpot.comparison import Comparer
 
         opts = dict(config["comparer"])
         c = Comparer(**opts, energies=config.get("energies"), cache_dir=config.get("cache_dir"), device=_task_device(config))
@@ -533,7 +533,7 @@ def _spectrum_task(spec: Any, config: Mapping[str, Any]) -> Any:
 
 def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
     """Solve one pair (raw energy U and its per-β history), self-contained so any executor can run it."""
-    from wpot.compare import energy_history, transport_energy
+    from wpot.comparison import energy_history, transport_energy
 
     t0 = time.perf_counter()
     comp = _worker_comparer(config)
@@ -579,7 +579,7 @@ def run_all_vs_all(
     ----------
     shapes : folder, list file, or sequence of paths / meshes (see `discover_shapes`)
     out : run folder; created if needed. An existing run with the same parameters and shapes is resumed.
-    signature, transport, **comparer_options : as `wpot.compare.Comparer` (max_vertices, mass_penalty,
+    signature, transport, **comparer_options : as `wpot.comparison.Comparer` (max_vertices, mass_penalty,
         n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` (the signature and spectrum
         cache, shared by runs over the same shapes) defaults to ``$WPOT_CACHE_DIR``, else ``out/cache``.
     jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores);
@@ -598,7 +598,7 @@ def run_all_vs_all(
     -------
     RunStore : the open store; ``distance_matrix()`` and ``distance_matrices()`` read the results back.
     """
-    from wpot.compare import Comparer
+    from wpot.comparison import Comparer
 
     if scheduler is not None:
         if executor is not None:
@@ -645,7 +645,7 @@ def run_all_vs_all(
         }
         if signature == "wks" and config["energies"] is None:
             spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
-            from wpot.compare import _energy_grid
+            from wpot.comparison import _energy_grid
             from wpot.signatures.wks import wks_energies
 
             config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies)).tolist()

@@ -338,7 +338,7 @@ def plot_registration(
 
     The part is moved by the similarity ``x -> scale * rotation @ x + translation``, given by ``registration``
     (any object with ``.scale``, ``.rotation`` (3, 3) and ``.translation`` (3,), such as the registration of a
-    `wpot.compare` result) or by the keywords; with neither, the part is drawn where it is.
+    `wpot.comparison` result) or by the keywords; with neither, the part is drawn where it is.
     """
     from matplotlib.colors import to_rgba
 

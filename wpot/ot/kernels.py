@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import warp as wp
 
-wp.config.quiet = True
+import wpot._warp  # noqa: F401  (quiet Warp start-up, shared by every module)
+
 wp.set_module_options({"enable_backward": False})
 
 f64 = wp.float64

@@ -7,16 +7,13 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from wpot._warp import resolve_device as _resolve_device
 from wpot.ot import kernels as K
 
 
 def resolve_device(device) -> str:
-    """``None`` -> Warp's default device; otherwise the named device (checked once)."""
-    wp.init()
-    try:
-        return str(wp.get_device(device))
-    except Exception as exc:  # noqa: BLE001 - re-raised with the received value
-        raise ValueError(f"unknown Warp device {device!r}: {exc}") from exc
+    """``None`` -> Warp's default device; otherwise the named device (checked once, `wpot._warp`)."""
+    return str(_resolve_device(device))
 
 
 @dataclass(frozen=True)

@@ -822,10 +822,9 @@ def _energy_grid(out: Any) -> np.ndarray:
 
 
 def _resolve_device(device: str | None) -> str:
-    import warp as wp
+    from wpot._warp import resolve_device
 
-    wp.config.quiet = True
-    return str(wp.get_device(device))
+    return str(resolve_device(device))
 
 
 def compare(
