@@ -8,14 +8,7 @@ import trimesh
 
 import render
 from wpot.mesh import Mesh
-
-
-def _rotation(rng: np.random.Generator) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
+from conftest import random_rotation
 
 
 def _frame_with_normal(n: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -195,7 +188,7 @@ def test_rigid_motion_and_scaling(device):
     frames = np.stack([_frame_with_normal(rng.normal(size=3), rng) for _ in range(n)])
     half = np.full(n, 0.5)
     img = render.depth_images(mesh, c, frames, half, 15, device=device)
-    rot, t, sc = _rotation(rng), np.array([100.0, -50.0, 7.0]), 3.0
+    rot, t, sc = random_rotation(rng), np.array([100.0, -50.0, 7.0]), 3.0
     moved = mesh.transformed(rot, t, sc)
     img2 = render.depth_images(moved, sc * c @ rot.T + t, frames @ rot.T, sc * half, 15, device=device)
     np.testing.assert_array_equal(np.isnan(img), np.isnan(img2))
