@@ -262,9 +262,6 @@ def main(argv=None) -> int:
         logf.write(msg + "\n")
         logf.flush()
 
-    import warp as wp
-
-    wp.config.quiet = True
     from wpot.comparison import Comparer
     from wpot.datasets import build_head_dataset, load_head_dataset
 

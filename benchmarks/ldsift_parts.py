@@ -10,8 +10,6 @@ call on a tiled image of all depth images instead of one call per image (with it
 from __future__ import annotations
 
 import argparse
-import importlib
-import sys
 import os
 import time
 from pathlib import Path
@@ -20,11 +18,7 @@ import numpy as np
 
 from wpot.mesh import Mesh
 
-# The module wpot.signatures.ldsift shares its name with the function that wpot.signatures exports
-# lazily. Resolve the public function first, then take the module from sys.modules: importing the
-# submodule directly first would leave the package attribute bound to the module (and wpot.ldsift too).
-getattr(importlib.import_module("wpot.signatures"), "ldsift")
-L = sys.modules["wpot.signatures.ldsift"]
+from wpot.signatures import _ldsift as L  # the module, for its internals
 
 
 def _warm_up(device: str | None) -> None:

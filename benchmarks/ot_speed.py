@@ -40,12 +40,10 @@ def main():
     args = ap.parse_args()
 
     import ot
-    import warp as wp
 
     import wpot.ot as wo
     from wpot.ot import newton as wnewton
 
-    wp.config.quiet = True
     wo.solve_balanced(problem(20), device=args.device)  # compile the kernels outside the timings
 
     # capture the engine's timers (the solver keeps them on its Engine object)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from wpot.mesh import Mesh
-from wpot.signatures.wks import wks_energies, wks_from_eigenpairs
+from wpot.signatures._wks import wks_energies, wks_from_eigenpairs
 from wpot.spectral import LaplaceBeltrami, choose_solver
 
 HERE = Path(__file__).resolve().parent

@@ -1,6 +1,6 @@
 """render: Warp depth images of whole triangle meshes on many local planes at once.
 
-Used by `wpot.signatures.ldsift` (paper section 3.1) and usable on its own:
+Used by `wpot.ldsift` (paper section 3.1) and usable on its own:
 
 * `depth_images` / `DepthRenderer` — ray casting against a Warp BVH, one launch for all views
   (conventions in `render.raycast`);

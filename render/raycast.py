@@ -43,7 +43,6 @@ from numpy.typing import ArrayLike
 
 __all__ = ["DepthRenderer", "depth_images", "RAY_OFFSET"]
 
-wp.config.quiet = True  # the project convention (older Warp)
 if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.1x: the init banner and module-load lines are INFO messages
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 wp.set_module_options({"enable_backward": False})

@@ -2,8 +2,6 @@
 CPU/CUDA agreement, the true match's rank on a real TOSCA pair, and input errors."""
 from __future__ import annotations
 
-import importlib
-import sys
 import warnings
 
 import numpy as np
@@ -13,11 +11,7 @@ import trimesh
 from wpot.mesh import Mesh
 from conftest import random_rotation
 
-# The module wpot.signatures.ldsift shares its name with the function that wpot.signatures exports
-# lazily. Resolve the public function first, then take the module from sys.modules: importing the
-# submodule directly first would leave the package attribute bound to the module (and wpot.ldsift too).
-getattr(importlib.import_module("wpot.signatures"), "ldsift")
-L = sys.modules["wpot.signatures.ldsift"]
+from wpot.signatures import _ldsift as L  # the module, for its internals
 
 
 @pytest.fixture(scope="module")

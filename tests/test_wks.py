@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from wpot.cost import cost_matrix
 from wpot.mesh import Mesh, MeshWarning
-from wpot.signatures.wks import (
+from wpot.signatures._wks import (
     EnergyGrid,
     WKSWarning,
     sigma_of_grid,

@@ -42,8 +42,8 @@ _EXPORTS: dict[str, str] = {
     # signatures and costs
     "wks": "wpot.signatures",
     "wks_energies": "wpot.signatures",
-    "wks_from_eigenpairs": "wpot.signatures.wks",
-    "EnergyGrid": "wpot.signatures.wks",
+    "wks_from_eigenpairs": "wpot.signatures",
+    "EnergyGrid": "wpot.signatures",
     "ldsift": "wpot.signatures",
     "local_frames": "wpot.signatures",
     "cost_matrix": "wpot.cost",

@@ -658,7 +658,7 @@ class Comparer:
 
     def fit_energies(self, meshes: Sequence[Mesh]) -> np.ndarray:
         """Build one WKS energy grid from the spectra of all ``meshes`` (`wpot.wks_energies`), and keep it."""
-        from wpot.signatures.wks import wks_energies
+        from wpot.signatures._wks import wks_energies
         from wpot.spectral import eigenpairs
 
         # as `wks` does, a mesh with fewer vertices than n_eigen uses all its eigenpairs
@@ -697,10 +697,10 @@ class Comparer:
 
     def _compute_signatures(self, mesh: Mesh) -> np.ndarray:
         if self.signature == "wks":
-            from wpot.signatures.wks import wks
+            from wpot.signatures._wks import wks
 
             return np.asarray(wks(mesh, n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies), dtype=np.float64)
-        from wpot.signatures.ldsift import ldsift
+        from wpot.signatures._ldsift import ldsift
 
         return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)
 

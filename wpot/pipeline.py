@@ -646,7 +646,7 @@ def run_all_vs_all(
         if signature == "wks" and config["energies"] is None:
             spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
             from wpot.comparison import _energy_grid
-            from wpot.signatures.wks import wks_energies
+            from wpot.signatures._wks import wks_energies
 
             config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies)).tolist()
             store.set("energies", config["energies"])
