@@ -17,6 +17,7 @@ from wpot.evaluate import (
     one_shot_1nn,
     part_retrieval,
     summarize_correspondence,
+    symmetric_flip,
 )
 from wpot.mesh import Mesh
 
@@ -282,3 +283,48 @@ def test_tosca_ground_truth_and_symmetric_flip(tosca5k):
     assert exact.auc == 1.0
     flipped = correspondence_error(g, sym[k], dst[k], symmetric_truth=sym[k])
     assert flipped.flip_aware_auc == 1.0 and flipped.auc < 0.9
+    f = symmetric_flip(g, sym[k], dst[k], sym[k])
+    assert f.map_flipped and f.fraction == 1.0 and f.n_lateral > 100  # most of a cat is off the symmetry plane
+    assert symmetric_flip(g, dst[k], dst[k], sym[k]).fraction == 0.0
+
+
+def test_symmetric_flip_on_a_mirrored_sphere(sphere):
+    m = sphere
+    v = m.vertices
+    mirror = np.argmin(np.linalg.norm(v[:, None] - (v * [-1, 1, 1])[None], axis=-1), axis=1)
+    truth = np.arange(0, m.n_vertices, 2)
+    sym = mirror[truth]
+    g = GeodesicDistances(m)
+    # lateral points: the great circle from a point to its mirror, 2 r asin(|x| / r), against 0.05 sqrt(4 pi r^2)
+    sep = great_circle(m, truth, sym) / np.sqrt(m.area)
+    f = symmetric_flip(g, sym, truth, sym)
+    clear = np.abs(sep - 0.05) > 0.01  # away from the threshold, where the heat method's error could tip it
+    np.testing.assert_array_equal(f.lateral[clear], (sep >= 0.05)[clear])
+    assert 0 < f.n_lateral < truth.size
+    assert f.fraction == 1.0 and f.map_flipped and f.n_flipped == f.n_lateral
+    exact = symmetric_flip(g, truth, truth, sym)
+    assert exact.fraction == 0.0 and not exact.map_flipped and not exact.flipped.any()
+    # mirror only the points with x > 0: the fraction is the share of lateral points on that side
+    half = np.where(v[truth, 0] > 0, sym, truth)
+    h = symmetric_flip(g, half, truth, sym)
+    np.testing.assert_array_equal(h.flipped, h.lateral & (v[truth, 0] > 0))
+    assert h.fraction == pytest.approx(np.mean(v[truth, 0][h.lateral] > 0))
+    assert 0.3 < h.fraction < 0.7
+    # invariant to scale (the lateral threshold is relative to sqrt(area)) and to relabelling the vertices
+    big = symmetric_flip(m.transformed(scale=4.0), half, truth, sym)
+    np.testing.assert_array_equal(big.flipped, h.flipped)
+    perm = np.random.default_rng(1).permutation(m.n_vertices)
+    inv = np.argsort(perm)
+    r = symmetric_flip(m.relabelled(perm), inv[half], inv[truth], inv[sym])
+    assert r.fraction == pytest.approx(h.fraction, abs=0.01)
+
+
+def test_symmetric_flip_rejects_bad_input(sphere):
+    with pytest.raises(ValueError, match="equal length"):
+        symmetric_flip(sphere, [0, 1], [0, 1], [0])
+    with pytest.raises(ValueError, match="ratio"):
+        symmetric_flip(sphere, [0], [0], [1], ratio=0.0)
+    with pytest.raises(ValueError, match="min_separation"):
+        symmetric_flip(sphere, [0], [0], [1], min_separation=-1.0)
+    with pytest.warns(UserWarning, match="lateral"):
+        assert np.isnan(symmetric_flip(sphere, [0, 1], [0, 1], [0, 1]).fraction)

@@ -19,6 +19,8 @@ Correspondence (Table 5, Fig. 6)
     ("shrec19": the largest distance between a true and a predicted point of the pair). The cumulative curve
     is the fraction of points with error <= t; its AUC is the mean of the curve over ``[0, max_threshold]``,
     computed exactly as ``mean(max(0, 1 - e / max_threshold))``.
+    `symmetric_flip` counts the points whose prediction lands on the left/right mirror of the truth (TOSCA
+    ``.sym.vts``), the typical failure of intrinsic methods on symmetric shapes.
 """
 from __future__ import annotations
 
@@ -48,6 +50,10 @@ __all__ = [
     "cumulative_curve",
     "curve_auc",
     "summarize_correspondence",
+    "SymmetricFlip",
+    "symmetric_flip",
+    "DEFAULT_FLIP_SEPARATION",
+    "DEFAULT_FLIP_RATIO",
 ]
 
 
@@ -481,3 +487,95 @@ def summarize_correspondence(results: Sequence[CorrespondenceError]) -> Correspo
     return CorrespondenceSummary(r0.thresholds, np.mean([r.curve for r in results], axis=0), float(aucs.mean()),
                                  float(aucs.std()), float(np.mean([r.mean_error for r in results])), len(results),
                                  r0.normalization, r0.max_threshold, flip)
+
+
+# ============================================================================ symmetric flips
+#: points whose truth and mirrored truth are closer than this (times sqrt(area(Y))) lie near the symmetry
+#: plane, where a flip cannot be told from a correct match; they are left out of the flip fraction
+DEFAULT_FLIP_SEPARATION = 0.05
+#: a point is flipped when d(prediction, mirror) < DEFAULT_FLIP_RATIO * d(prediction, truth)
+DEFAULT_FLIP_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class SymmetricFlip:
+    """Points of a correspondence that are off by the target's left/right symmetry.
+
+    With ``z_k`` the true correspondent of point k on Y, ``z'_k`` its mirror (TOSCA ``.sym.vts``) and ``y_k``
+    the prediction, point k is *lateral* when ``d_Y(z_k, z'_k) >= min_separation * sqrt(area(Y))`` (near the
+    symmetry plane the two coincide and nothing can be judged), and a lateral point is *flipped* when
+    ``d_Y(y_k, z'_k) < ratio * d_Y(y_k, z_k)`` (clearly nearer the mirror than the truth: a random error is
+    rarely that close to the mirror).
+
+    Attributes
+    ----------
+    fraction : flipped / lateral points (NaN when no point is lateral).
+    map_flipped : ``fraction > 0.5``: most of the map is the mirror image (a "flipped pair").
+    n_lateral, n_flipped : counts.
+    lateral, flipped : (K,) bool per point (``flipped`` implies ``lateral``).
+    min_separation, ratio : the settings used.
+    """
+
+    fraction: float
+    map_flipped: bool
+    n_lateral: int
+    n_flipped: int
+    lateral: np.ndarray = field(repr=False)
+    flipped: np.ndarray = field(repr=False)
+    min_separation: float = DEFAULT_FLIP_SEPARATION
+    ratio: float = DEFAULT_FLIP_RATIO
+
+
+def symmetric_flip(
+    target: Mesh | GeodesicDistances,
+    predicted: ArrayLike,
+    truth: ArrayLike,
+    symmetric_truth: ArrayLike,
+    *,
+    min_separation: float = DEFAULT_FLIP_SEPARATION,
+    ratio: float = DEFAULT_FLIP_RATIO,
+) -> SymmetricFlip:
+    """Which predicted correspondents are the left/right mirror of the truth (see `SymmetricFlip`).
+
+    Parameters
+    ----------
+    target : Y, or a `GeodesicDistances` on Y (the rows of ``truth`` and ``symmetric_truth`` are reused, so
+        pass the one `correspondence_error` used).
+    predicted, truth, symmetric_truth : (K,) int vertices of Y: prediction, true correspondent and its
+        mirror for each evaluated point.
+    min_separation : lateral-point threshold on ``d_Y(truth, mirror) / sqrt(area(Y))`` (>= 0).
+    ratio : flip threshold on ``d_Y(pred, mirror) / d_Y(pred, truth)``, in (0, 1].
+
+    Distances between connected components are Euclidean, as in `correspondence_error`.
+    """
+    geo = target if isinstance(target, GeodesicDistances) else GeodesicDistances(target)
+    if not (np.isfinite(min_separation) and min_separation >= 0):
+        raise ValueError(f"min_separation must be a finite number >= 0, got {min_separation!r}")
+    if not 0 < ratio <= 1:
+        raise ValueError(f"ratio must be in (0, 1], got {ratio!r}")
+    pred = geo._check(predicted, "predicted")
+    true = geo._check(truth, "truth")
+    sym = geo._check(symmetric_truth, "symmetric_truth")
+    if pred.size == 0 or pred.shape != true.shape or sym.shape != true.shape:
+        raise ValueError(
+            f"predicted, truth and symmetric_truth must be non-empty and of equal length, got {pred.size}, "
+            f"{true.size} and {sym.size}"
+        )
+    sep, _ = _geodesic_errors(geo, sym, true)  # d(truth, mirror), from the truth rows
+    to_truth, _ = _geodesic_errors(geo, pred, true)
+    to_mirror, _ = _geodesic_errors(geo, pred, sym)
+    lateral = sep >= min_separation * np.sqrt(geo.mesh.area)
+    if min_separation == 0:
+        lateral &= sym != true
+    flipped = lateral & (to_mirror < ratio * to_truth)
+    n_lat, n_flip = int(lateral.sum()), int(flipped.sum())
+    if n_lat == 0:
+        warnings.warn(
+            "no evaluated point is lateral (every truth lies within min_separation of its mirror): the flip "
+            "fraction is NaN; check symmetric_truth or lower min_separation",
+            stacklevel=2,
+        )
+        frac = float("nan")
+    else:
+        frac = n_flip / n_lat
+    return SymmetricFlip(frac, bool(frac > 0.5), n_lat, n_flip, lateral, flipped, float(min_separation), float(ratio))
