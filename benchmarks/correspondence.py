@@ -241,11 +241,14 @@ def _curves(store: Store, recs: list[dict], norm: str, tmax: float, n: int = 501
     return thr, np.mean(curves, axis=0), np.array(aucs)
 
 
-def report(store: Store, out: Path, tmax: dict, log) -> None:
+def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None) -> None:
+    """Table and figure over the pairs every method has finished (within ``keep`` when given)."""
     from wpot.datasets import class_label
 
     by_method: dict[str, dict] = {}
     for r in store.records:
+        if keep is not None and (r["source"], r["target"]) not in keep:
+            continue
         by_method.setdefault(r["method"], {})[(r["source"], r["target"])] = r
     if not by_method:
         log("no results yet")
@@ -351,7 +354,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("/work/shared/data/tosca_isometric_5k")))
     ap.add_argument("--out", type=Path, required=True, help="results folder (outside the repository)")
     ap.add_argument("--methods", nargs="+", default=["wpot", "fmaps"], choices=["wpot", "fmaps"])
-    ap.add_argument("--limit", type=int, default=None, help="only K pairs, evenly spaced over test_pairs.txt")
+    ap.add_argument("--limit", type=int, default=None,
+                    help="only K pairs, evenly spaced over test_pairs.txt (the report then covers those K only)")
     ap.add_argument("--max-vertices", type=int, default=500, help="wpot's farthest-point sample size (0: none)")
     ap.add_argument("--signature", default="wks", choices=["wks", "ldsift"])
     ap.add_argument("--transport", default="balanced", choices=["balanced", "partial"])
@@ -382,7 +386,12 @@ def main(argv=None) -> int:
     store = Store(out)
     if not a.report_only:
         run(a, out, store, log)
-    report(store, out, tmax, log)
+    keep = None
+    if a.limit is not None:  # report the selected pairs only
+        from wpot.datasets import read_test_pairs
+
+        keep = set(select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit))
+    report(store, out, tmax, log, keep)
     return 0
 
 
