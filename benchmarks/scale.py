@@ -1,0 +1,156 @@
+"""How time and memory grow with N: wpot's stored-C solver, its matrix-free mode and POT's ot.emd (issue 7).
+
+Problem: N random signatures per side in R^d (uniform in [0, 1]^d, seeds fixed), C(k, l) = L2 distance between
+signatures, uniform masses, balanced transport. Each (method, N) runs in a fresh subprocess, so the peak resident
+memory (ru_maxrss) is that run's alone; a run that exceeds ``--timeout`` is killed and larger N are skipped for that
+method. The three methods solve the same problem, so the table also gives each wpot run's relative gap to emd.
+
+    python benchmarks/scale.py                               # N = 500 ... 5000 on "cpu"
+    python benchmarks/scale.py --sizes 1000 2000 --methods stored emd
+    python benchmarks/scale.py --device cuda --sizes 3400 10000 50000 --methods matrix-free stored
+
+Methods: ``stored`` (solve_balanced on the dense C: O(N^2) memory for C and the Hessian weights), ``matrix-free``
+(solve_balanced(wpot.ot.FeatureCost(X, Y, "l2")): C recomputed inside the kernels, O(N d) memory; skipped with a note
+when this wpot has no FeatureCost) and ``emd`` (POT's exact network simplex on the dense C, numItermax raised so that
+it reaches optimality). Timings on a shared machine are noisy; memory is exact.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+
+METHODS = ("stored", "matrix-free", "emd")
+
+
+def features(n: int, d: int, seed: int):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    return rng.random((n, d)), rng.random((n, d))
+
+
+def child(method: str, n: int, d: int, device: str) -> dict:
+    """One run in this process; returns the figures as a dict (printed as JSON by ``--child``)."""
+    import resource
+
+    import numpy as np
+
+    X, Y = features(n, d, seed=n)
+    out: dict = {"method": method, "n": n}
+    if method == "emd":
+        import ot
+
+        t0 = time.perf_counter()
+        C = ot.dist(X, Y, metric="euclidean")
+        G = ot.emd(np.full(n, 1.0 / n), np.full(n, 1.0 / n), C, numItermax=max(100_000, 50 * n * n))
+        out["time"] = time.perf_counter() - t0
+        out["cost"] = float((G * C).sum())
+        out["converged"] = True
+    else:
+        import wpot.ot as wo
+
+        if method == "matrix-free":
+            if not hasattr(wo, "FeatureCost"):
+                return {"method": method, "n": n, "skipped": "this wpot has no matrix-free mode (wpot.ot.FeatureCost)"}
+            cost = wo.FeatureCost(X, Y, metric="l2", device=device)
+        else:
+            from wpot.cost import cost_matrix
+
+            cost = None
+        wo.solve_balanced(np.random.default_rng(0).random((8, 8)), device=device)  # compile outside the timing
+        t0 = time.perf_counter()
+        if cost is None:
+            cost = cost_matrix(X, Y, metric="l2", device=device, out="warp")
+        r = wo.solve_balanced(cost, device=device)
+        out["time"] = time.perf_counter() - t0
+        out["cost"] = float(r.cost)
+        out["converged"] = bool(r.converged)
+        out["n_newton"] = int(r.n_newton)
+        out["n_linear"] = int(r.n_linear)
+    if device.startswith("cuda") and method != "emd":
+        import warp as wp
+
+        out["gpu_peak_mb"] = float(wp.get_mempool_used_mem_high(device)) / 2**20 if hasattr(
+            wp, "get_mempool_used_mem_high") else math.nan
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return out
+
+
+def run_one(method: str, n: int, d: int, device: str, timeout: float) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", method, str(n), str(d), device]
+    env = dict(os.environ, OPENBLAS_NUM_THREADS=os.environ.get("OPENBLAS_NUM_THREADS", "1"))
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {"method": method, "n": n, "failed": f"killed after {timeout:.0f} s"}
+    if p.returncode != 0:
+        tail = (p.stderr or p.stdout).strip().splitlines()[-1:] or ["?"]
+        why = "out of memory (killed)" if p.returncode in (-9, 137) else f"exit {p.returncode}: {tail[0][:120]}"
+        return {"method": method, "n": n, "failed": why, "wall": time.perf_counter() - t0}
+    for line in reversed(p.stdout.strip().splitlines()):
+        if line.startswith("{"):
+            return json.loads(line)
+    return {"method": method, "n": n, "failed": "no result printed"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 2000, 3400, 5000])
+    ap.add_argument("--dim", type=int, default=100, help="signature dimension d (default 100, as WKS)")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it is killed")
+    ap.add_argument("--json", default=None, help="also write all rows to this JSON file")
+    ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        method, n, d, device = a.child
+        print(json.dumps(child(method, int(n), int(d), device)), flush=True)
+        return
+
+    print(f"balanced OT, N x N, L2 costs of random signatures in R^{a.dim}, device {a.device}, "
+          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', '1')}")
+    print(f"{'N':>7} {'method':<12} {'time s':>9} {'peak RSS MB':>12} {'dense C MB':>11} {'U':>14} {'gap vs emd':>11}  note")
+    rows = []
+    dead: set[str] = set()
+    for n in a.sizes:
+        res = {}
+        for m in a.methods:
+            if m in dead:
+                res[m] = {"method": m, "n": n, "failed": "skipped (failed at a smaller N)"}
+            else:
+                res[m] = run_one(m, n, a.dim, a.device, a.timeout)
+                if "failed" in res[m]:
+                    dead.add(m)
+        u_emd = res.get("emd", {}).get("cost")
+        for m in a.methods:
+            r = res[m]
+            rows.append(r)
+            dense_mb = 8.0 * n * n / 2**20
+            if "time" in r:
+                gap = "" if u_emd is None or m == "emd" else f"{(r['cost'] - u_emd) / u_emd:.1e}"
+                note = []
+                if "n_newton" in r:
+                    note.append(f"newton {r['n_newton']} cg {r['n_linear']}")
+                if r.get("converged") is False:
+                    note.append("NOT converged")
+                if "gpu_peak_mb" in r:
+                    note.append(f"GPU peak {r['gpu_peak_mb']:.0f} MB")
+                print(f"{n:>7} {m:<12} {r['time']:>9.2f} {r['peak_rss_mb']:>12.0f} {dense_mb:>11.0f} "
+                      f"{r['cost']:>14.8g} {gap:>11}  {'; '.join(note)}", flush=True)
+            else:
+                print(f"{n:>7} {m:<12} {'-':>9} {'-':>12} {dense_mb:>11.0f} {'-':>14} {'':>11}  "
+                      f"{r.get('failed') or r.get('skipped')}", flush=True)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
