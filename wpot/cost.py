@@ -26,9 +26,13 @@ wp.set_module_options({"enable_backward": False})
 METRICS = ("wks", "l2", "l1")
 
 
-@wp.kernel
-def _cost_wks(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), c: wp.array2d(dtype=wp.float64)):
-    i, j = wp.tid()
+#: metric name -> the integer code the Warp funcs below (and the matrix-free OT kernels) take
+METRIC_CODES = {"wks": 0, "l2": 1, "l1": 2}
+
+
+@wp.func
+def pair_wks(a: wp.array2d(dtype=wp.float64), i: int, b: wp.array2d(dtype=wp.float64), j: int) -> wp.float64:
+    """Eq. 29 between rows a[i] and b[j]: sum_d |(a_d - b_d) / (a_d + b_d)|, terms with a_d + b_d = 0 count 0."""
     s = wp.float64(0.0)
     for d in range(a.shape[1]):
         x = a[i, d]
@@ -36,26 +40,45 @@ def _cost_wks(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), 
         den = x + y
         if den != wp.float64(0.0):
             s += wp.abs((x - y) / den)
-    c[i, j] = s
+    return s
 
 
-@wp.kernel
-def _cost_l2(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), c: wp.array2d(dtype=wp.float64)):
-    i, j = wp.tid()
+@wp.func
+def pair_l2(a: wp.array2d(dtype=wp.float64), i: int, b: wp.array2d(dtype=wp.float64), j: int) -> wp.float64:
+    """Euclidean distance between rows a[i] and b[j]."""
     s = wp.float64(0.0)
     for d in range(a.shape[1]):
         t = a[i, d] - b[j, d]
         s += t * t
-    c[i, j] = wp.sqrt(s)
+    return wp.sqrt(s)
 
 
-@wp.kernel
-def _cost_l1(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), c: wp.array2d(dtype=wp.float64)):
-    i, j = wp.tid()
+@wp.func
+def pair_l1(a: wp.array2d(dtype=wp.float64), i: int, b: wp.array2d(dtype=wp.float64), j: int) -> wp.float64:
+    """L1 distance between rows a[i] and b[j]."""
     s = wp.float64(0.0)
     for d in range(a.shape[1]):
         s += wp.abs(a[i, d] - b[j, d])
-    c[i, j] = s
+    return s
+
+
+@wp.func
+def pair_cost(metric: int, a: wp.array2d(dtype=wp.float64), i: int, b: wp.array2d(dtype=wp.float64),
+              j: int) -> wp.float64:
+    """The cost between rows a[i] and b[j] for a metric code of `METRIC_CODES` (the one per-pair definition,
+    shared by `cost_matrix` and the matrix-free OT kernels). All three are symmetric, bit for bit."""
+    if metric == 0:
+        return pair_wks(a, i, b, j)
+    if metric == 1:
+        return pair_l2(a, i, b, j)
+    return pair_l1(a, i, b, j)
+
+
+@wp.kernel
+def _cost(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), metric: int,
+          c: wp.array2d(dtype=wp.float64)):
+    i, j = wp.tid()
+    c[i, j] = pair_cost(metric, a, i, b, j)
 
 
 @wp.kernel
@@ -66,9 +89,6 @@ def _scan_bad(a: wp.array2d(dtype=wp.float64), check_negative: int, flags: wp.ar
         flags[0] = 1
     elif check_negative != 0 and x < wp.float64(0.0):
         flags[1] = 1
-
-
-_KERNELS = {"wks": _cost_wks, "l2": _cost_l2, "l1": _cost_l1}
 
 
 def _as_signatures(name: str, s, dev) -> wp.array:
@@ -96,6 +116,28 @@ def _check_values(name: str, s: wp.array, metric: str, dev) -> None:
         raise ValueError(f"{name} contains NaN or inf values")
     if bad_neg:
         raise ValueError(f"{name} has negative entries; metric='wks' (Eq. 29) needs nonnegative signatures such as WKS")
+
+
+def prepare_signatures(S1, S2, metric: str, dev, names: tuple[str, str] = ("S1", "S2")
+                       ) -> tuple[wp.array, wp.array]:
+    """Validate a pair of signature arrays for ``metric`` and bring them to device ``dev`` as contiguous
+    (N1, D), (N2, D) float64 ``wp.array``s (no copy for a contiguous float64 wp.array already there).
+
+    Raises ValueError (naming the argument by ``names``) for an unknown metric, non-2-D input, mismatched
+    D, empty input, NaN/inf values, negative values with ``metric="wks"`` or a wp.array on another device.
+    """
+    if metric not in METRIC_CODES:
+        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
+    n1, n2 = names
+    a = _as_signatures(n1, S1, dev)
+    b = _as_signatures(n2, S2, dev)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"{n1} and {n2} must have the same signature length D, got {a.shape[1]} and {b.shape[1]}")
+    if a.shape[0] == 0 or b.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"empty signatures: {n1} has shape {a.shape}, {n2} has shape {b.shape}")
+    _check_values(n1, a, metric, dev)
+    _check_values(n2, b, metric, dev)
+    return a, b
 
 
 def cost_matrix(
@@ -126,21 +168,12 @@ def cost_matrix(
     ValueError : unknown metric/out, non-2-D input, mismatched D, empty input, NaN/inf values,
         negative values with ``metric="wks"``, or a ``wp.array`` on another device.
     """
-    if metric not in _KERNELS:
-        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     if out not in ("numpy", "warp"):
         raise ValueError(f"out must be 'numpy' or 'warp', got {out!r}")
     dev = resolve_device(device)
-    a = _as_signatures("S1", S1, dev)
-    b = _as_signatures("S2", S2, dev)
-    if a.shape[1] != b.shape[1]:
-        raise ValueError(f"S1 and S2 must have the same signature length D, got {a.shape[1]} and {b.shape[1]}")
-    if a.shape[0] == 0 or b.shape[0] == 0 or a.shape[1] == 0:
-        raise ValueError(f"empty signatures: S1 has shape {a.shape}, S2 has shape {b.shape}")
-    _check_values("S1", a, metric, dev)
-    _check_values("S2", b, metric, dev)
+    a, b = prepare_signatures(S1, S2, metric, dev)
     c = wp.empty((a.shape[0], b.shape[0]), dtype=wp.float64, device=dev)
-    wp.launch(_KERNELS[metric], dim=c.shape, inputs=[a, b, c], device=dev)
+    wp.launch(_cost, dim=c.shape, inputs=[a, b, METRIC_CODES[metric], c], device=dev)
     if out == "warp":
         return c
     return c.numpy()

@@ -2,8 +2,12 @@
 from __future__ import annotations
 
 import math
+import os
+
+import warp as wp
 
 from wpot.ot.newton import Options
+from wpot.ot.problem import CostInput
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2
 
 LINEAR_SOLVERS = ("cg", "direct")
@@ -40,3 +44,53 @@ def make_options(*, n1: int, n2: int, scale: float, beta0, beta_max, step, tol, 
                    max_newton=max_newton, newton_tol=float(newton_tol), linear_solver=linear_solver,
                    cg_rtol=float(cg_rtol), cg_max_iter=cg_max_iter, topk=topk, extrapolate=bool(extrapolate),
                    verbose=int(verbose))
+
+
+#: default number of plan entries kept per row in `OTResult.plan_top`
+DEFAULT_PLAN_TOPK = 8
+
+
+def _host_available_bytes() -> float:
+    """MemAvailable of /proc/meminfo (Linux); elsewhere the free physical pages; inf when unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return math.inf
+
+
+def check_mode(cost: CostInput, linear_solver: str, dense_plan, plan_topk, device: str) -> bool:
+    """Options that depend on the cost's mode; returns whether to form the dense plan.
+
+    ``dense_plan`` None: the dense plan in stored mode only; True: also in matrix-free mode, refused with a
+    ValueError naming the size when the (N1, N2) float64 array does not fit in the memory available (on the
+    device and on the host, where it is returned); False: never.
+    """
+    if not (isinstance(plan_topk, int) and not isinstance(plan_topk, bool) and plan_topk >= 1):
+        raise ValueError(f"plan_topk must be an integer >= 1, got {plan_topk!r}")
+    if dense_plan not in (None, True, False):
+        raise ValueError(f"dense_plan must be None, True or False, got {dense_plan!r}")
+    if cost.lazy and linear_solver == "direct":
+        raise ValueError("linear_solver='direct' is not available with a FeatureCost (matrix-free mode): it "
+                         "forms the dense N1 x N2 weight matrix the matrix-free mode exists to avoid; use "
+                         "linear_solver='cg'")
+    if dense_plan is None:
+        return not cost.lazy
+    if dense_plan and cost.lazy:
+        need = 8.0 * cost.n1 * cost.n2
+        avail = _host_available_bytes()
+        dev = wp.get_device(device)
+        if dev.is_cuda:
+            avail = min(avail, float(dev.free_memory))
+        if need > avail:
+            raise ValueError(
+                f"dense_plan=True needs an (N1, N2) = ({cost.n1}, {cost.n2}) float64 array of {need / 2**30:.2f} "
+                f"GiB, more than the {avail / 2**30:.2f} GiB available on {device}; use the result's plan_top "
+                "and argmax instead")
+    return bool(dense_plan)

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
-from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_TOPK, make_options
+from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_PLAN_TOPK, DEFAULT_TOPK, check_mode, make_options
 from wpot.ot.newton import Engine, warn_not_converged
 from wpot.ot.problem import check_balanced, orient, prepare_cost, prepare_masses, resolve_device
 from wpot.ot.result import BetaStep, OTResult
@@ -36,6 +37,8 @@ def solve_balanced(
     cg_max_iter: int = 1000,
     topk: int = DEFAULT_TOPK,
     extrapolate: bool = True,
+    dense_plan: bool | None = None,
+    plan_topk: int = DEFAULT_PLAN_TOPK,
     device: str | None = None,
     verbose: bool = False,
 ) -> OTResult:
@@ -49,7 +52,8 @@ def solve_balanced(
     Parameters
     ----------
     C : (N1, N2) float64 numpy array or 2-D float64 ``wp.array`` (used without a copy when on ``device``);
-        finite, >= 0. Normalized internally by a power of two >= max C; results are in C's units.
+        finite, >= 0; or a `FeatureCost` (signatures and a metric: the matrix-free mode, C recomputed inside
+        the kernels, memory O((N1 + N2) D + N topk); same results). Results are in C's units.
     a, b : (N1,), (N2,) positive masses with equal sums (default uniform, 1/N). The plan is computed for
         masses normalized to sum 1 and multiplied back by the total.
     beta0, beta_max : first and largest beta in C's units (beta * C dimensionless). Defaults: beta0 =
@@ -65,6 +69,9 @@ def solve_balanced(
         iterations) or "direct" (dense Cholesky of the Schur complement, O(N^3) per Newton step; for
         comparison).
     cg_rtol, cg_max_iter : CG relative tolerance and cap per Newton step.
+    dense_plan : form ``OTResult.plan`` (N1, N2)? None (default): in stored mode only; True: also with a
+        `FeatureCost` (ValueError naming the size when it does not fit in memory); False: never.
+    plan_topk : entries per row kept in ``OTResult.plan_top`` (default 8).
     device : Warp device (None: Warp's default).
 
     Returns
@@ -77,6 +84,7 @@ def solve_balanced(
     a_ = prepare_masses(a, cost.n1, "a")
     b_ = prepare_masses(b, cost.n2, "b")
     total = check_balanced(a_, b_)
+    dense = check_mode(cost, linear_solver, dense_plan, plan_topk, dev)
     opts = make_options(n1=cost.n1, n2=cost.n2, scale=cost.scale, beta0=beta0, beta_max=beta_max, step=step,
                         tol=tol, atol=atol, max_iter=max_iter, max_newton=max_newton, newton_tol=newton_tol,
                         linear_solver=linear_solver, cg_rtol=cg_rtol, cg_max_iter=cg_max_iter, topk=topk,
@@ -92,10 +100,11 @@ def solve_balanced(
         return -(float(lam @ prob.m_r) + float(y @ prob.m_c)) - pt.f_sum / beta
 
     info = eng.anneal(free_energy)
-    return _result(eng, info, total, "solve_balanced", partial=False)
+    return _result(eng, info, total, "solve_balanced", partial=False, dense=dense, plan_topk=plan_topk)
 
 
-def _result(eng: Engine, info: dict, total: float, kind: str, partial: bool) -> OTResult:
+def _result(eng: Engine, info: dict, total: float, kind: str, partial: bool, dense: bool, plan_topk: int
+            ) -> OTResult:
     p = eng.p
     s = p.scale
     warn_not_converged(kind, info, p.scale)
@@ -105,7 +114,16 @@ def _result(eng: Engine, info: dict, total: float, kind: str, partial: bool) -> 
                  objective=r["obj"] * s * total)
         for r in info["raw"]
     )
-    plan = eng.plan() * total
+    plan = eng.plan() * total if dense else None
+    top_val, top_idx = eng.plan_top(plan_topk)
+    n1, n2 = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
+    kk = top_val.shape[1]
+    plan_top = sp.csr_matrix((top_val.reshape(-1) * total, top_idx.reshape(-1).astype(np.int64),
+                              np.arange(0, n1 * kk + 1, kk, dtype=np.int64)), shape=(n1, n2))
+    argmax = plan.argmax(axis=1) if plan is not None else top_idx[:, 0].astype(np.int64)
+    # the exact marginals of the last evaluation (at the final duals and beta)
+    rg, cg = eng.row_g.numpy() * total, eng.col_g.numpy() * total
+    mass1, mass2 = (cg, rg) if p.trans else (rg, cg)
     lam = (eng.lam[0].numpy() + eng.lam[1].numpy()) * s
     y = (eng.y[0].numpy() + eng.y[1].numpy()) * s
     x = eng.last.x * s if partial else 0.0
@@ -115,14 +133,16 @@ def _result(eng: Engine, info: dict, total: float, kind: str, partial: bool) -> 
     last = info["raw"][-1]
     return OTResult(
         plan=plan,
+        plan_top=plan_top,
+        argmax=argmax.astype(np.int64),
         cost=last["u"] * s * total,
         objective=last["obj"] * s * total,
         free_energy=last["f"] * s * total,
         lam=lam,
         mu=mu,
         x=float(x),
-        mass1=plan.sum(axis=1),
-        mass2=plan.sum(axis=0),
+        mass1=mass1.copy(),
+        mass2=mass2.copy(),
         beta=last["beta"] / s,
         converged=bool(info["converged"]),
         n_newton=int(info["n_newton"]),

@@ -11,14 +11,26 @@ when C' + lam + y cancels (at beta = 1e14, s ~ 1e-11 while C' ~ 1). The plan is
 G(k, l) = phi(beta * s(k, l)) (paper Eq. 15 / 26) and the Hessian weights are
 W(k, l) = beta * |phi'(beta * s(k, l))|.
 
-Every read of the cost matrix goes through the single `cost_at` function, so that a matrix-free mode
-(the cost computed from signatures inside the kernel) only needs another `cost_at`.
+Two modes share every kernel body (generic kernels, overloaded once per mode at the end of this file):
+
+* stored: the cost is a dense (N1, N2) array (`DenseCost`) and the weights W are stored (`DenseW`) by
+  `eval_rows` and read back by the Schur kernels;
+* matrix-free: the cost is computed from the two signature arrays (`LazyCost`, the per-pair
+  functions of `wpot.cost`) and each weight is recomputed where it is read (`LazyW`: the features, beta
+  and the duals of the point `eval_rows` last evaluated), exactly as `eval_rows` computes it. No N1 x N2
+  array exists; each pass over W costs a pass over the features instead.
+
+Every read of C goes through `cost_at(src, k, l)` and every read (write) of W through
+`weight_at(src, k, l)` (`put_weight`), overloaded per mode.
 """
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
 import wpot._warp  # noqa: F401  (quiet Warp start-up, shared by every module)
+from wpot.cost import pair_cost
 
 wp.set_module_options({"enable_backward": False})
 
@@ -154,14 +166,6 @@ def two_sum_err(a: wp.float64, b: wp.float64, s: wp.float64) -> wp.float64:
 
 
 @wp.func
-def cost_at(C: wp.array2d(dtype=wp.float64), k: int, l: int, trans: int, inv_scale: wp.float64) -> wp.float64:
-    """The single place where the cost matrix is read: C'(k, l) in the solver's orientation."""
-    if trans != 0:
-        return C[l, k] * inv_scale
-    return C[k, l] * inv_scale
-
-
-@wp.func
 def reduced_cost(c: wp.float64, lh: wp.float64, ll: wp.float64, yh: wp.float64, yl: wp.float64) -> wp.float64:
     """s = c + (lh + ll) + (yh + yl) with the cancellation c + lh + yh done error-free."""
     t = c + lh
@@ -171,11 +175,118 @@ def reduced_cost(c: wp.float64, lh: wp.float64, ll: wp.float64, yh: wp.float64, 
     return u + ((e1 + e2) + (ll + yl))
 
 
+# --------------------------------------------------------------------------- cost and weight sources
+@wp.struct
+class DenseCost:
+    """Stored mode: the user's (N1, N2) cost matrix, read transposed when ``trans`` (rows = user's columns)."""
+
+    C: wp.array2d(dtype=wp.float64)
+    trans: int
+    inv_scale: wp.float64
+
+
+@wp.struct
+class LazyCost:
+    """Matrix-free mode: signatures of the solver's rows (A, (n_r, D)) and columns (B, (n_c, D)), already
+    oriented (the metrics are symmetric bit for bit, so no ``trans`` is needed), a `wpot.cost.METRIC_CODES` code."""
+
+    A: wp.array2d(dtype=wp.float64)
+    B: wp.array2d(dtype=wp.float64)
+    metric: int
+    inv_scale: wp.float64
+
+
+@wp.func
+def cost_at(src: DenseCost, k: int, l: int) -> wp.float64:
+    """C'(k, l) = C(k, l) / max C in the solver's orientation, from the stored matrix."""
+    if src.trans != 0:
+        return src.C[l, k] * src.inv_scale
+    return src.C[k, l] * src.inv_scale
+
+
+@wp.func
+def cost_at(src: LazyCost, k: int, l: int) -> wp.float64:  # noqa: F811  (Warp overload)
+    """C'(k, l) computed from the signatures (the same per-pair function as `wpot.cost.cost_matrix`)."""
+    return pair_cost(src.metric, src.A, k, src.B, l) * src.inv_scale
+
+
+@wp.struct
+class DenseW:
+    """Stored mode: the Hessian weights W (n_r, n_c), written by `eval_rows`."""
+
+    W: wp.array2d(dtype=wp.float64)
+
+
+@wp.struct
+class NoW:
+    """Matrix-free mode, as `eval_rows`' weight sink: the weights are not stored."""
+
+    unused: int
+
+
+@wp.struct
+class LazyW:
+    """Matrix-free mode: W(k, l) recomputed from the cost, beta and the duals (double-double) of the point
+    that `eval_rows` last evaluated."""
+
+    cost: LazyCost
+    beta: wp.float64
+    lam_hi: wp.array(dtype=wp.float64)
+    lam_lo: wp.array(dtype=wp.float64)
+    y_hi: wp.array(dtype=wp.float64)
+    y_lo: wp.array(dtype=wp.float64)
+
+
+@wp.func
+def weight_at(src: DenseW, k: int, l: int) -> wp.float64:
+    return src.W[k, l]
+
+
+@wp.func
+def weight_at(src: LazyW, k: int, l: int) -> wp.float64:  # noqa: F811  (Warp overload)
+    """beta |phi'(beta s(k, l))|, the same operations as in `eval_rows` (same value to the last bit)."""
+    c = cost_at(src.cost, k, l)
+    x = src.beta * reduced_cost(c, src.lam_hi[k], src.lam_lo[k], src.y_hi[l], src.y_lo[l])
+    return src.beta * phi_w(x)[1]
+
+
+@wp.func
+def put_weight(dst: DenseW, k: int, l: int, w: wp.float64):
+    dst.W[k, l] = w
+
+
+@wp.func
+def put_weight(dst: NoW, k: int, l: int, w: wp.float64):  # noqa: F811  (Warp overload)
+    return
+
+
+@wp.func
+def topk_insert(val: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32), r: int, topk: int,
+                w: wp.float64, i: int) -> wp.float64:
+    """Insert (w, i) into row r of the descending top-``topk`` list (w > the list's minimum); returns the new
+    minimum. Ties keep the earlier index first."""
+    j = topk - 1
+    while j > 0 and val[r, j - 1] < w:
+        val[r, j] = val[r, j - 1]
+        idx[r, j] = idx[r, j - 1]
+        j -= 1
+    val[r, j] = w
+    idx[r, j] = i
+    return val[r, topk - 1]
+
+
+@wp.func
+def topk_clear(val: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32), r: int, topk: int):
+    for j in range(topk):
+        val[r, j] = wp.float64(-1.0)
+        idx[r, j] = -1
+
+
+# --------------------------------------------------------------------------- passes over C / W
 @wp.kernel
 def eval_rows(
-    C: wp.array2d(dtype=wp.float64),
-    trans: int,
-    inv_scale: wp.float64,
+    csrc: Any,
+    wdst: Any,
     n_c: int,
     beta: wp.float64,
     lam_hi: wp.array(dtype=wp.float64),
@@ -183,7 +294,6 @@ def eval_rows(
     y_hi: wp.array(dtype=wp.float64),
     y_lo: wp.array(dtype=wp.float64),
     # outputs
-    W: wp.array2d(dtype=wp.float64),
     row_g: wp.array(dtype=wp.float64),
     col_g: wp.array(dtype=wp.float64),
     row_w: wp.array(dtype=wp.float64),
@@ -194,8 +304,9 @@ def eval_rows(
     s_piv: wp.array(dtype=wp.float64),
 ):
     """One pass over row k: G = phi(beta s), its row sum (and column sums, atomically), W = beta |phi'|
-    (stored), W's row sum, argmax (pivot), the row sum without the pivot (``tail``, accumulated without
-    cancellation), the pivot's s, sum G C' (U) and sum x phi(x) (beta x duality gap)."""
+    (stored into ``wdst`` in stored mode), W's row sum, argmax (pivot), the row sum without the pivot
+    (``tail``, accumulated without cancellation), the pivot's s, sum G C' (U) and sum x phi(x) (beta x
+    duality gap)."""
     k = wp.tid()
     lh = lam_hi[k]
     ll = lam_lo[k]
@@ -207,14 +318,14 @@ def eval_rows(
     p = int(0)
     sp = _ZERO
     for l in range(n_c):
-        c = cost_at(C, k, l, trans, inv_scale)
+        c = cost_at(csrc, k, l)
         x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
         gw = phi_w(x)
         g = gw[0]
         w = beta * gw[1]
         sg += g
         wp.atomic_add(col_g, l, g)
-        W[k, l] = w
+        put_weight(wdst, k, l, w)
         if w > wmax:
             if wmax > _ZERO:
                 wrest += wmax
@@ -236,9 +347,7 @@ def eval_rows(
 
 @wp.kernel
 def free_rows(
-    C: wp.array2d(dtype=wp.float64),
-    trans: int,
-    inv_scale: wp.float64,
+    csrc: Any,
     n_c: int,
     beta: wp.float64,
     lam_hi: wp.array(dtype=wp.float64),
@@ -259,7 +368,7 @@ def free_rows(
     sf = _ZERO
     sws = _ZERO
     for l in range(n_c):
-        c = cost_at(C, k, l, trans, inv_scale)
+        c = cost_at(csrc, k, l)
         x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
         sf += gfun(x)
         ws = phi_w(x)[1] * x
@@ -271,7 +380,7 @@ def free_rows(
 
 @wp.kernel
 def schur_prep(
-    W: wp.array2d(dtype=wp.float64),
+    wsrc: Any,
     n_c: int,
     piv: wp.array(dtype=wp.int32),
     tail: wp.array(dtype=wp.float64),
@@ -293,32 +402,22 @@ def schur_prep(
     p = piv[k]
     ek = e1[k]
     gk = g1[k] / ek
-    for j in range(topk):
-        top_val[k, j] = wp.float64(-1.0)
-        top_idx[k, j] = -1
+    topk_clear(top_val, top_idx, k, topk)
     tmin = wp.float64(-1.0)
     for l in range(n_c):
-        w = W[k, l]
+        w = weight_at(wsrc, k, l)
         rest = ek - w
         if l == p:
             rest = tail[k] + b[k]
         wp.atomic_add(diag_s, l, w * rest / ek)
         wp.atomic_add(wtg, l, w * gk)
         if topk > 0 and w > tmin:
-            # insertion into the descending list top_val[k, :]
-            j = topk - 1
-            while j > 0 and top_val[k, j - 1] < w:
-                top_val[k, j] = top_val[k, j - 1]
-                top_idx[k, j] = top_idx[k, j - 1]
-                j -= 1
-            top_val[k, j] = w
-            top_idx[k, j] = l
-            tmin = top_val[k, topk - 1]
+            tmin = topk_insert(top_val, top_idx, k, topk, w, l)
 
 
 @wp.kernel
 def schur_prep_topk(
-    W: wp.array2d(dtype=wp.float64),
+    wsrc: Any,
     n_c: int,
     topk: int,
     top_val: wp.array2d(dtype=wp.float64),
@@ -326,26 +425,17 @@ def schur_prep_topk(
 ):
     """Row k's ``topk`` largest W entries alone (the selection part of `schur_prep`)."""
     k = wp.tid()
-    for j in range(topk):
-        top_val[k, j] = wp.float64(-1.0)
-        top_idx[k, j] = -1
+    topk_clear(top_val, top_idx, k, topk)
     tmin = wp.float64(-1.0)
     for l in range(n_c):
-        w = W[k, l]
+        w = weight_at(wsrc, k, l)
         if w > tmin:
-            j = topk - 1
-            while j > 0 and top_val[k, j - 1] < w:
-                top_val[k, j] = top_val[k, j - 1]
-                top_idx[k, j] = top_idx[k, j - 1]
-                j -= 1
-            top_val[k, j] = w
-            top_idx[k, j] = l
-            tmin = top_val[k, topk - 1]
+            tmin = topk_insert(top_val, top_idx, k, topk, w, l)
 
 
 @wp.kernel
 def col_topk(
-    W: wp.array2d(dtype=wp.float64),
+    wsrc: Any,
     n_r: int,
     piv: wp.array(dtype=wp.int32),
     topk: int,
@@ -354,26 +444,17 @@ def col_topk(
 ):
     """Column l's ``topk`` largest W entries among rows whose pivot is not l."""
     l = wp.tid()
-    for j in range(topk):
-        top_val[l, j] = wp.float64(-1.0)
-        top_idx[l, j] = -1
+    topk_clear(top_val, top_idx, l, topk)
     tmin = wp.float64(-1.0)
     for k in range(n_r):
-        w = W[k, l]
-        if w > tmin and piv[k] != l:
-            j = topk - 1
-            while j > 0 and top_val[l, j - 1] < w:
-                top_val[l, j] = top_val[l, j - 1]
-                top_idx[l, j] = top_idx[l, j - 1]
-                j -= 1
-            top_val[l, j] = w
-            top_idx[l, j] = k
-            tmin = top_val[l, topk - 1]
+        if piv[k] != l:
+            w = weight_at(wsrc, k, l)
+            if w > tmin:
+                tmin = topk_insert(top_val, top_idx, l, topk, w, k)
 
 
 @wp.func
-def row_dot_diff(W: wp.array2d(dtype=wp.float64), k: int, n_c: int, v: wp.array(dtype=wp.float64),
-                 vp: wp.float64) -> wp.float64:
+def row_dot_diff(wsrc: Any, k: int, n_c: int, v: wp.array(dtype=wp.float64), vp: wp.float64) -> wp.float64:
     """sum_l W(k, l) (v(l) - vp) with four independent accumulators (the single-accumulator loop is
     bound by the latency of the additions on the CPU backend)."""
     a0 = _ZERO
@@ -382,18 +463,18 @@ def row_dot_diff(W: wp.array2d(dtype=wp.float64), k: int, n_c: int, v: wp.array(
     a3 = _ZERO
     n4 = n_c - n_c % 4
     for l in range(0, n4, 4):
-        a0 += W[k, l] * (v[l] - vp)
-        a1 += W[k, l + 1] * (v[l + 1] - vp)
-        a2 += W[k, l + 2] * (v[l + 2] - vp)
-        a3 += W[k, l + 3] * (v[l + 3] - vp)
+        a0 += weight_at(wsrc, k, l) * (v[l] - vp)
+        a1 += weight_at(wsrc, k, l + 1) * (v[l + 1] - vp)
+        a2 += weight_at(wsrc, k, l + 2) * (v[l + 2] - vp)
+        a3 += weight_at(wsrc, k, l + 3) * (v[l + 3] - vp)
     for l in range(n4, n_c):
-        a0 += W[k, l] * (v[l] - vp)
+        a0 += weight_at(wsrc, k, l) * (v[l] - vp)
     return (a0 + a1) + (a2 + a3)
 
 
 @wp.kernel
 def schur_matvec(
-    W: wp.array2d(dtype=wp.float64),
+    wsrc: Any,
     n_c: int,
     piv: wp.array(dtype=wp.int32),
     e1: wp.array(dtype=wp.float64),
@@ -403,18 +484,19 @@ def schur_matvec(
 ):
     """out += S_W v with S_W = D2 - W^T E1^-1 W, E1 = D1 + diag(b), computed without cancellation:
     delta(k) = (sum_l W(k,l) (v(l) - v(p)) - b(k) v(p)) / E1(k),  out(l) += W(k,l) ((v(l) - v(p)) - delta(k)),
-    p = piv(k) the row's largest weight. ``out`` must be zeroed (or hold the other terms) beforehand."""
+    p = piv(k) the row's largest weight. ``out`` must be zeroed (or hold the other terms) beforehand.
+    (Matrix-free: each weight is computed twice, once per sweep.)"""
     k = wp.tid()
     vp = v[piv[k]]
-    acc = row_dot_diff(W, k, n_c, v, vp)
+    acc = row_dot_diff(wsrc, k, n_c, v, vp)
     delta = (acc - b[k] * vp) / e1[k]
     for l in range(n_c):
-        wp.atomic_add(out, l, W[k, l] * ((v[l] - vp) - delta))
+        wp.atomic_add(out, l, weight_at(wsrc, k, l) * ((v[l] - vp) - delta))
 
 
 @wp.kernel
 def recover_rows(
-    W: wp.array2d(dtype=wp.float64),
+    wsrc: Any,
     n_c: int,
     piv: wp.array(dtype=wp.int32),
     e1: wp.array(dtype=wp.float64),
@@ -429,7 +511,7 @@ def recover_rows(
     k = wp.tid()
     p = piv[k]
     vp = dy[p]
-    acc = row_dot_diff(W, k, n_c, dy, vp)
+    acc = row_dot_diff(wsrc, k, n_c, dy, vp)
     d_a[k] = -vp
     d_b[k] = (-g1[k] - acc + b[k] * vp) / e1[k]
 
@@ -460,9 +542,8 @@ def dd_axpy(
 
 @wp.kernel
 def plan_kernel(
-    C: wp.array2d(dtype=wp.float64),
+    csrc: Any,
     trans: int,
-    inv_scale: wp.float64,
     n_c: int,
     beta: wp.float64,
     lam_hi: wp.array(dtype=wp.float64),
@@ -476,12 +557,57 @@ def plan_kernel(
     lh = lam_hi[k]
     ll = lam_lo[k]
     for l in range(n_c):
-        c = cost_at(C, k, l, trans, inv_scale)
+        c = cost_at(csrc, k, l)
         g = phi(beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l]))
         if trans != 0:
             G[l, k] = g
         else:
             G[k, l] = g
+
+
+@wp.kernel
+def plan_topk(
+    csrc: Any,
+    trans: int,
+    n_r: int,
+    n_c: int,
+    beta: wp.float64,
+    lam_hi: wp.array(dtype=wp.float64),
+    lam_lo: wp.array(dtype=wp.float64),
+    y_hi: wp.array(dtype=wp.float64),
+    y_lo: wp.array(dtype=wp.float64),
+    topk: int,
+    top_val: wp.array2d(dtype=wp.float64),
+    top_idx: wp.array2d(dtype=wp.int32),
+):
+    """User row i's ``topk`` largest plan entries G(i, j) = phi(beta s) (the values `plan_kernel` writes)
+    and their user column indices, in descending order (ties: smaller index first, as numpy's argmax).
+    One thread per user row: a row of the solver (``trans`` = 0) or a column (``trans`` = 1)."""
+    i = wp.tid()
+    topk_clear(top_val, top_idx, i, topk)
+    tmin = wp.float64(-1.0)
+    n = n_c
+    if trans != 0:
+        n = n_r
+    for j in range(n):
+        k = i
+        l = j
+        if trans != 0:
+            k = j
+            l = i
+        g = phi(beta * reduced_cost(cost_at(csrc, k, l), lam_hi[k], lam_lo[k], y_hi[l], y_lo[l]))
+        if g > tmin:
+            tmin = topk_insert(top_val, top_idx, i, topk, g, j)
+
+
+@wp.kernel
+def feature_cost_max(csrc: LazyCost, n_c: int, row_max: wp.array(dtype=wp.float64)):
+    """Row maxima of the (unscaled when inv_scale = 1) cost computed from the signatures (no C stored)."""
+    k = wp.tid()
+    mx = _ZERO
+    for l in range(n_c):
+        mx = wp.max(mx, cost_at(csrc, k, l))
+    row_max[k] = mx
 
 
 @wp.kernel
@@ -517,3 +643,22 @@ def eval_phi(x: wp.array(dtype=wp.float64), out_phi: wp.array(dtype=wp.float64),
     out_phi[i] = phi(x[i])
     out_dphi[i] = dphi(x[i])
     out_g[i] = gfun(x[i])
+
+
+# --------------------------------------------------------------------------- one instance per mode
+#: (generic kernel, struct type of its source argument) -> the concrete instance; launch it through `variant`
+#: (a generic kernel launched directly infers every argument's type, Python floats as float32)
+_VARIANTS = {}
+for _c, _w in ((DenseCost, DenseW), (LazyCost, NoW)):
+    _VARIANTS[(eval_rows, _c)] = wp.overload(eval_rows, {"csrc": _c, "wdst": _w})
+for _c in (DenseCost, LazyCost):
+    for _k in (free_rows, plan_kernel, plan_topk):
+        _VARIANTS[(_k, _c)] = wp.overload(_k, {"csrc": _c})
+for _w in (DenseW, LazyW):
+    for _k in (schur_prep, schur_prep_topk, col_topk, schur_matvec, recover_rows):
+        _VARIANTS[(_k, _w)] = wp.overload(_k, {"wsrc": _w})
+
+
+def variant(kernel: wp.Kernel, src) -> wp.Kernel:
+    """The instance of a generic kernel of this module for the source struct ``src`` (its first argument)."""
+    return _VARIANTS[(kernel, src._cls)]

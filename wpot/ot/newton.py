@@ -4,6 +4,10 @@ State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (
 column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. Length-N vectors are handled on the host
 (zero-copy views on "cpu"), where the CG recurrences and the sparse preconditioner run.
 
+Two modes (`wpot.ot.kernels`): stored (a dense C, and the Hessian weights W stored by the evaluation
+pass) and matrix-free (C from the signatures, W recomputed where it is read: no N1 x N2 array; each pass
+over W then costs a pass over the features).
+
 Cost per Newton step: one pass over C (`kernels.eval_rows`, at the trial point), one pass over W for the
 Schur right-hand side and diagonal, one per CG iteration (two sweeps of a row) and one for the
 back-substitution. The sparse preconditioner (top-k selection in Warp, SuperLU) is the expensive part at
@@ -21,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
 from wpot.ot import linear
 from wpot.ot.problem import Internal
@@ -101,7 +106,23 @@ class Engine:
         self.y = [z(n_c), z(n_c)]
         self.lam_t = [z(n_r), z(n_r)]
         self.y_t = [z(n_c), z(n_c)]
-        self.W = wp.zeros((n_r, n_c), dtype=wp.float64, device=d)
+        self.lazy = prob.cost.lazy
+        self.inv_scale = 1.0 / prob.scale
+        if self.lazy:  # matrix-free: the cost from the (oriented) signatures, W recomputed where read
+            fc = prob.cost.features
+            self.csrc = K.LazyCost()
+            self.csrc.A, self.csrc.B = (fc.Y, fc.X) if prob.trans else (fc.X, fc.Y)
+            self.csrc.metric = METRIC_CODES[fc.metric]
+            self.csrc.inv_scale = wp.float64(self.inv_scale)
+            self.W = None
+            self._wsink = K.NoW()
+        else:
+            self.csrc = K.DenseCost()
+            self.csrc.C, self.csrc.trans, self.csrc.inv_scale = prob.cost.C, prob.trans, wp.float64(self.inv_scale)
+            self.W = wp.zeros((n_r, n_c), dtype=wp.float64, device=d)
+            self._wsink = K.DenseW()
+            self._wsink.W = self.W
+        self._w_point = None  # (lam, y, beta) of the last evaluation: the point W belongs to
         self.row_g, self.col_g = z(n_r), z(n_c)
         self.row_w, self.tail = z(n_r), z(n_r)
         self.piv = z(n_r, wp.int32)
@@ -123,8 +144,6 @@ class Engine:
         self.t = Timers()
         self.beta = 0.0
         self._n_tangent = 0
-        self.C = prob.cost.C
-        self.inv_scale = 1.0 / prob.scale
         self.a_sum = float(prob.a_c.sum())
         self._host = wp.get_device(d).is_cpu
         self._v_view = self.v.numpy() if self._host else None
@@ -146,13 +165,14 @@ class Engine:
         p = self.p
         self.col_g.zero_()
         wp.launch(
-            K.eval_rows,
+            K.variant(K.eval_rows, self.csrc),
             dim=p.n_r,
-            inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
-            outputs=[self.W, self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
+            inputs=[self.csrc, self._wsink, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
+            outputs=[self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
                      self.row_xphi, self.s_piv],
             device=p.device,
         )
+        self._w_point = (lam[0], lam[1], y[0], y[1], beta)
         rg, cg = self.row_g.numpy(), self.col_g.numpy()
         lam_h = lam[0].numpy() + lam[1].numpy()
         y_h = y[0].numpy() + y[1].numpy()
@@ -176,14 +196,27 @@ class Engine:
         t0 = time.perf_counter()
         p = self.p
         self.col_ws.zero_()
-        wp.launch(K.free_rows, dim=p.n_r,
-                  inputs=[self.C, p.trans, self.inv_scale, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
+        wp.launch(K.variant(K.free_rows, self.csrc), dim=p.n_r,
+                  inputs=[self.csrc, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
                   outputs=[self.row_f, self.row_ws, self.col_ws], device=p.device)
         pt.f_sum = float(self.row_f.numpy().sum())
         self.t.eval += time.perf_counter() - t0
         self.t.n_free += 1
 
     # ------------------------------------------------------------------ Newton direction
+    def weights(self):
+        """The source of W at the last evaluated point: the stored array, or (matrix-free) a `kernels.LazyW`
+        over the features, beta and the duals of that point (those arrays are not written until the
+        next evaluation: the trial point goes to the other buffer)."""
+        if not self.lazy:
+            return self._wsink
+        lh, ll, yh, yl, beta = self._w_point
+        src = K.LazyW()
+        src.cost = self.csrc
+        src.beta = wp.float64(beta)
+        src.lam_hi, src.lam_lo, src.y_hi, src.y_lo = lh, ll, yh, yl
+        return src
+
     def _put(self, dst: wp.array, src: np.ndarray):
         """Host vector -> device array: a copy into the zero-copy view on "cpu", ``assign`` elsewhere."""
         if self._host:
@@ -199,9 +232,9 @@ class Engine:
         else:
             self.v.assign(v)
             self.mv.zero_()
-        if self._matvec_cmd is None:  # recorded once: the arrays are fixed, only their contents change
-            self._matvec_cmd = wp.launch(K.schur_matvec, dim=p.n_r,
-                                         inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
+        if self._matvec_cmd is None:  # recorded once per W source: only the arrays' contents change
+            self._matvec_cmd = wp.launch(K.variant(K.schur_matvec, self._wsrc), dim=p.n_r,
+                                         inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
                                          device=p.device, record_cmd=True)
         self._matvec_cmd.launch()
         out = self.mv.numpy().copy()
@@ -216,6 +249,14 @@ class Engine:
         (linear iterations, linear solve converged)."""
         p = self.p
         t0 = time.perf_counter()
+        if self.lazy:
+            if self.o.linear_solver == "direct":
+                raise ValueError("linear_solver='direct' needs the dense weight matrix, which the matrix-free "
+                                 "mode does not store; use linear_solver='cg'")
+            self._wsrc = self.weights()
+            self._matvec_cmd = None  # the duals' buffers alternate: record the matvec for this point
+        else:
+            self._wsrc = self._wsink
         e1 = self.row_w.numpy() + p.b_r
         self._put(self.e1, e1)
         self._put(self.g1, pt.g1)
@@ -224,8 +265,8 @@ class Engine:
         cg = self.o.linear_solver != "direct"
         fresh = cg and (self._M is None or self._M_stale)
         # row top-k selection only when the preconditioner is rebuilt
-        wp.launch(K.schur_prep, dim=p.n_r,
-                  inputs=[self.W, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
+        wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
+                  inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
                   outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
         rhs = -pt.g2 + self.wtg.numpy()
         data = linear.SchurData(self.diag_s.numpy().copy(), e1, self.piv.numpy().copy(), p.a_c, not p.partial)
@@ -251,7 +292,7 @@ class Engine:
                 # a preconditioner from an earlier point has gone stale: rebuild it at the next point
                 self._M_stale = True
                 if not ok:  # and re-solve now if this solve failed (with a fresh row top-k)
-                    wp.launch(K.schur_prep_topk, dim=p.n_r, inputs=[self.W, p.n_c, self.kk],
+                    wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
                               outputs=[self.top_val, self.top_idx], device=p.device)
                     self._build_preconditioner(data)
                     t0 = time.perf_counter()
@@ -263,7 +304,7 @@ class Engine:
                     self._M_iters = info.iterations
         t0 = time.perf_counter()
         self._put(self.dy_a, dy)
-        wp.launch(K.recover_rows, dim=p.n_r, inputs=[self.W, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
+        wp.launch(K.variant(K.recover_rows, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
                   outputs=[self.d_a, self.d_b], device=p.device)
         self.t.other += time.perf_counter() - t0
         return n_lin, ok
@@ -272,7 +313,7 @@ class Engine:
         """Top-k selection per column (Warp), assembly and factorization of the sparse approximation."""
         p = self.p
         t0 = time.perf_counter()
-        wp.launch(K.col_topk, dim=p.n_c, inputs=[self.W, p.n_r, self.piv, self.ctop_val.shape[1]],
+        wp.launch(K.variant(K.col_topk, self._wsrc), dim=p.n_c, inputs=[self._wsrc, p.n_r, self.piv, self.ctop_val.shape[1]],
                   outputs=[self.ctop_val, self.ctop_idx], device=p.device)
         P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
                                          self.ctop_val.numpy(), self.ctop_idx.numpy())
@@ -445,13 +486,27 @@ class Engine:
         return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))
 
     def plan(self) -> np.ndarray:
+        """The dense plan (N1, N2) in the user's orientation, at the final beta and duals."""
         p = self.p
         shape = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
         G = wp.zeros(shape, dtype=wp.float64, device=p.device)
-        wp.launch(K.plan_kernel, dim=p.n_r,
-                  inputs=[self.C, p.trans, self.inv_scale, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
+        wp.launch(K.variant(K.plan_kernel, self.csrc), dim=p.n_r,
+                  inputs=[self.csrc, p.trans, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
                           self.y[1]], outputs=[G], device=p.device)
         return G.numpy()
+
+    def plan_top(self, topk: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each user row's ``topk`` largest plan entries ((N1, topk) float64, descending) and their column
+        indices ((N1, topk) int32), computed in one pass without forming the plan."""
+        p = self.p
+        n1, n2 = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
+        kk = min(int(topk), n2)
+        val = wp.zeros((n1, kk), dtype=wp.float64, device=p.device)
+        idx = wp.zeros((n1, kk), dtype=wp.int32, device=p.device)
+        wp.launch(K.variant(K.plan_topk, self.csrc), dim=n1,
+                  inputs=[self.csrc, p.trans, p.n_r, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
+                          self.y[1], kk], outputs=[val, idx], device=p.device)
+        return val.numpy(), idx.numpy()
 
 
 def warn_not_converged(kind: str, info: dict, beta_max_user: float):

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_TOPK, make_options
+from wpot.ot._common import DEFAULT_MAX_NEWTON, DEFAULT_PLAN_TOPK, DEFAULT_TOPK, check_mode, make_options
 from wpot.ot.balanced import DEFAULT_ATOL, DEFAULT_TOL, _result
 from wpot.ot.newton import Engine
 from wpot.ot.problem import orient, prepare_cost, prepare_masses, resolve_device
@@ -32,6 +32,8 @@ def solve_partial(
     cg_max_iter: int = 1000,
     topk: int = DEFAULT_TOPK,
     extrapolate: bool = True,
+    dense_plan: bool | None = None,
+    plan_topk: int = DEFAULT_PLAN_TOPK,
     device: str | None = None,
     verbose: bool = False,
 ) -> OTResult:
@@ -48,7 +50,8 @@ def solve_partial(
     sum m = 1), not to rho: a huge mass_penalty recovers the balanced problem with those masses (the
     same as rho when rho is uniform).
 
-    Parameters are those of `solve_balanced` (same defaults and units), with rho1 (N1,), rho2 (N2,)
+    Parameters are those of `solve_balanced` (same defaults and units; ``C`` may be a `FeatureCost` for the
+    matrix-free mode, ``dense_plan`` and ``plan_topk`` choose the returned plan), with rho1 (N1,), rho2 (N2,)
     positive reference measures (default uniform; normalized to sum 1) instead of a, b.
 
     Returns OTResult with ``mass1``, ``mass2`` the plan's marginals (sum 1 together), ``cost`` the
@@ -61,6 +64,7 @@ def solve_partial(
     r1 = prepare_masses(rho1, cost.n1, "rho1")
     r2 = prepare_masses(rho2, cost.n2, "rho2")
     r1, r2 = r1 / r1.sum(), r2 / r2.sum()
+    dense = check_mode(cost, linear_solver, dense_plan, plan_topk, dev)
     opts = make_options(n1=cost.n1, n2=cost.n2, scale=cost.scale, beta0=beta0, beta_max=beta_max, step=step,
                         tol=tol, atol=atol, max_iter=max_iter, max_newton=max_newton, newton_tol=newton_tol,
                         linear_solver=linear_solver, cg_rtol=cg_rtol, cg_max_iter=cg_max_iter, topk=topk,
@@ -85,4 +89,4 @@ def solve_partial(
                 - pt.f_sum / beta)
 
     info = eng.anneal(free_energy)
-    return _result(eng, info, 1.0, "solve_partial", partial=True)
+    return _result(eng, info, 1.0, "solve_partial", partial=True, dense=dense, plan_topk=plan_topk)

@@ -8,6 +8,7 @@ import numpy as np
 import warp as wp
 
 from wpot._warp import resolve_device as _resolve_device
+from wpot.cost import METRIC_CODES, cost_matrix, prepare_signatures
 from wpot.ot import kernels as K
 
 
@@ -16,20 +17,88 @@ def resolve_device(device) -> str:
     return str(_resolve_device(device))
 
 
+class FeatureCost:
+    """A cost matrix given by two signature arrays and a metric, for the matrix-free mode of the solvers:
+    ``C(i, j) = metric(X[i], Y[j])`` is recomputed inside the solver's kernels and never stored, so memory
+    is O((N1 + N2) D) instead of O(N1 N2). Pass it wherever a cost matrix is accepted
+    (`solve_balanced`, `solve_partial`); results agree with passing ``cost_matrix(X, Y, metric=metric)``.
+
+    Parameters
+    ----------
+    X : (N1, D), Y : (N2, D) signatures (NumPy array-like or float64 ``wp.array`` on ``device``), finite;
+        nonnegative for ``"wks"``. Validated (and copied to ``device`` as float64) like `wpot.cost.cost_matrix`.
+    metric : ``"wks"`` (paper Eq. 29, sum_d |(a - b) / (a + b)|, 0/0 terms count 0; the default, as in
+        `wpot.cost.cost_matrix`), ``"l2"`` (Euclidean) or ``"l1"``.
+    device : Warp device the arrays live on (None: Warp's default); the solve must use the same device.
+
+    Immutable: ``X``, ``Y`` ((N, D) float64 wp.arrays), ``metric``, ``device`` (str), ``shape`` (N1, N2).
+    """
+
+    __slots__ = ("X", "Y", "metric", "device")
+
+    def __init__(self, X, Y, metric: str = "wks", *, device=None):
+        dev = _resolve_device(device)
+        a, b = prepare_signatures(X, Y, metric, dev, names=("X", "Y"))
+        object.__setattr__(self, "X", a)
+        object.__setattr__(self, "Y", b)
+        object.__setattr__(self, "metric", metric)
+        object.__setattr__(self, "device", str(dev))
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"FeatureCost is immutable (cannot set {name!r})")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.X.shape[0]), int(self.Y.shape[0])
+
+    def dense(self) -> np.ndarray:
+        """The (N1, N2) float64 cost matrix (`wpot.cost.cost_matrix`), where it fits in memory."""
+        return cost_matrix(self.X, self.Y, metric=self.metric, device=self.device)
+
+    def __repr__(self) -> str:
+        n1, n2 = self.shape
+        return f"FeatureCost(N1={n1}, N2={n2}, D={self.X.shape[1]}, metric={self.metric!r}, device={self.device!r})"
+
+
 @dataclass(frozen=True)
 class CostInput:
-    """The validated cost: a 2-D float64 wp.array on the solve device (the caller's, never copied when
-    it already is one) and its scale max C (the solver works on C / max C: results are then invariant to a scaling of C)."""
+    """The validated cost and its scale max C (the solver works on C / max C: results are then invariant to
+    a scaling of C). Stored mode: ``C`` a 2-D float64 wp.array on the solve device (the caller's, never
+    copied when it already is one). Matrix-free mode: ``C`` is None and ``features`` the `FeatureCost`."""
 
-    C: wp.array
+    C: wp.array | None
     n1: int
     n2: int
     scale: float
     c_max: float
+    features: FeatureCost | None = None
+
+    @property
+    def lazy(self) -> bool:
+        """True in matrix-free mode (no N1 x N2 array anywhere)."""
+        return self.features is not None
+
+
+def _prepare_features(fc: FeatureCost, device: str) -> CostInput:
+    """Matrix-free cost: check the device and find max C by a Warp pass over the rows (nothing stored)."""
+    if fc.device != device:
+        raise ValueError(f"FeatureCost is on device {fc.device}, expected {device} (pass device= to one of them)")
+    n1, n2 = fc.shape
+    src = K.LazyCost()
+    src.A, src.B, src.metric, src.inv_scale = fc.X, fc.Y, METRIC_CODES[fc.metric], wp.float64(1.0)
+    rmax = wp.zeros(n1, dtype=wp.float64, device=device)
+    wp.launch(K.feature_cost_max, dim=n1, inputs=[src, n2, rmax], device=device)
+    cmax = float(rmax.numpy().max())
+    if not math.isfinite(cmax):
+        raise ValueError(f"the {fc.metric!r} cost of the signatures overflows (max C = {cmax}); rescale them")
+    return CostInput(None, n1, n2, 1.0 if cmax <= 0 else cmax, cmax, fc)
 
 
 def prepare_cost(C, device: str) -> CostInput:
-    """Validate C ((N1, N2), finite, >= 0) and bring it to ``device`` as float64 (no copy if it already is)."""
+    """Validate C ((N1, N2), finite, >= 0) and bring it to ``device`` as float64 (no copy if it already is);
+    a `FeatureCost` gives the matrix-free mode."""
+    if isinstance(C, FeatureCost):
+        return _prepare_features(C, device)
     if isinstance(C, wp.array):
         if C.ndim != 2:
             raise ValueError(f"cost matrix must be 2-D (N1, N2), got a wp.array of shape {C.shape}")

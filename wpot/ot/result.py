@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 
 @dataclass(frozen=True)
@@ -39,17 +40,26 @@ class OTResult:
     """Solution of a balanced (Eq. 6-16) or partial (Eq. 17-26) OT problem by annealing.
 
     plan : (N1, N2) float64, the mean-field plan G = phi(beta (C + lam + mu [+ x])) at the final beta
+        (Eq. 15 / 26), or None when not formed: by default in the matrix-free mode (a `FeatureCost`;
+        ``dense_plan=True`` asks for it where it fits), or with ``dense_plan=False``
+    plan_top : scipy.sparse.csr_matrix (N1, N2), each row's ``plan_topk`` (default 8) largest entries of
+        the plan (the same values as ``plan``), in both modes
+    argmax : (N1,) int64, each row's largest plan entry (its column; the first one on ties, as
+        ``plan.argmax(axis=1)``), in both modes
     cost : U = sum G C (user's units), Eq. 6 (balanced) or the transport part of Eq. 17 (partial)
     objective : the minimized objective: = cost (balanced); cost + sum alpha1 m1^2 + sum alpha2 m2^2 (partial)
     free_energy : F at the saddle point, Eq. 12 / Eq. 23 (user's units)
     lam : (N1,) float64, mu : (N2,) float64, x : float (0.0 for balanced) -- the dual variables in user's
         units (balanced: one gauge is free; ours is whatever the solve reached)
-    mass1 : (N1,) float64 row sums of the plan; mass2 : (N2,) float64 column sums
+    mass1 : (N1,) float64 row sums of the plan; mass2 : (N2,) float64 column sums (exact sums over all
+        entries, computed by the solver's last evaluation pass, in both modes)
     beta : final inverse temperature (user's units); converged : annealing stopped by `tol` with every
         Newton solve converged; n_newton, n_linear : totals; history : one `BetaStep` per beta
     """
 
-    plan: np.ndarray
+    plan: np.ndarray | None
+    plan_top: sp.csr_matrix
+    argmax: np.ndarray
     cost: float
     objective: float
     free_energy: float
