@@ -39,6 +39,9 @@ Usage (2 busy CPU cores; about 10-15 s per pair for both methods at --max-vertic
         python benchmarks/correspondence.py --out /work/runs/corr --max-vertices 500
     python benchmarks/correspondence.py --out /work/runs/corr --max-vertices 1000 --limit 40 --methods wpot
     python benchmarks/correspondence.py --out /work/runs/corr --report-only
+
+The run log names the ``wpot`` code it imported (`code_version`). In a working tree others are editing, run
+it against a frozen copy (``git archive <commit> | tar -x -C /tmp/snap`` and ``PYTHONPATH=/tmp/snap``).
 """
 from __future__ import annotations
 
@@ -347,6 +350,26 @@ def figure(curves: dict, path: Path, n_pairs: int) -> None:
     plt.close(fig)
 
 
+def code_version() -> str:
+    """Where the imported ``wpot`` lives and, when it is a git checkout, its commit and whether the tracked
+    files differ from it (timings and convergence depend on the solver code actually imported)."""
+    import subprocess
+
+    import wpot
+
+    root = Path(wpot.__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "wpot"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        head, dirty = "", ""
+    if not head:
+        return f"{root} (not a git checkout)"
+    return f"{root} at {head}" + (" with uncommitted changes to wpot/" if dirty else "")
+
+
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -418,6 +441,7 @@ def run(a, out: Path, store: Store, log) -> None:
                                        n_eigen=a.n_eigen, n_energies=a.n_energies, device=a.device, log=log)
     for k, mt in matchers.items():
         log(f"{mt.tag} settings: {json.dumps(mt.settings())}")
+    log(f"wpot code: {code_version()}")
     geo, geo_name = None, None
     t_start = time.perf_counter()
     for i, (x, y) in enumerate(todo):
