@@ -1,8 +1,8 @@
 """Speed and accuracy of wpot.ot against POT, side by side in one run (issue 3).
 
 Problem: C = Euclidean distances between uniform random points in R^8, normalized to max 1, uniform masses.
-Solvers: wpot.ot.solve_balanced (Warp; default CG and optionally the dense direct solve), POT's exact
-ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
+Solvers: wpot.ot.solve_balanced (Warp; method="anneal" and method="ipm", default CG and optionally the dense
+direct solve), POT's exact ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
 Printed: wall time, relative gap of <C, plan> to ot.emd's optimum, L1 marginal error (relative to the
 total mass), wpot's Newton/CG counts and where its time goes. Timings on a shared machine are noisy.
 
@@ -35,6 +35,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="skip the slow peers (Sinkhorns, direct solve)")
     ap.add_argument("--direct", action="store_true", help="also run wpot with linear_solver='direct'")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--methods", nargs="+", default=["anneal", "ipm"], choices=["anneal", "ipm"],
+                    help="wpot solve_balanced methods to time (default both)")
     ap.add_argument("--small", type=int, nargs="*", default=[],
                     help="also time repeated calls at these small N (per-call overhead; e.g. --small 200 250)")
     args = ap.parse_args()
@@ -44,7 +46,8 @@ def main():
     import wpot.ot as wo
     from wpot.ot import newton as wnewton
 
-    wo.solve_balanced(problem(20), device=args.device)  # compile the kernels outside the timings
+    for m in ("anneal", "ipm"):  # compile the kernels outside the timings
+        wo.solve_balanced(problem(60), device=args.device, method=m)
 
     # capture the engine's timers (the solver keeps them on its Engine object)
     timers = {}
@@ -88,17 +91,19 @@ def main():
             merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - a).sum()
             return gap, merr
 
-        t = time.perf_counter()
-        r = wo.solve_balanced(C, device=args.device)
-        tw = time.perf_counter() - t
-        gap, merr = report("wpot", r.plan, tw)
-        tm = {k: v for k, v in timers.items()}
-        row(f"wpot solve_balanced cg ({args.device})", tw, gap, merr,
-            f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}")
-        print("      time split: " + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
-              + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
-              f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
-        print("      per beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
+        for method in args.methods:
+            t = time.perf_counter()
+            r = wo.solve_balanced(C, device=args.device, method=method)
+            tw = time.perf_counter() - t
+            gap, merr = report("wpot", r.plan, tw)
+            tm = {k: v for k, v in timers.items()}
+            row(f"wpot solve_balanced {method} ({args.device})", tw, gap, merr,
+                f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}")
+            print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
+                  + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
+                  + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
+                  f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
+            print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
         if args.direct and n <= 2000:
             t = time.perf_counter()
             rd = wo.solve_balanced(C, device=args.device, linear_solver="direct")

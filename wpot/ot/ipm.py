@@ -1,0 +1,324 @@
+"""A primal-dual interior-point start for balanced annealing (``method="ipm"``).
+
+For the balanced problem with N1, N2 >= ~50, every entry of the mean-field plan sits in the tail of phi
+(G <= max mass <= 1/50 means x = beta s >= 50, where phi(x) = 1/x to rounding), so the saddle point at
+beta is the point of the transport LP's central path with G(k, l) s(k, l) = 1/beta, s = C + lam + mu:
+annealing beta is path following with the barrier parameter 1/beta. Newton's method on the duals alone
+(`wpot.ot.newton.Engine.newton`) needs many damped steps at the one or two betas where the plan goes
+from spread out to a near-permutation (50 + 21 at N = 3,400). Mehrotra's predictor-corrector method,
+which keeps G as a variable of its own, crosses that region in a few iterations.
+
+`ipm_start` runs it from the product plan to the barrier 1/beta_h of the first beta of the annealing grid
+at which the certified gap N1 N2 / beta_h is below ``handoff`` x U; the annealing of Algorithm 1 then
+goes on from beta_h with the usual Newton solves of Eq. 14-16 (so every recorded beta is solved exactly,
+and the stopping rule is the paper's). The Newton systems are those of the dual solver with weights
+W = G / s instead of beta |phi'(beta s)| (equal on the central path), so the Schur-complement CG,
+its preconditioner and the cancellation-free kernels are shared.
+
+Per iteration: one pass for W and the residuals, two Newton solves (affine and corrector, one
+preconditioner), four passes for the step lengths, the corrector's right-hand side and the update of G.
+The primal G is one more N1 x N2 float64 array (stored-cost mode only).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+from wpot.ot import kernels as K
+from wpot.ot.newton import Engine, Point
+
+wp.set_module_options({"enable_backward": False})
+
+#: the annealing takes over at the first grid beta with N1 N2 / beta <= HANDOFF * U (relative gap bound).
+#: Measured on the benchmark problem (N = 1000, 3400): the Newton solves need <= 4 steps from there
+HANDOFF = 1e-3
+#: fraction of the step to the boundary (G > 0, s > 0)
+ETA = 0.99
+#: the annealing takes over once the central plan's marginals at the hand-off beta are this close (relative
+#: L1) to the target masses
+CENTERED = 1e-5
+#: iterations allowed before the annealing takes over regardless (with a warning in the history)
+MAX_IPM_ITER = 60
+
+@wp.func
+def pd_step(g: wp.float64, s: wp.float64, dsa: wp.float64, ds: wp.float64, mu_t: wp.float64, corr: int) -> wp.float64:
+    """dG of the primal-dual direction with dual change ``ds`` (G ds + s dG = T): dG = T/s - G - (G/s) ds,
+    T = mu_t, minus dG_aff ds_aff when ``corr`` (Mehrotra's corrector; dG_aff = -G - (G/s) dsa)."""
+    t = mu_t
+    if corr != 0:
+        t = t + (g + g / s * dsa) * dsa
+    return t / s - g - g / s * ds
+
+
+@wp.kernel
+def ipm_eval(
+    csrc: K.DenseCost, n_c: int,
+    lam_hi: wp.array(dtype=wp.float64), lam_lo: wp.array(dtype=wp.float64),
+    y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64),
+    G: wp.array2d(dtype=wp.float64),
+    # the update of G first (upd = 1): old duals, corrector direction, affine direction, target, step
+    upd: int,
+    olam_hi: wp.array(dtype=wp.float64), olam_lo: wp.array(dtype=wp.float64),
+    oy_hi: wp.array(dtype=wp.float64), oy_lo: wp.array(dtype=wp.float64),
+    d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
+    a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
+    mu_t: wp.float64, alpha_p: wp.float64,
+    # outputs
+    W: wp.array2d(dtype=wp.float64), row_g: wp.array(dtype=wp.float64), col_g: wp.array(dtype=wp.float64),
+    row_w: wp.array(dtype=wp.float64), piv: wp.array(dtype=wp.int32), tail: wp.array(dtype=wp.float64),
+    row_u: wp.array(dtype=wp.float64), row_gs: wp.array(dtype=wp.float64), row_smin: wp.array(dtype=wp.float64),
+    row_r: wp.array(dtype=wp.float64), col_r: wp.array(dtype=wp.float64),
+):
+    """Row k: (when ``upd``) G += alpha_p dG for the step just taken (dG from the old duals' s), then at the
+    new duals W = G / s (stored), its sum, pivot (largest) and the rest (``tail``) as in `kernels.eval_rows`;
+    the primal row sums (column sums atomically), sum G C' (U), sum G s (complementarity), min s, and the
+    row and column sums of 1/s (mu times them are the marginals of the central plan at barrier mu)."""
+    k = wp.tid()
+    lh = lam_hi[k]
+    ll = lam_lo[k]
+    sg = wp.float64(0.0)
+    su = wp.float64(0.0)
+    sgs = wp.float64(0.0)
+    smin = wp.float64(1.0e300)
+    sr = wp.float64(0.0)
+    wmax = wp.float64(-1.0)
+    wrest = wp.float64(0.0)
+    p = int(0)
+    for l in range(n_c):
+        c = K.cost_at(csrc, k, l)
+        g = G[k, l]
+        if upd != 0:
+            so = K.reduced_cost(c, olam_hi[k], olam_lo[k], oy_hi[l], oy_lo[l])
+            g = g + alpha_p * pd_step(g, so, (a_a[k] + a_y[l]) + a_b[k], (d_a[k] + dy[l]) + d_b[k], mu_t, 1)
+            G[k, l] = g
+        s = K.reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
+        w = g / s
+        W[k, l] = w
+        sg += g
+        wp.atomic_add(col_g, l, g)
+        if w > wmax:
+            if wmax > wp.float64(0.0):
+                wrest += wmax
+            wmax = w
+            p = l
+        else:
+            wrest += w
+        su += g * c
+        sgs += g * s
+        smin = wp.min(smin, s)
+        r = wp.float64(1.0) / s
+        sr += r
+        wp.atomic_add(col_r, l, r)
+    row_r[k] = sr
+    row_g[k] = sg
+    piv[k] = p
+    tail[k] = wrest
+    row_w[k] = wrest + wmax
+    row_u[k] = su
+    row_gs[k] = sgs
+    row_smin[k] = smin
+
+
+@wp.kernel
+def ipm_ratio(
+    csrc: K.DenseCost, n_c: int,
+    lam_hi: wp.array(dtype=wp.float64), lam_lo: wp.array(dtype=wp.float64),
+    y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64),
+    G: wp.array2d(dtype=wp.float64),
+    d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
+    a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
+    mu_t: wp.float64, corr: int,
+    # outputs: step to the boundary for s and for G; with corr = 0 (the affine direction) also the sums
+    # that give mu_aff for any steps and the corrector's right-hand side for any target (cols atomically)
+    row_rs: wp.array(dtype=wp.float64), row_rg: wp.array(dtype=wp.float64),
+    row_m: wp.array2d(dtype=wp.float64), col_m: wp.array2d(dtype=wp.float64),
+):
+    """Row k for a direction (dlam = d_a + d_b, dy): min over ds < 0 of s / -ds and over dG < 0 of G / -dG.
+    Affine (corr = 0, T = 0): row_m[k] = (sum dG s, sum G ds, sum dG ds, sum 1/s, sum dG ds / s) and
+    col_m[l] += (sum 1/s, sum dG ds / s) over the column."""
+    k = wp.tid()
+    lh = lam_hi[k]
+    ll = lam_lo[k]
+    da = d_a[k]
+    db = d_b[k]
+    rs = wp.float64(1.0e300)
+    rg = wp.float64(1.0e300)
+    m0 = wp.float64(0.0)
+    m1 = wp.float64(0.0)
+    m2 = wp.float64(0.0)
+    m3 = wp.float64(0.0)
+    m4 = wp.float64(0.0)
+    for l in range(n_c):
+        s = K.reduced_cost(K.cost_at(csrc, k, l), lh, ll, y_hi[l], y_lo[l])
+        g = G[k, l]
+        ds = (da + dy[l]) + db  # d_a = -dy(pivot): the pivot's ds is d_b, without cancellation
+        dsa = wp.float64(0.0)
+        if corr != 0:
+            dsa = (a_a[k] + a_y[l]) + a_b[k]
+        dg = pd_step(g, s, dsa, ds, mu_t, corr)
+        if ds < wp.float64(0.0):
+            rs = wp.min(rs, -s / ds)
+        if dg < wp.float64(0.0):
+            rg = wp.min(rg, -g / dg)
+        if corr == 0:
+            r = wp.float64(1.0) / s
+            q = dg * ds
+            m0 += dg * s
+            m1 += g * ds
+            m2 += q
+            m3 += r
+            m4 += q * r
+            wp.atomic_add(col_m, l, 0, r)
+            wp.atomic_add(col_m, l, 1, q * r)
+    row_rs[k] = rs
+    row_rg[k] = rg
+    if corr == 0:
+        row_m[k, 0] = m0
+        row_m[k, 1] = m1
+        row_m[k, 2] = m2
+        row_m[k, 3] = m3
+        row_m[k, 4] = m4
+
+
+class _IPM:
+    """The interior-point iteration on an `Engine`'s (oriented, normalized, balanced) problem."""
+
+    def __init__(self, eng: Engine):
+        self.e = eng
+        p = eng.p
+        d = p.device
+        z = lambda n: wp.zeros(n, dtype=wp.float64, device=d)  # noqa: E731
+        self.G = wp.array(np.outer(p.m_r, p.m_c), dtype=wp.float64, device=d)  # the product plan: feasible
+        self.row_gs, self.row_smin, self.row_r, self.col_r = z(p.n_r), z(p.n_r), z(p.n_r), z(p.n_c)
+        self.row_rs, self.row_rg = z(p.n_r), z(p.n_r)
+        self.row_m = wp.zeros((p.n_r, 5), dtype=wp.float64, device=d)
+        self.col_m = wp.zeros((p.n_c, 2), dtype=wp.float64, device=d)
+        self.a_a, self.a_b, self.a_y = z(p.n_r), z(p.n_r), z(p.n_c)
+        self.upd = None  # (mu_t, alpha_p) of the step whose G update is pending (done by the next eval)
+
+    def eval(self) -> tuple[float, float, float, float]:
+        """(Pending G update, then) W and the sums at the current point; returns (mu, U, primal residual,
+        min s)."""
+        e, p = self.e, self.e.p
+        e.col_g.zero_()
+        self.col_r.zero_()
+        mu_t, ap = self.upd if self.upd is not None else (0.0, 0.0)
+        wp.launch(ipm_eval, dim=p.n_r,
+                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, int(self.upd is not None),
+                          e.lam_t[0], e.lam_t[1], e.y_t[0], e.y_t[1], e.d_a, e.d_b, e.dy_a,
+                          self.a_a, self.a_b, self.a_y, mu_t, ap],
+                  outputs=[e.W, e.row_g, e.col_g, e.row_w, e.piv, e.tail, e.row_u, self.row_gs, self.row_smin,
+                           self.row_r, self.col_r],
+                  device=p.device)
+        self.upd = None
+        mu = float(self.row_gs.numpy().sum()) / (p.n_r * p.n_c)
+        r1 = p.m_r - e.row_g.numpy()
+        r2 = p.m_c - e.col_g.numpy()
+        res = 0.5 * float(np.abs(r1).sum() + np.abs(r2).sum())
+        return mu, float(e.row_u.numpy().sum()), res, float(self.row_smin.numpy().min())
+
+    def _ratio(self, mu_t: float, corr: bool) -> tuple[float, float]:
+        """Steps to the boundary (s, G) for the engine's current direction (and the affine sums)."""
+        e, p = self.e, self.e.p
+        if not corr:
+            self.col_m.zero_()
+        wp.launch(ipm_ratio, dim=p.n_r,
+                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, e.d_a, e.d_b, e.dy_a,
+                          self.a_a, self.a_b, self.a_y, mu_t, int(corr)],
+                  outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
+        return float(self.row_rs.numpy().min()), float(self.row_rg.numpy().min())
+
+    def _solve(self, g1: np.ndarray, g2: np.ndarray, rtol: float) -> int:
+        """Newton direction for J d = -g (J with weights W = G/s); left in the engine's d_a, d_b, dy_a."""
+        n_lin, _ = self.e.direction(Point(g1, g2, 0.0, 0.0), rtol=rtol)
+        return n_lin
+
+    def run(self, beta_h: float, verbose: int) -> tuple[int, int]:
+        """Mehrotra iterations to the barrier 1/beta_h; returns (iterations, linear iterations). The last
+        evaluation (W, sums) is that of the current point."""
+        e, p = self.e, self.e.p
+        nn = p.n_r * p.n_c
+        mu_f = 1.0 / beta_h
+        n_it = n_lin = 0
+        while n_it < MAX_IPM_ITER:
+            mu, u, res, smin = self.eval()
+            if mu <= 1.2 * mu_f:
+                # centering at the target (the central plan's marginals are mu_f sum 1/s): Newton on them with
+                # the primal-dual weights, until they are close enough for the dual Newton of the annealing
+                d1 = p.m_r - mu_f * self.row_r.numpy()
+                d2 = p.m_c - mu_f * self.col_r.numpy()
+                res_c = 0.5 * float(np.abs(d1).sum() + np.abs(d2).sum())
+                if res_c <= CENTERED:
+                    break
+                n_lin += self._solve(d1, d2, rtol=1e-2)
+                for a in (self.a_a, self.a_b, self.a_y):  # no corrector term: T = mu_f (also in the G update)
+                    a.zero_()
+                rs, rg = self._ratio(mu_f, True)
+                ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
+                e._trial(ad)
+                e._accept_trial()
+                self.upd = (mu_f, ap)
+                n_it += 1
+                if verbose > 1:
+                    print(f"    ipm {n_it} (centering): residual of the central marginals {res_c:.1e}, steps "
+                          f"d={ad:.2f} p={ap:.2f}")
+                continue
+            if not smin > 0:  # the fraction to the boundary keeps s > 0; this guards against rounding
+                raise FloatingPointError(f"interior-point start: a reduced cost became {smin:.3g}")
+            # affine direction (T = 0): sum_l (G/s) ds = -m_r on the rows, i.e. J d = -g with g = m
+            n_lin += self._solve(p.m_r.copy(), p.m_c.copy(), rtol=0.1)
+            wp.copy(self.a_a, e.d_a)
+            wp.copy(self.a_b, e.d_b)
+            wp.copy(self.a_y, e.dy_a)
+            rs, rg = self._ratio(0.0, False)
+            ad, ap = min(1.0, rs), min(1.0, rg)
+            m = self.row_m.numpy().sum(axis=0)
+            mu_aff = (mu * nn + ap * m[0] + ad * m[1] + ap * ad * m[2]) / nn
+            sigma = min(1.0, max(0.0, mu_aff / mu)) ** 3
+            mu_t = max(sigma * mu, mu_f)
+            # corrector, T = mu_t - dG_aff ds_aff: rows sum_l (G/s) ds = sum_l T/s - m_r -> g1 = m_r - sum T/s
+            g1 = p.m_r - (mu_t * self.row_r.numpy() - self.row_m.numpy()[:, 4])
+            g2 = p.m_c - (mu_t * self.col_r.numpy() - self.col_m.numpy()[:, 1])
+            n_lin += self._solve(g1, g2, rtol=1e-2)
+            rs, rg = self._ratio(mu_t, True)
+            ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
+            e._trial(ad)
+            e._accept_trial()  # the old duals are now in lam_t, y_t: the next eval updates G from them
+            self.upd = (mu_t, ap)
+            n_it += 1
+            if verbose > 1:
+                print(f"    ipm {n_it}: mu*beta_h={mu / mu_f:.3g} sigma={sigma:.2g} steps d={ad:.2f} p={ap:.2f} "
+                      f"res={res:.1e} U={u:.9g}")
+        return n_it, n_lin
+
+
+def handoff_beta(beta0: float, step: float, n_r: int, n_c: int, u: float, handoff: float = HANDOFF) -> float:
+    """The first grid beta (beta0 step^j) with n_r n_c / beta <= handoff * u (u > 0; else beta0 step^12)."""
+    if not (u > 0):
+        return beta0 * step ** 12
+    j = max(0, math.ceil(math.log(n_r * n_c / (handoff * u * beta0)) / math.log(step) - 1e-12))
+    return beta0 * step ** j
+
+
+def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
+    """Run the interior-point iteration on a fresh balanced `Engine` and leave its duals at the barrier of
+    the hand-off beta. Returns (beta_h (normalized), iterations, linear iterations, seconds)."""
+    t0 = time.perf_counter()
+    o, p = eng.o, eng.p
+    ipm = _IPM(eng)
+    eng.init_point(np.zeros(p.n_r), np.ones(p.n_c))
+    _, u0, _, _ = ipm.eval()
+    # the optimum is below the product plan's U; aim at the gap with respect to a quarter of it, then
+    # re-aim once U is known better
+    beta_h = handoff_beta(o.beta0, o.step, p.n_r, p.n_c, 0.25 * u0)
+    n_it, n_lin = ipm.run(beta_h, o.verbose)
+    beta_h2 = handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.row_u.numpy().sum()))
+    if beta_h2 > beta_h:
+        k2, l2 = ipm.run(beta_h2, o.verbose)
+        n_it, n_lin, beta_h = n_it + k2, n_lin + l2, beta_h2
+    eng._M_stale = True  # the preconditioner was built from the interior-point weights
+    del ipm  # frees G
+    return min(beta_h, o.beta_max), n_it, n_lin, time.perf_counter() - t0
