@@ -7,7 +7,7 @@ import os
 import warp as wp
 
 from wpot.ot.newton import Options
-from wpot.ot.problem import CostInput
+from wpot.ot.problem import FeatureCost
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2
 
 LINEAR_SOLVERS = ("cg", "direct")
@@ -65,8 +65,9 @@ def _host_available_bytes() -> float:
         return math.inf
 
 
-def check_mode(cost: CostInput, linear_solver: str, dense_plan, plan_topk, device: str) -> bool:
-    """Options that depend on the cost's mode; returns whether to form the dense plan.
+def check_mode(C, linear_solver: str, dense_plan, plan_topk, device: str) -> bool:
+    """Options that depend on the cost's mode (``C`` as the caller passed it; checked before any pass over
+    it); returns whether to form the dense plan.
 
     ``dense_plan`` None: the dense plan in stored mode only; True: also in matrix-free mode, refused with a
     ValueError naming the size when the (N1, N2) float64 array does not fit in the memory available (on the
@@ -76,21 +77,23 @@ def check_mode(cost: CostInput, linear_solver: str, dense_plan, plan_topk, devic
         raise ValueError(f"plan_topk must be an integer >= 1, got {plan_topk!r}")
     if dense_plan not in (None, True, False):
         raise ValueError(f"dense_plan must be None, True or False, got {dense_plan!r}")
-    if cost.lazy and linear_solver == "direct":
+    lazy = isinstance(C, FeatureCost)
+    if lazy and linear_solver == "direct":
         raise ValueError("linear_solver='direct' is not available with a FeatureCost (matrix-free mode): it "
                          "forms the dense N1 x N2 weight matrix the matrix-free mode exists to avoid; use "
                          "linear_solver='cg'")
     if dense_plan is None:
-        return not cost.lazy
-    if dense_plan and cost.lazy:
-        need = 8.0 * cost.n1 * cost.n2
+        return not lazy
+    if dense_plan and lazy:
+        n1, n2 = C.shape
+        need = 8.0 * n1 * n2
         avail = _host_available_bytes()
         dev = wp.get_device(device)
         if dev.is_cuda:
             avail = min(avail, float(dev.free_memory))
         if need > avail:
             raise ValueError(
-                f"dense_plan=True needs an (N1, N2) = ({cost.n1}, {cost.n2}) float64 array of {need / 2**30:.2f} "
+                f"dense_plan=True needs an (N1, N2) = ({n1}, {n2}) float64 array of {need / 2**30:.2f} "
                 f"GiB, more than the {avail / 2**30:.2f} GiB available on {device}; use the result's plan_top "
                 "and argmax instead")
     return bool(dense_plan)

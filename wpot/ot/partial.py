@@ -60,11 +60,11 @@ def solve_partial(
     if not (isinstance(mass_penalty, (int, float)) and math.isfinite(mass_penalty) and mass_penalty > 0):
         raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
     dev = resolve_device(device)
+    dense = check_mode(C, linear_solver, dense_plan, plan_topk, dev)
     cost = prepare_cost(C, dev)
     r1 = prepare_masses(rho1, cost.n1, "rho1")
     r2 = prepare_masses(rho2, cost.n2, "rho2")
     r1, r2 = r1 / r1.sum(), r2 / r2.sum()
-    dense = check_mode(cost, linear_solver, dense_plan, plan_topk, dev)
     opts = make_options(n1=cost.n1, n2=cost.n2, scale=cost.scale, beta0=beta0, beta_max=beta_max, step=step,
                         tol=tol, atol=atol, max_iter=max_iter, max_newton=max_newton, newton_tol=newton_tol,
                         linear_solver=linear_solver, cg_rtol=cg_rtol, cg_max_iter=cg_max_iter, topk=topk,
