@@ -71,6 +71,7 @@ _EXPORTS: dict[str, str] = {
     "OTResult": "wpot.ot",
     "BetaStep": "wpot.ot",
     "debiased": "wpot.ot",
+    "FeatureCost": "wpot.ot",
     # comparison
     "compare": "wpot.comparison",
     "Comparison": "wpot.comparison",
