@@ -300,6 +300,13 @@ def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch
     c3 = Comparer(cache_dir=tmp_path, energies=c1.energies[:-1], **FAST)  # another grid: recomputed
     c3.signatures(pair.source)
     assert len(calls) == 2
+    # a new version of the signature code invalidates the cached entries (on disk too)
+    from wpot.signatures import _wks
+
+    monkeypatch.setattr(_wks, "VERSION", _wks.VERSION + 1)
+    c4 = Comparer(cache_dir=tmp_path, energies=c1.energies, **FAST)
+    c4.signatures(pair.source)
+    assert len(calls) == 3
 
 
 def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):

@@ -668,11 +668,13 @@ class Comparer:
 
     # ------------------------------------------------------------------------------ signatures
     def _signature_params(self) -> dict[str, Any]:
+        from wpot.signatures import _ldsift, _wks
+
         p: dict[str, Any] = {"signature": self.signature}
         if self.signature == "wks":
-            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies)
+            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies, version=_wks.VERSION)
         else:
-            p.update(K=self.ldsift_K, resolution=self.ldsift_resolution)
+            p.update(K=self.ldsift_K, resolution=self.ldsift_resolution, version=_ldsift.VERSION)
         return p
 
     def _signature_key(self) -> str:

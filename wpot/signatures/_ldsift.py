@@ -57,10 +57,12 @@ from scipy.spatial import cKDTree
 
 from wpot.mesh import Mesh
 
-__all__ = ["LocalFrames", "local_frames", "ldsift", "ldsift_images", "sift_at_center", "keypoint_size", "to_slab", "MIN_NEIGHBOURS", "SLAB"]
+__all__ = ["VERSION", "LocalFrames", "local_frames", "ldsift", "ldsift_images", "sift_at_center", "keypoint_size", "to_slab", "MIN_NEIGHBOURS", "SLAB"]
 
 #: a vertex's covariance neighbourhood N(v) must hold at least this many vertices besides v itself;
 #: when the ball of radius S(v) holds fewer, it is grown to the MIN_NEIGHBOURS nearest vertices
+#: bumped whenever this module's output changes; part of the signature cache keys (`wpot.comparison`)
+VERSION = 1
 MIN_NEIGHBOURS = 3
 #: the covariance counts as rank-deficient (no dominant plane) when lambda_2 <= DEGENERATE_RTOL * lambda_1
 DEGENERATE_RTOL = 1e-10

@@ -33,9 +33,11 @@ from numpy.typing import ArrayLike
 from ..mesh import Mesh
 from ..spectral import Spectrum, eigenpairs
 
-__all__ = ["wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
+__all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
 
 #: σ = 7δ (paper §3.2)
+#: bumped whenever this module's output changes; part of the signature cache keys (`wpot.comparison`)
+VERSION = 1
 SIGMA_PER_DELTA = 7.0
 #: an eigenvalue below this fraction of the largest one is numerically zero (a null-space pair)
 ZERO_EVAL_RTOL = 1e-9
