@@ -15,9 +15,10 @@ and the stopping rule is the paper's). The Newton systems are those of the dual 
 W = G / s instead of beta |phi'(beta s)| (equal on the central path), so the Schur-complement CG,
 its preconditioner and the cancellation-free kernels are shared.
 
-Per iteration: one pass for W and the residuals, two Newton solves (affine and corrector, one
-preconditioner), four passes for the step lengths, the corrector's right-hand side and the update of G.
-The primal G is one more N1 x N2 float64 array (stored-cost mode only).
+Per iteration: one pass that updates G and forms s, W and the residuals, two Newton solves (affine and
+corrector, one preconditioner), and one pass for each direction's steps to the boundary (the affine one
+also gives mu_aff for any step and the corrector's right-hand side for any target).
+The primal G and the reduced costs s are two more N1 x N2 float64 arrays (stored-cost mode only).
 """
 from __future__ import annotations
 
@@ -58,11 +59,10 @@ def ipm_eval(
     csrc: K.DenseCost, n_c: int,
     lam_hi: wp.array(dtype=wp.float64), lam_lo: wp.array(dtype=wp.float64),
     y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64),
-    G: wp.array2d(dtype=wp.float64),
-    # the update of G first (upd = 1): old duals, corrector direction, affine direction, target, step
+    G: wp.array2d(dtype=wp.float64), S: wp.array2d(dtype=wp.float64),
+    # the update of G first (upd = 1; S holds the old point's s): corrector direction, affine direction,
+    # target, step
     upd: int,
-    olam_hi: wp.array(dtype=wp.float64), olam_lo: wp.array(dtype=wp.float64),
-    oy_hi: wp.array(dtype=wp.float64), oy_lo: wp.array(dtype=wp.float64),
     d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
     a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
     mu_t: wp.float64, alpha_p: wp.float64,
@@ -72,8 +72,8 @@ def ipm_eval(
     row_u: wp.array(dtype=wp.float64), row_gs: wp.array(dtype=wp.float64), row_smin: wp.array(dtype=wp.float64),
     row_r: wp.array(dtype=wp.float64), col_r: wp.array(dtype=wp.float64),
 ):
-    """Row k: (when ``upd``) G += alpha_p dG for the step just taken (dG from the old duals' s), then at the
-    new duals W = G / s (stored), its sum, pivot (largest) and the rest (``tail``) as in `kernels.eval_rows`;
+    """Row k: (when ``upd``) G += alpha_p dG for the step just taken (dG from the old point's s, in S), then
+    at the new duals s (stored in S) and W = G / s (stored), its sum, pivot (largest) and the rest (``tail``) as in `kernels.eval_rows`;
     the primal row sums (column sums atomically), sum G C' (U), sum G s (complementarity), min s, and the
     row and column sums of 1/s (mu times them are the marginals of the central plan at barrier mu)."""
     k = wp.tid()
@@ -91,10 +91,10 @@ def ipm_eval(
         c = K.cost_at(csrc, k, l)
         g = G[k, l]
         if upd != 0:
-            so = K.reduced_cost(c, olam_hi[k], olam_lo[k], oy_hi[l], oy_lo[l])
-            g = g + alpha_p * pd_step(g, so, (a_a[k] + a_y[l]) + a_b[k], (d_a[k] + dy[l]) + d_b[k], mu_t, 1)
+            g = g + alpha_p * pd_step(g, S[k, l], (a_a[k] + a_y[l]) + a_b[k], (d_a[k] + dy[l]) + d_b[k], mu_t, 1)
             G[k, l] = g
         s = K.reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
+        S[k, l] = s
         w = g / s
         W[k, l] = w
         sg += g
@@ -124,10 +124,7 @@ def ipm_eval(
 
 @wp.kernel
 def ipm_ratio(
-    csrc: K.DenseCost, n_c: int,
-    lam_hi: wp.array(dtype=wp.float64), lam_lo: wp.array(dtype=wp.float64),
-    y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64),
-    G: wp.array2d(dtype=wp.float64),
+    n_c: int, G: wp.array2d(dtype=wp.float64), S: wp.array2d(dtype=wp.float64),
     d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
     a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
     mu_t: wp.float64, corr: int,
@@ -136,12 +133,10 @@ def ipm_ratio(
     row_rs: wp.array(dtype=wp.float64), row_rg: wp.array(dtype=wp.float64),
     row_m: wp.array2d(dtype=wp.float64), col_m: wp.array2d(dtype=wp.float64),
 ):
-    """Row k for a direction (dlam = d_a + d_b, dy): min over ds < 0 of s / -ds and over dG < 0 of G / -dG.
+    """Row k for a direction (dlam = d_a + d_b, dy) at the point `ipm_eval` last saw (its s in S): min over ds < 0 of s / -ds and over dG < 0 of G / -dG.
     Affine (corr = 0, T = 0): row_m[k] = (sum dG s, sum G ds, sum dG ds, sum 1/s, sum dG ds / s) and
     col_m[l] += (sum 1/s, sum dG ds / s) over the column."""
     k = wp.tid()
-    lh = lam_hi[k]
-    ll = lam_lo[k]
     da = d_a[k]
     db = d_b[k]
     rs = wp.float64(1.0e300)
@@ -152,7 +147,7 @@ def ipm_ratio(
     m3 = wp.float64(0.0)
     m4 = wp.float64(0.0)
     for l in range(n_c):
-        s = K.reduced_cost(K.cost_at(csrc, k, l), lh, ll, y_hi[l], y_lo[l])
+        s = S[k, l]
         g = G[k, l]
         ds = (da + dy[l]) + db  # d_a = -dy(pivot): the pivot's ds is d_b, without cancellation
         dsa = wp.float64(0.0)
@@ -192,6 +187,7 @@ class _IPM:
         d = p.device
         z = lambda n: wp.zeros(n, dtype=wp.float64, device=d)  # noqa: E731
         self.G = wp.array(np.outer(p.m_r, p.m_c), dtype=wp.float64, device=d)  # the product plan: feasible
+        self.S = wp.zeros((p.n_r, p.n_c), dtype=wp.float64, device=d)  # reduced costs at the last evaluation
         self.row_gs, self.row_smin, self.row_r, self.col_r = z(p.n_r), z(p.n_r), z(p.n_r), z(p.n_c)
         self.row_rs, self.row_rg = z(p.n_r), z(p.n_r)
         self.row_m = wp.zeros((p.n_r, 5), dtype=wp.float64, device=d)
@@ -207,8 +203,8 @@ class _IPM:
         self.col_r.zero_()
         mu_t, ap = self.upd if self.upd is not None else (0.0, 0.0)
         wp.launch(ipm_eval, dim=p.n_r,
-                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, int(self.upd is not None),
-                          e.lam_t[0], e.lam_t[1], e.y_t[0], e.y_t[1], e.d_a, e.d_b, e.dy_a,
+                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, self.S, int(self.upd is not None),
+                          e.d_a, e.d_b, e.dy_a,
                           self.a_a, self.a_b, self.a_y, mu_t, ap],
                   outputs=[e.W, e.row_g, e.col_g, e.row_w, e.piv, e.tail, e.row_u, self.row_gs, self.row_smin,
                            self.row_r, self.col_r],
@@ -226,7 +222,7 @@ class _IPM:
         if not corr:
             self.col_m.zero_()
         wp.launch(ipm_ratio, dim=p.n_r,
-                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, e.d_a, e.d_b, e.dy_a,
+                  inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a,
                           self.a_a, self.a_b, self.a_y, mu_t, int(corr)],
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
         return float(self.row_rs.numpy().min()), float(self.row_rg.numpy().min())
@@ -286,7 +282,7 @@ class _IPM:
             rs, rg = self._ratio(mu_t, True)
             ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
             e._trial(ad)
-            e._accept_trial()  # the old duals are now in lam_t, y_t: the next eval updates G from them
+            e._accept_trial()
             self.upd = (mu_t, ap)
             n_it += 1
             if verbose > 1:
