@@ -227,6 +227,16 @@ class _IPM:
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
         return float(self.row_rs.numpy().min()), float(self.row_rg.numpy().min())
 
+    def _step(self, mu_t: float) -> tuple[float, float]:
+        """Take the engine's current direction (target ``mu_t``, corrector from the affine arrays): the dual
+        step now, the primal one in the next `eval`; both ETA of the way to the boundary at most."""
+        rs, rg = self._ratio(mu_t, True)
+        ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
+        self.e._trial(ad)
+        self.e._accept_trial()
+        self.upd = (mu_t, ap)
+        return ad, ap
+
     def _solve(self, g1: np.ndarray, g2: np.ndarray, rtol: float) -> int:
         """Newton direction for J d = -g (J with weights W = G/s); left in the engine's d_a, d_b, dy_a."""
         n_lin, _ = self.e.direction(Point(g1, g2, 0.0, 0.0), rtol=rtol)
@@ -252,11 +262,7 @@ class _IPM:
                 n_lin += self._solve(d1, d2, rtol=1e-2)
                 for a in (self.a_a, self.a_b, self.a_y):  # no corrector term: T = mu_f (also in the G update)
                     a.zero_()
-                rs, rg = self._ratio(mu_f, True)
-                ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
-                e._trial(ad)
-                e._accept_trial()
-                self.upd = (mu_f, ap)
+                ad, ap = self._step(mu_f)
                 n_it += 1
                 if verbose > 1:
                     print(f"    ipm {n_it} (centering): residual of the central marginals {res_c:.1e}, steps "
@@ -279,11 +285,7 @@ class _IPM:
             g1 = p.m_r - (mu_t * self.row_r.numpy() - self.row_m.numpy()[:, 4])
             g2 = p.m_c - (mu_t * self.col_r.numpy() - self.col_m.numpy()[:, 1])
             n_lin += self._solve(g1, g2, rtol=1e-2)
-            rs, rg = self._ratio(mu_t, True)
-            ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
-            e._trial(ad)
-            e._accept_trial()
-            self.upd = (mu_t, ap)
+            ad, ap = self._step(mu_t)
             n_it += 1
             if verbose > 1:
                 print(f"    ipm {n_it}: mu*beta_h={mu / mu_f:.3g} sigma={sigma:.2g} steps d={ad:.2f} p={ap:.2f} "
