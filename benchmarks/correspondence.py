@@ -309,15 +309,19 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None) ->
             _, _, aucs = _curves(store, [by_method[m][k] for k in keys], "sqrt_area", tmax["sqrt_area"])
             cells.append(f"{aucs.mean():.3f}")
         lines.append(f"| {c} | {len(keys)} | " + " | ".join(cells) + " |")
-    setup = {}
+    setup: dict[str, list] = {}
     spath = out / "shapes.jsonl"
     if spath.is_file():
+        first: dict[tuple[str, str], float] = {}  # a resumed run times a shape again; keep the first
         for line in spath.read_text().splitlines():
             if line.strip():
                 r = json.loads(line)
-                setup.setdefault(r["method"], []).append(r["seconds"])
+                first.setdefault((r["method"], r["shape"]), r["seconds"])
+        for (m, _), sec in first.items():
+            setup.setdefault(m, []).append(sec)
     if setup:
-        lines.append("\n## Per-shape set-up (not in the time per pair)\n")
+        lines.append("\n## Per-shape set-up (not in the time per pair; wpot reads signatures from $WPOT_CACHE_DIR "
+                     "when they are there)\n")
         lines.append("| method | shapes | mean s | median s |\n|---|---|---|---|")
         for m, v in sorted(setup.items()):
             lines.append(f"| {m} | {len(v)} | {np.mean(v):.1f} | {np.median(v):.1f} |")
