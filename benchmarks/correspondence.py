@@ -28,6 +28,8 @@ whichever is nearer), the fraction of points that are symmetric flips and of pai
 signatures for wpot, which are cached on disk under ``$WPOT_CACHE_DIR``; the spectrum for fmaps) is timed
 separately and left out of the time per pair.
 
+Needs the ``bench`` extra for the peer (``pip install -e ".[bench]"``: pyfmaps 1.3.1 and its dependencies).
+
 Results go to ``--out`` (outside the repository) as they are computed, so an interrupted run resumes:
 ``pairs.jsonl`` (one line per method and pair), ``maps/<method>/<X>__<Y>.npz`` (the predicted vertex and raw
 geodesic error of every template point), ``shapes.jsonl`` (set-up times), then ``results.md`` and

@@ -51,6 +51,8 @@ _EXPORTS: dict[str, str] = {
     "one_shot_1nn": "wpot.evaluate",
     "leave_one_out_1nn": "wpot.evaluate",
     "leave_one_out_levels": "wpot.evaluate",
+    "symmetric_flip": "wpot.evaluate",
+    "SymmetricFlip": "wpot.evaluate",
     "part_retrieval": "wpot.evaluate",
     "correspondence_error": "wpot.evaluate",
     "summarize_correspondence": "wpot.evaluate",
