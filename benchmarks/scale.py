@@ -9,7 +9,8 @@ method. The three methods solve the same problem, so the table also gives each w
     python benchmarks/scale.py --sizes 1000 2000 --methods stored emd
     python benchmarks/scale.py --device cuda --sizes 3400 10000 50000 --methods matrix-free stored
 
-Methods: ``stored`` (solve_balanced on the dense C: O(N^2) memory for C and the Hessian weights), ``matrix-free``
+Methods: ``stored`` (solve_balanced on the dense C: O(N^2) memory for C and the Hessian weights), ``stored-ipm``
+(the same with method="ipm": two more N x N arrays, the primal plan and the reduced costs), ``matrix-free``
 (solve_balanced(wpot.ot.FeatureCost(X, Y, "l2")): C recomputed inside the kernels, O(N d) memory; skipped with a note
 when this wpot has no FeatureCost) and ``emd`` (POT's exact network simplex on the dense C, numItermax raised so that
 it reaches optimality). Timings on a shared machine are noisy; memory is exact.
@@ -24,7 +25,7 @@ import subprocess
 import sys
 import time
 
-METHODS = ("stored", "matrix-free", "emd")
+METHODS = ("stored", "stored-ipm", "matrix-free", "emd")
 
 
 def features(n: int, d: int, seed: int):
@@ -62,11 +63,12 @@ def child(method: str, n: int, d: int, device: str) -> dict:
             from wpot.cost import cost_matrix
 
             cost = None
-        wo.solve_balanced(np.random.default_rng(0).random((8, 8)), device=device)  # compile outside the timing
+        for m in ("anneal", "ipm"):  # compile outside the timing
+            wo.solve_balanced(np.random.default_rng(0).random((60, 60)), device=device, method=m)
         t0 = time.perf_counter()
         if cost is None:
             cost = cost_matrix(X, Y, metric="l2", device=device, out="warp")
-        r = wo.solve_balanced(cost, device=device)
+        r = wo.solve_balanced(cost, device=device, method="ipm" if method == "stored-ipm" else "anneal")
         out["time"] = time.perf_counter() - t0
         out["cost"] = float(r.cost)
         out["converged"] = bool(r.converged)
