@@ -71,6 +71,17 @@ def test_ipm_and_annealing_reach_the_same_solution():
     assert ri.n_newton > sum(h.n_newton for h in ri.history)  # the interior-point iterations are counted
 
 
+def test_ipm_zero_optimum_self_comparison():
+    # a point set against itself: U* = 0 (the hand-off beta is capped by beta_max, the annealing stops on atol)
+    X = _points(80, d=6, seed=4)
+    C = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    r = wo.solve_balanced(C, method="ipm", device="cpu")
+    ra = wo.solve_balanced(C, device="cpu")
+    assert r.converged
+    assert r.cost <= 1e-8 * C.mean() and abs(r.cost - ra.cost) <= 1e-9 * C.max()
+    assert np.array_equal(r.argmax, np.arange(80))
+
+
 def test_handoff_beta_is_the_first_grid_beta_below_the_gap():
     b = handoff_beta(2.0, 10.0, 100, 50, 0.3, handoff=1e-3)
     assert 100 * 50 / b <= 1e-3 * 0.3 < 100 * 50 / (b / 10)

@@ -311,12 +311,13 @@ def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     _, u0, _, _ = ipm.eval()
     # the optimum is below the product plan's U; aim at the gap with respect to a quarter of it, then
     # re-aim once U is known better
-    beta_h = handoff_beta(o.beta0, o.step, p.n_r, p.n_c, 0.25 * u0)
+    beta_h = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, 0.25 * u0), o.beta_max)
     n_it, n_lin = ipm.run(beta_h, o.verbose)
-    beta_h2 = handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.row_u.numpy().sum()))
+    # (U* = 0, e.g. a shape against itself: the re-aimed beta is capped by beta_max)
+    beta_h2 = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.row_u.numpy().sum())), o.beta_max)
     if beta_h2 > beta_h:
         k2, l2 = ipm.run(beta_h2, o.verbose)
         n_it, n_lin, beta_h = n_it + k2, n_lin + l2, beta_h2
     eng._M_stale = True  # the preconditioner was built from the interior-point weights
     del ipm  # frees G
-    return min(beta_h, o.beta_max), n_it, n_lin, time.perf_counter() - t0
+    return beta_h, n_it, n_lin, time.perf_counter() - t0
