@@ -55,6 +55,13 @@ def test_compare_two_files(dataset, tmp_path):
     z = np.load(tmp_path / "c" / "correspondence.npz")
     assert z["correspondence"].shape == z["mass1"].shape and z["correspondence"].max() < len(z["mass2"])
     assert (tmp_path / "c" / "correspondence.png").is_file()
+    # the interior-point start reaches the same distance (and its history starts later)
+    r2 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--ot-method", "ipm",
+              "--out", str(tmp_path / "c2"))
+    assert r2.returncode == 0, r2.stderr
+    info2 = json.loads((tmp_path / "c2" / "comparison.json").read_text())
+    assert info2["distance"] == pytest.approx(info["distance"], rel=1e-6)
+    assert len(info2["history"]) < len(info["history"])
 
 
 def test_all_vs_all_classify_report(dataset, tmp_path):
@@ -100,6 +107,7 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["all-vs-all", "no-such-folder", "--out", "r"], ["no such folder", "no-such-folder"]),
         (["classify", "no-such-run"], ["no wpot run", "no-such-run"]),
         (["report", "no-such-run"], ["no wpot run"]),
+        (["compare", "a.off", "b.off", "--transport", "partial", "--ot-method", "ipm"], ["--ot-method ipm", "balanced"]),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):

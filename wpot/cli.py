@@ -56,9 +56,17 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--n-eigen", type=int, default=n_eigen, help=f"WKS: Laplace-Beltrami eigenpairs (default {n_eigen})")
     p.add_argument("--n-energies", type=int, default=n_energies, help=f"WKS: energies (default {n_energies})")
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
+    p.add_argument(
+        "--ot-method", choices=("anneal", "ipm"), default="anneal",
+        help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta; default) or "
+              "'ipm' (interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: same D(inf), "
+              "about 2x faster for N >= 2000)"),
+    )
 
 
 def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
+    if a.ot_method != "anneal" and a.transport != "balanced":
+        raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
     return {
         "signature": a.signature,
         "transport": a.transport,
@@ -67,6 +75,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "n_eigen": a.n_eigen,
         "n_energies": a.n_energies,
         "device": a.device,
+        **({"solver_options": {"method": a.ot_method}} if a.ot_method != "anneal" else {}),
     }
 
 
@@ -225,8 +234,9 @@ def cmd_demo(a: argparse.Namespace) -> None:
 def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import compare
 
+    opts = _comparer_options(a)  # option errors before any file is read
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
-    c = compare(ma, mb, **_comparer_options(a))
+    c = compare(ma, mb, **opts)
     print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
     for line in _summary_lines(c):
         print(line)
