@@ -41,8 +41,16 @@ ETA = 0.99
 #: the annealing takes over once the central plan's marginals at the hand-off beta are this close (relative
 #: L1) to the target masses
 CENTERED = 1e-5
-#: iterations allowed before the annealing takes over regardless (with a warning in the history)
+#: iterations allowed before the annealing takes over regardless (its Newton solves then finish the centring)
 MAX_IPM_ITER = 60
+
+
+@wp.func
+def dual_change(d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
+                k: int, l: int) -> wp.float64:
+    """ds(k, l) = dlam(k) + dy(l) for dlam = d_a + d_b with d_a = -dy(pivot): the pivot's ds is d_b exactly."""
+    return (d_a[k] + dy[l]) + d_b[k]
+
 
 @wp.func
 def pd_step(g: wp.float64, s: wp.float64, dsa: wp.float64, ds: wp.float64, mu_t: wp.float64, corr: int) -> wp.float64:
@@ -91,7 +99,8 @@ def ipm_eval(
         c = K.cost_at(csrc, k, l)
         g = G[k, l]
         if upd != 0:
-            g = g + alpha_p * pd_step(g, S[k, l], (a_a[k] + a_y[l]) + a_b[k], (d_a[k] + dy[l]) + d_b[k], mu_t, 1)
+            g = g + alpha_p * pd_step(g, S[k, l], dual_change(a_a, a_b, a_y, k, l), dual_change(d_a, d_b, dy, k, l),
+                                      mu_t, 1)
             G[k, l] = g
         s = K.reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
         S[k, l] = s
@@ -131,43 +140,37 @@ def ipm_ratio(
     # outputs: step to the boundary for s and for G; with corr = 0 (the affine direction) also the sums
     # that give mu_aff for any steps and the corrector's right-hand side for any target (cols atomically)
     row_rs: wp.array(dtype=wp.float64), row_rg: wp.array(dtype=wp.float64),
-    row_m: wp.array2d(dtype=wp.float64), col_m: wp.array2d(dtype=wp.float64),
+    row_m: wp.array2d(dtype=wp.float64), col_m: wp.array(dtype=wp.float64),
 ):
-    """Row k for a direction (dlam = d_a + d_b, dy) at the point `ipm_eval` last saw (its s in S): min over ds < 0 of s / -ds and over dG < 0 of G / -dG.
-    Affine (corr = 0, T = 0): row_m[k] = (sum dG s, sum G ds, sum dG ds, sum 1/s, sum dG ds / s) and
-    col_m[l] += (sum 1/s, sum dG ds / s) over the column."""
+    """Row k for a direction (dlam = d_a + d_b, dy) at the point `ipm_eval` last saw (its s in S): min over
+    ds < 0 of s / -ds and over dG < 0 of G / -dG. Affine (corr = 0, T = 0): row_m[k] = (sum dG s, sum G ds,
+    sum dG ds, sum dG ds / s) and col_m[l] += dG ds / s over the column (the sums of 1/s come from `ipm_eval`)."""
     k = wp.tid()
-    da = d_a[k]
-    db = d_b[k]
     rs = wp.float64(1.0e300)
     rg = wp.float64(1.0e300)
     m0 = wp.float64(0.0)
     m1 = wp.float64(0.0)
     m2 = wp.float64(0.0)
     m3 = wp.float64(0.0)
-    m4 = wp.float64(0.0)
     for l in range(n_c):
         s = S[k, l]
         g = G[k, l]
-        ds = (da + dy[l]) + db  # d_a = -dy(pivot): the pivot's ds is d_b, without cancellation
+        ds = dual_change(d_a, d_b, dy, k, l)
         dsa = wp.float64(0.0)
         if corr != 0:
-            dsa = (a_a[k] + a_y[l]) + a_b[k]
+            dsa = dual_change(a_a, a_b, a_y, k, l)
         dg = pd_step(g, s, dsa, ds, mu_t, corr)
         if ds < wp.float64(0.0):
             rs = wp.min(rs, -s / ds)
         if dg < wp.float64(0.0):
             rg = wp.min(rg, -g / dg)
         if corr == 0:
-            r = wp.float64(1.0) / s
             q = dg * ds
             m0 += dg * s
             m1 += g * ds
             m2 += q
-            m3 += r
-            m4 += q * r
-            wp.atomic_add(col_m, l, 0, r)
-            wp.atomic_add(col_m, l, 1, q * r)
+            m3 += q / s
+            wp.atomic_add(col_m, l, q / s)
     row_rs[k] = rs
     row_rg[k] = rg
     if corr == 0:
@@ -175,7 +178,6 @@ def ipm_ratio(
         row_m[k, 1] = m1
         row_m[k, 2] = m2
         row_m[k, 3] = m3
-        row_m[k, 4] = m4
 
 
 class _IPM:
@@ -190,8 +192,8 @@ class _IPM:
         self.S = wp.zeros((p.n_r, p.n_c), dtype=wp.float64, device=d)  # reduced costs at the last evaluation
         self.row_gs, self.row_smin, self.row_r, self.col_r = z(p.n_r), z(p.n_r), z(p.n_r), z(p.n_c)
         self.row_rs, self.row_rg = z(p.n_r), z(p.n_r)
-        self.row_m = wp.zeros((p.n_r, 5), dtype=wp.float64, device=d)
-        self.col_m = wp.zeros((p.n_c, 2), dtype=wp.float64, device=d)
+        self.row_m = wp.zeros((p.n_r, 4), dtype=wp.float64, device=d)
+        self.col_m = wp.zeros(p.n_c, dtype=wp.float64, device=d)
         self.a_a, self.a_b, self.a_y = z(p.n_r), z(p.n_r), z(p.n_c)
         self.upd = None  # (mu_t, alpha_p) of the step whose G update is pending (done by the next eval)
 
@@ -282,8 +284,8 @@ class _IPM:
             sigma = min(1.0, max(0.0, mu_aff / mu)) ** 3
             mu_t = max(sigma * mu, mu_f)
             # corrector, T = mu_t - dG_aff ds_aff: rows sum_l (G/s) ds = sum_l T/s - m_r -> g1 = m_r - sum T/s
-            g1 = p.m_r - (mu_t * self.row_r.numpy() - self.row_m.numpy()[:, 4])
-            g2 = p.m_c - (mu_t * self.col_r.numpy() - self.col_m.numpy()[:, 1])
+            g1 = p.m_r - (mu_t * self.row_r.numpy() - self.row_m.numpy()[:, 3])
+            g2 = p.m_c - (mu_t * self.col_r.numpy() - self.col_m.numpy())
             n_lin += self._solve(g1, g2, rtol=1e-2)
             ad, ap = self._step(mu_t)
             n_it += 1
