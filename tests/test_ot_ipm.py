@@ -7,22 +7,13 @@ import ot
 import pytest
 
 import wpot.ot as wo
+from test_ot_solver import _masses, _points_cost
 from wpot.cost import cost_matrix
 from wpot.ot.ipm import HANDOFF, handoff_beta
 
 
 def _points(n, d=8, seed=0):
     return np.random.default_rng(seed).random((n, d))
-
-
-def _cost(n1, n2, seed=0):
-    C = np.linalg.norm(_points(n1, seed=seed)[:, None] - _points(n2, seed=seed + 1)[None], axis=-1)
-    return C / C.max()
-
-
-def _masses(n, seed):
-    m = np.random.default_rng(seed).random(n) + 0.2
-    return m / m.sum()
 
 
 def _emd(C, a, b):
@@ -32,7 +23,7 @@ def _emd(C, a, b):
 
 @pytest.mark.parametrize("n1,n2,uniform", [(120, 120, True), (90, 140, False), (150, 70, True), (12, 9, False)])
 def test_ipm_matches_emd_and_marginals(n1, n2, uniform):
-    C = 3.7 * _cost(n1, n2, seed=n1)  # any cost scale
+    C = 3.7 * _points_cost(n1, n2, seed=n1)  # any cost scale
     a = np.full(n1, 1 / n1) if uniform else _masses(n1, 1)
     b = np.full(n2, 1 / n2) if uniform else _masses(n2, 2)
     r = wo.solve_balanced(C, a, b, method="ipm", device="cpu")
@@ -54,7 +45,7 @@ def test_ipm_planted_permutation():
 
 
 def test_ipm_and_annealing_reach_the_same_solution():
-    C = _cost(160, 130, seed=7)
+    C = _points_cost(160, 130, seed=7)
     ra = wo.solve_balanced(C, device="cpu")
     ri = wo.solve_balanced(C, method="ipm", device="cpu")
     assert ra.converged and ri.converged
