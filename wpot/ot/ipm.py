@@ -108,13 +108,7 @@ def ipm_eval(
         W[k, l] = w
         sg += g
         wp.atomic_add(col_g, l, g)
-        if w > wmax:
-            if wmax > wp.float64(0.0):
-                wrest += wmax
-            wmax = w
-            p = l
-        else:
-            wrest += w
+        wmax, wrest, p = K.track_pivot(w, l, wmax, wrest, p)
         su += g * c
         sgs += g * s
         smin = wp.min(smin, s)

@@ -283,6 +283,18 @@ def topk_clear(val: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32
 
 
 # --------------------------------------------------------------------------- passes over C / W
+@wp.func
+def track_pivot(w: wp.float64, l: int, wmax: wp.float64, wrest: wp.float64, p: int):
+    """One entry of a row's pivot scan: returns (largest weight, sum of the others, its column). Each weight
+    is added to ``wrest`` once it is known not to be the largest, so the rest is summed without
+    cancellation (E1 - W(k, pivot) = tail + b)."""
+    if w > wmax:
+        if wmax > _ZERO:
+            wrest += wmax
+        return w, wrest, l
+    return wmax, wrest + w, p
+
+
 @wp.kernel
 def eval_rows(
     csrc: Any,
@@ -326,14 +338,9 @@ def eval_rows(
         sg += g
         wp.atomic_add(col_g, l, g)
         put_weight(wdst, k, l, w)
-        if w > wmax:
-            if wmax > _ZERO:
-                wrest += wmax
-            wmax = w
-            p = l
+        wmax, wrest, p = track_pivot(w, l, wmax, wrest, p)
+        if p == l:
             sp = x / beta
-        else:
-            wrest += w
         su += g * c
         sx += x * g
     row_g[k] = sg
