@@ -40,7 +40,8 @@ Usage (2 busy CPU cores; about 10-15 s per pair for both methods at --max-vertic
     OPENBLAS_NUM_THREADS=1 WPOT_CACHE_DIR=/work/runs/cache \\
         python benchmarks/correspondence.py --out /work/runs/corr --max-vertices 500
     python benchmarks/correspondence.py --out /work/runs/corr --max-vertices 1000 --limit 40 --methods wpot
-    python benchmarks/correspondence.py --out /work/runs/corr --report-only
+    python benchmarks/correspondence.py --out /work/runs/corr --report-only            # the --methods at these settings
+    python benchmarks/correspondence.py --out /work/runs/corr --report-only --report-all  # every stored method
 
 The run log names the ``wpot`` code it imported (`code_version`). In a working tree others are editing, run
 it against a frozen copy (``git archive <commit> | tar -x -C /tmp/snap`` and ``PYTHONPATH=/tmp/snap``).
@@ -245,13 +246,16 @@ def _curves(store: Store, recs: list[dict], norm: str, tmax: float, n: int = 501
     return thr, np.mean(curves, axis=0), np.array(aucs)
 
 
-def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None) -> None:
-    """Table and figure over the pairs every method has finished (within ``keep`` when given)."""
+def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, tags: set | None = None) -> None:
+    """Table and figure over the pairs every method has finished (within ``keep`` when given), for the
+    method tags in ``tags`` (all stored methods when None)."""
     from wpot.datasets import class_label
 
     by_method: dict[str, dict] = {}
     for r in store.records:
         if keep is not None and (r["source"], r["target"]) not in keep:
+            continue
+        if tags is not None and r["method"] not in tags:
             continue
         by_method.setdefault(r["method"], {})[(r["source"], r["target"])] = r
     if not by_method:
@@ -393,6 +397,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sqrt-area-max", type=float, default=None, help="AUC range for d/sqrt(area) (default 0.25)")
     ap.add_argument("--shrec-max", type=float, default=None, help="AUC range for the SHREC'19 normalization (default 0.5)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
+    ap.add_argument("--report-all", action="store_true",
+                    help="report every method stored in --out (default: the --methods at these settings only)")
     a = ap.parse_args(argv)
 
     from wpot.evaluate import DEFAULT_MAX_THRESHOLD
@@ -419,8 +425,14 @@ def main(argv=None) -> int:
         from wpot.datasets import read_test_pairs
 
         keep = set(select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit))
-    report(store, out, tmax, log, keep)
+    tags = None if a.report_all else {method_tags(a)[m] for m in a.methods}
+    report(store, out, tmax, log, keep, tags)
     return 0
+
+
+def method_tags(a) -> dict[str, str]:
+    """The store's method tag for each ``--methods`` name at these settings."""
+    return {"wpot": wpot_tag(a.signature, a.transport, a.max_vertices or None), "fmaps": FMAPS_TAG}
 
 
 def run(a, out: Path, store: Store, log) -> None:
@@ -431,7 +443,7 @@ def run(a, out: Path, store: Store, log) -> None:
     vtx = a.tosca / "vtx_5k"
     pairs = select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit)
     maxv = a.max_vertices or None
-    tags = {"wpot": wpot_tag(a.signature, a.transport, maxv), "fmaps": FMAPS_TAG}
+    tags = method_tags(a)
     todo = [p for p in pairs if any((tags[m], *p) not in store.done for m in a.methods)]
     log(f"{len(pairs)} pairs selected, {len(todo)} still to do for {[tags[m] for m in a.methods]}; out={out}")
     if not todo:
