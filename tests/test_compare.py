@@ -278,6 +278,24 @@ def test_rigid_motion_of_b_leaves_the_wks_comparison_unchanged(comparer, pair, a
     np.testing.assert_array_equal(c.correspondence, ab.correspondence)
 
 
+def test_size_counts_unless_scale_invariant(comparer, pair):
+    # A copy 1.13 times larger (TOSCA's Michael against David): the same form, so area-normalized WKS sees
+    # (almost) the same shape, while the paper's WKS at the meshes' own size sees the size difference.
+    big = pair.source.transformed(np.eye(3), scale=1.13)
+    d_self = comparer.compare(pair.source, pair.source).distance
+    d_big = comparer.with_options(energies=None).compare(pair.source, big).distance
+    inv = comparer.with_options(scale_invariant=True)
+    assert inv.energies is None  # a grid is fitted for one convention: never shared across them
+    inv.fit_energies([pair.source, big])
+    d_big_inv = inv.compare(pair.source, big).distance
+    d_self_inv = inv.compare(pair.source, pair.source).distance
+    assert d_big_inv == pytest.approx(d_self_inv, rel=1e-6, abs=1e-9)
+    assert d_big > 10 * max(d_self, 1e-3 * pair.source.n_vertices)
+    assert comparer.params()["scale_invariant"] is False and inv.params()["scale_invariant"] is True
+    with pytest.raises(ValueError, match="scale_invariant must be True or False"):
+        comparer.with_options(scale_invariant="yes")
+
+
 def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch):
     from wpot.comparison import Comparer
 

@@ -63,12 +63,15 @@ def test_energy_grid_follows_section_3_2():
     assert shared.energies[-1] == pytest.approx(np.log(3000.0) - 2 * shared.sigma)
 
 
-def test_wks_matches_a_direct_evaluation_of_eq5(blob_spectrum):
+@pytest.mark.parametrize("scale_invariant", [False, True])
+def test_wks_matches_a_direct_evaluation_of_eq5(blob_spectrum, scale_invariant):
     s = blob_spectrum
-    e, sigma = wks_energies(s, n_energies=30)
-    got = wks(s, energies=e, sigma=sigma)
-    E = s.evals[1:]
-    phi2 = s.evecs[:, 1:] ** 2
+    e, sigma = wks_energies(s, n_energies=30, scale_invariant=scale_invariant)
+    got = wks(s, energies=e, sigma=sigma, scale_invariant=scale_invariant)
+    # at its own size (the default), the spectrum of M⁻¹W: λ/area, φ/√area; area-normalized otherwise
+    f = 1.0 if scale_invariant else 1.0 / s.area
+    E = s.evals[1:] * f
+    phi2 = s.evecs[:, 1:] ** 2 * f
     ref = np.empty_like(got)
     for m, em in enumerate(e):
         g = np.exp(-((em - np.log(E)) ** 2) / (2 * sigma**2))  # Aubry's Gaussian (squared)
@@ -117,12 +120,33 @@ def test_bad_arguments(blob_spectrum):
 
 
 # ------------------------------------------------------------------------------ invariances
-def test_rigid_motion_and_scaling_invariance(blob):
-    ref = wks(blob, n_eigen=60, n_energies=50)
+def test_rigid_motion_invariance_and_scaling(blob):
     rot = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
-    moved = blob.transformed(rotation=rot, translation=[3.0, -2.0, 0.5], scale=7.5)
+    moved = blob.transformed(rotation=rot, translation=[3.0, -2.0, 0.5])
+    ref = wks(blob, n_eigen=60, n_energies=50)
     got = wks(moved, n_eigen=60, n_energies=50)
     np.testing.assert_allclose(got, ref, rtol=1e-7, atol=1e-9 * ref.max())
+    # scaled by s: at its own size, E_k → E_k/s² and φ_k² → φ_k²/s², so the grid shifts by −2 log s and
+    # WKS → WKS/s² exactly; area-normalized, nothing changes
+    scale = 7.5
+    big = blob.transformed(rotation=rot, translation=[3.0, -2.0, 0.5], scale=scale)
+    g, g_big = wks_energies(eigenpairs(blob, k=60), n_energies=50), wks_energies(eigenpairs(big, k=60), n_energies=50)
+    np.testing.assert_allclose(g_big.energies, g.energies - 2 * np.log(scale), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(wks(big, n_eigen=60, n_energies=50), ref / scale**2, rtol=1e-7, atol=1e-9 * ref.max())
+    inv = wks(blob, n_eigen=60, n_energies=50, scale_invariant=True)
+    np.testing.assert_allclose(wks(big, n_eigen=60, n_energies=50, scale_invariant=True), inv, rtol=1e-7,
+                               atol=1e-9 * inv.max())
+    # on one shared grid, Eq. 29 sees a size ratio of 1.13 (TOSCA's Michael to David) only at their own size
+    bigger = blob.transformed(scale=1.13)
+    for si, differs in ((False, True), (True, False)):
+        grid = wks_energies([eigenpairs(blob, k=60), eigenpairs(bigger, k=60)], n_energies=50, scale_invariant=si)
+        wa = wks(blob, n_eigen=60, energies=grid.energies, sigma=grid.sigma, scale_invariant=si)
+        wb = wks(bigger, n_eigen=60, energies=grid.energies, sigma=grid.sigma, scale_invariant=si)
+        d = np.diag(cost_matrix(wa, wb, metric="wks", device="cpu"))
+        assert (d.min() > 1.0) if differs else (d.max() < 1e-6), (si, d.min(), d.max())
+    # sizes too far apart for the computed spectra to overlap: a clear error that names the remedy
+    with pytest.raises(ValueError, match="share one unit of length"):
+        wks_energies([eigenpairs(blob, k=60), eigenpairs(big, k=60)], n_energies=50)
 
 
 def test_relabelling_invariance(blob):
@@ -165,7 +189,7 @@ def test_fewer_vertices_than_n_eigen_warns_and_uses_all():
 def test_two_components_exclude_both_zero_eigenvalues(blob):
     # Two copies of the blob (each then has area 1/2 in the normalized union): every eigenvalue of the
     # area-1 blob appears twice, doubled, with eigenfunctions supported on one copy (φ² doubled).
-    # So WKS_union(x, e + log 2) = WKS_blob(x, e) exactly, when both use the same number of pairs.
+    # So area-normalized, WKS_union(x, e + log 2) = WKS_blob(x, e) exactly, when both use the same number of pairs.
     v = np.vstack([blob.vertices, blob.vertices + [10.0, 0, 0]])
     f = np.vstack([blob.faces, blob.faces + blob.n_vertices])
     with pytest.warns(MeshWarning, match="2 connected components"):
@@ -173,15 +197,19 @@ def test_two_components_exclude_both_zero_eigenvalues(blob):
     with pytest.warns(SpectralWarning, match="2 connected components"):
         su = eigenpairs(union, k=80, cache=False)
     assert su.n_zero == 2
+    # At their own size (the default) the union's spectrum is the blob's, each eigenvalue twice, with the
+    # same φ² on one copy, and C_e counts both: WKS_union(x, e) = WKS_blob(x, e) / 2 (a density over twice
+    # the area).
     sb = eigenpairs(blob, k=40, cache=False)
-    e, sigma = wks_energies(sb, n_energies=30)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SpectralWarning)
-        wu = wks(su, energies=e + np.log(2.0), sigma=sigma)
-    wb = wks(sb, energies=e, sigma=sigma)
-    assert np.all(np.isfinite(wu))
-    np.testing.assert_allclose(wu[: blob.n_vertices], wb, rtol=1e-6)
-    np.testing.assert_allclose(wu[blob.n_vertices :], wb, rtol=1e-6)
+    for si, shift, ratio in ((True, np.log(2.0), 1.0), (False, 0.0, 0.5)):
+        e, sigma = wks_energies(sb, n_energies=30, scale_invariant=si)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SpectralWarning)
+            wu = wks(su, energies=e + shift, sigma=sigma, scale_invariant=si)
+        wb = wks(sb, energies=e, sigma=sigma, scale_invariant=si)
+        assert np.all(np.isfinite(wu))
+        np.testing.assert_allclose(wu[: blob.n_vertices], ratio * wb, rtol=1e-6)
+        np.testing.assert_allclose(wu[blob.n_vertices :], ratio * wb, rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------ real data

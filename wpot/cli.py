@@ -55,6 +55,11 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     )
     p.add_argument("--n-eigen", type=int, default=n_eigen, help=f"WKS: Laplace-Beltrami eigenpairs (default {n_eigen})")
     p.add_argument("--n-energies", type=int, default=n_energies, help=f"WKS: energies (default {n_energies})")
+    p.add_argument(
+        "--scale-invariant", action="store_true",
+        help="WKS: scale every mesh to area 1 first, so size does not count (default: meshes at their own size, "
+             "as in the paper; then all meshes must share one unit of length)",
+    )
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     p.add_argument(
         "--ot-method", choices=("anneal", "ipm"), default="anneal",
@@ -74,6 +79,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "mass_penalty": a.mass_penalty,
         "n_eigen": a.n_eigen,
         "n_energies": a.n_energies,
+        "scale_invariant": a.scale_invariant,
         "device": a.device,
         **({"solver_options": {"method": a.ot_method}} if a.ot_method != "anneal" else {}),
     }

@@ -527,6 +527,9 @@ class Comparer:
     penalty_scale : "relative" (default, above) or "paper": ``α(k) = mass_penalty / ρ(k)²``, so
         ``penalty_scale="paper", mass_penalty=1.0`` is exactly the paper's Eq. 17.
     n_eigen, n_energies : WKS parameters (paper: 500 eigenpairs, 200 energies)
+    scale_invariant : WKS of the meshes at their own size (False, default, the paper's §3.2: size is part of
+        the shape, and a part keeps the size it has in the whole) or scaled to area 1 (True: for meshes in
+        unrelated units, or when size must not count). See `wpot.signatures.wks`.
     energies : a fixed WKS energy grid (n_energies,) shared by all shapes; when None, the grid is built by
         `fit_energies` (from a dataset) or, for a lone pair, from the two shapes' spectra
     ldsift_K, ldsift_resolution : LD-SIFT scale constant K (paper 3) and image size (paper 21)
@@ -548,6 +551,7 @@ class Comparer:
         penalty_scale: str = "relative",
         n_eigen: int = 500,
         n_energies: int = 200,
+        scale_invariant: bool = False,
         energies: ArrayLike | None = None,
         ldsift_K: float = 3.0,
         ldsift_resolution: int = 21,
@@ -567,6 +571,8 @@ class Comparer:
             raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
         if penalty_scale not in PENALTY_SCALES:
             raise ValueError(f"penalty_scale must be one of {PENALTY_SCALES}, got {penalty_scale!r}")
+        if not isinstance(scale_invariant, (bool, np.bool_)):
+            raise ValueError(f"scale_invariant must be True or False, got {scale_invariant!r}")
         if not 0 < match_ratio <= 1:
             raise ValueError(f"match_ratio must be in (0, 1], got {match_ratio!r}")
         self.signature = signature
@@ -578,6 +584,7 @@ class Comparer:
         self.penalty_scale = penalty_scale
         self.n_eigen = int(n_eigen)
         self.n_energies = int(n_energies)
+        self.scale_invariant = bool(scale_invariant)
         self.ldsift_K = float(ldsift_K)
         self.ldsift_resolution = int(ldsift_resolution)
         self.solver_options = dict(solver_options or {})
@@ -607,7 +614,7 @@ class Comparer:
             p["mass_penalty"] = self.mass_penalty
             p["penalty_scale"] = self.penalty_scale
         if self.signature == "wks":
-            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies)
+            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, scale_invariant=self.scale_invariant)
         else:
             p.update(ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution)
         return p
@@ -616,20 +623,22 @@ class Comparer:
         """A new `Comparer` with some settings changed (e.g. ``mass_penalty`` in a sweep).
 
         It shares this one's signature cache (keyed by the signature parameters, so always safe) unless
-        ``cache_dir`` changes, its WKS
-        energy grid unless ``energies`` is given, and its farthest-point samples when ``max_vertices`` and
-        ``fps_metric`` are unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
+        ``cache_dir`` changes, its WKS energy grid unless ``energies`` is given or ``scale_invariant``
+        changes, and its farthest-point samples when ``max_vertices`` and ``fps_metric`` are unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
         """
         kw: dict[str, Any] = dict(
             signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
             fps_metric=self.fps_metric, device=self.device, mass_penalty=self.mass_penalty,
             penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
-            energies=self._energies, ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution,
+            scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
+            ldsift_resolution=self.ldsift_resolution,
             cache_dir=self.cache_dir, solver_options=self.solver_options, match_ratio=self.match_ratio,
         )
         unknown = sorted(set(changes) - set(kw))
         if unknown:
             raise ValueError(f"unknown Comparer options {unknown}; known: {sorted(kw)}")
+        if "energies" not in changes and changes.get("scale_invariant", self.scale_invariant) != self.scale_invariant:
+            kw["energies"] = None  # a grid is fitted for one scale convention: refit
         kw.update(changes)
         new = Comparer(**kw)
         if new.cache_dir == self.cache_dir:
@@ -663,7 +672,7 @@ class Comparer:
 
         # as `wks` does, a mesh with fewer vertices than n_eigen uses all its eigenpairs
         spectra = [eigenpairs(m, min(self.n_eigen, m.n_vertices)) for m in meshes]
-        self.energies = _energy_grid(wks_energies(spectra, n_energies=self.n_energies))
+        self.energies = _energy_grid(wks_energies(spectra, n_energies=self.n_energies, scale_invariant=self.scale_invariant))
         return self.energies
 
     # ------------------------------------------------------------------------------ signatures
@@ -672,7 +681,8 @@ class Comparer:
 
         p: dict[str, Any] = {"signature": self.signature}
         if self.signature == "wks":
-            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies, version=_wks.VERSION)
+            p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, scale_invariant=self.scale_invariant,
+                     energies=self._energies, version=_wks.VERSION)
         else:
             p.update(K=self.ldsift_K, resolution=self.ldsift_resolution, version=_ldsift.VERSION)
         return p
@@ -701,7 +711,8 @@ class Comparer:
         if self.signature == "wks":
             from wpot.signatures._wks import wks
 
-            return np.asarray(wks(mesh, n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies), dtype=np.float64)
+            return np.asarray(wks(mesh, n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies,
+                                  scale_invariant=self.scale_invariant), dtype=np.float64)
         from wpot.signatures._ldsift import ldsift
 
         return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)

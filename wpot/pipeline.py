@@ -648,7 +648,7 @@ def run_all_vs_all(
             from wpot.comparison import _energy_grid
             from wpot.signatures._wks import wks_energies
 
-            config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies)).tolist()
+            config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies, scale_invariant=comparer.scale_invariant)).tolist()
             store.set("energies", config["energies"])
         needed = sorted({i for t in todo for i in t})
         _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
@@ -746,6 +746,7 @@ def _comparer_kwargs(c: Any) -> dict[str, Any]:
         "penalty_scale": c.penalty_scale,
         "n_eigen": c.n_eigen,
         "n_energies": c.n_energies,
+        "scale_invariant": c.scale_invariant,
         "ldsift_K": c.ldsift_K,
         "ldsift_resolution": c.ldsift_resolution,
         "solver_options": dict(c.solver_options),

@@ -86,6 +86,7 @@ class Spectrum:
     fingerprint : `Mesh.fingerprint` of the source mesh ("" when built by hand).
     seconds : wall time of the eigensolve that produced it (also when read back from the cache).
     from_cache : True when this result was read from the cache instead of computed.
+    normalized : True (what `eigenpairs` returns) for the area-normalized mesh; False after `in_mesh_units`.
     """
 
     evals: np.ndarray
@@ -96,6 +97,7 @@ class Spectrum:
     fingerprint: str = ""
     seconds: float = 0.0
     from_cache: bool = False
+    normalized: bool = True
 
     def __post_init__(self) -> None:
         ev = np.array(self.evals, dtype=np.float64)
@@ -120,6 +122,21 @@ class Spectrum:
     @property
     def n_vertices(self) -> int:
         return int(self.evecs.shape[0])
+
+    def rescaled(self, *, normalized: bool) -> "Spectrum":
+        """This spectrum for the area-normalized mesh (``normalized=True``, what `eigenpairs` returns) or for the
+        mesh at its own size (``normalized=False``: ``λ / area`` and ``φ / √area``, φ M-orthonormal for the
+        un-normalized mass ``M``). At its own size the eigenvalues carry the shape's size (they scale as
+        1/length²), as with the paper's operator ``L = M⁻¹W`` (§3.2), which does not normalize the area.
+        Returns ``self`` when it already is in the asked form."""
+        if bool(normalized) == self.normalized:
+            return self
+        f = self.area if normalized else 1.0 / self.area
+        return Spectrum(
+            evals=self.evals * f, evecs=self.evecs * np.sqrt(f), area=self.area, n_zero=self.n_zero,
+            solver=self.solver, fingerprint=self.fingerprint, seconds=self.seconds, from_cache=self.from_cache,
+            normalized=bool(normalized),
+        )
 
     @property
     def nonzero_evals(self) -> np.ndarray:
