@@ -124,6 +124,25 @@ def test_sphere_eigenvalues_and_multiplicities():
     assert errors[1] < 0.4 * errors[0]  # and converging under refinement (O(h²): ~1/4 per subdivision)
 
 
+def test_rescaled_is_the_spectrum_of_the_mesh_at_its_own_size():
+    radius = 3.0
+    m = icosphere(3, radius=radius)
+    s = eigenpairs(m, k=10, cache=False)
+    raw = s.rescaled(normalized=False)
+    assert not raw.normalized and raw.rescaled(normalized=False) is raw
+    # the sphere of radius R: λ_l = l(l+1)/R², whatever the area
+    ls = np.repeat(np.arange(3), 2 * np.arange(3) + 1)[1:]
+    np.testing.assert_allclose(raw.evals[1:9], ls * (ls + 1) / radius**2, rtol=0.01)
+    # eigenpairs of W φ = λ M φ with the un-normalized mass, M-orthonormal
+    W, M = laplace_beltrami(m)
+    np.testing.assert_allclose(W @ raw.evecs, (M @ raw.evecs) * raw.evals, atol=1e-8 * radius)
+    np.testing.assert_allclose(raw.evecs.T @ (M @ raw.evecs), np.eye(10), atol=1e-9)
+    back = raw.rescaled(normalized=True)
+    assert back.normalized
+    np.testing.assert_allclose(back.evals, s.evals, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(back.evecs, s.evecs, rtol=1e-13, atol=1e-13)
+
+
 def test_dense_and_lanczos_agree_and_are_m_orthonormal():
     m = icosphere(3)
     lb = LaplaceBeltrami(m)

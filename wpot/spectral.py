@@ -13,6 +13,7 @@ Conventions
   eigenvectors M-orthonormal: ``Φᵀ M Φ = I``.
 * `eigenpairs` works on the **area-normalized** mesh (total area 1), so eigenvalues of different shapes
   are comparable: ``λ(normalized) = area · λ(original)``. ``W`` is scale invariant, so only ``M`` changes.
+  `Spectrum.rescaled` gives the spectrum of the mesh at its own size (what WKS uses by default), exactly.
 
 Solvers (chosen by `choose_solver`, always reported in `Spectrum.solver`; never swapped silently)
 ------------------------------------------------------------------------------------------------
@@ -86,7 +87,8 @@ class Spectrum:
     fingerprint : `Mesh.fingerprint` of the source mesh ("" when built by hand).
     seconds : wall time of the eigensolve that produced it (also when read back from the cache).
     from_cache : True when this result was read from the cache instead of computed.
-    normalized : True (what `eigenpairs` returns) for the area-normalized mesh; False after `in_mesh_units`.
+    normalized : True (what `eigenpairs` returns) for the area-normalized mesh; False for the mesh at its own size
+        (`rescaled`).
     """
 
     evals: np.ndarray
