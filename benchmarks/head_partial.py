@@ -130,8 +130,8 @@ def paper_kappa(base, ds, heads, fulls) -> float:
 
     ks = []
     for h in heads:
-        sa, _ = base._points(ds.mesh(h))
-        sb, _ = base._points(ds.mesh(ds.parent[h]))
+        sa = base.points(ds.mesh(h)).signatures
+        sb = base.points(ds.mesh(ds.parent[h])).signatures
         c = cost_matrix(sa, sb, metric=SIGNATURE_METRIC[base.signature], device=base.device)
         ks.append(math.sqrt(len(sa) * len(sb)) / cost_scale(c))
     return float(np.median(ks))

