@@ -246,6 +246,7 @@ def main(argv=None) -> int:
                     help="instead of the sweep: every head against every full shape at these kappas "
                          "(and the paper's alpha unless --no-paper)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--pooling", default="cell", choices=["cell", "none"], help="how samples stand for a mesh (Comparer)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--mass-figure", default=None, metavar="HEAD",
                     help="instead: draw HEAD's parent coloured by received mass at each of --kappas")
@@ -283,7 +284,7 @@ def main(argv=None) -> int:
     if a.mass_figure is not None:
         for sig in a.signatures:
             base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
-                            n_eigen=a.n_eigen, n_energies=a.n_energies, cache_dir=out / "cache")
+                            n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
             if sig == "wks":
                 base.fit_energies([ds.mesh(n) for n in heads + fulls])
             path = out / f"mass_{sig}_{a.mass_figure}.png"
@@ -295,7 +296,7 @@ def main(argv=None) -> int:
         results_path = out / f"{stem}_{sig}.json"  # one file per signature: two processes can share --out
         results = json.loads(results_path.read_text()) if results_path.is_file() else {}
         base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
-                        n_eigen=a.n_eigen, n_energies=a.n_energies, cache_dir=out / "cache")
+                        n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
         t0 = time.perf_counter()
         if sig == "wks":
             base.fit_energies([ds.mesh(n) for n in heads + fulls])
