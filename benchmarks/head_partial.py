@@ -246,7 +246,7 @@ def main(argv=None) -> int:
                     help="instead of the sweep: every head against every full shape at these kappas "
                          "(and the paper's alpha unless --no-paper)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--pooling", default="cell", choices=["cell", "none"], help="how samples stand for a mesh (Comparer)")
+    ap.add_argument("--pooling", default="none", choices=["none", "cell"], help="how samples stand for a mesh (Comparer)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--mass-figure", default=None, metavar="HEAD",
                     help="instead: draw HEAD's parent coloured by received mass at each of --kappas")

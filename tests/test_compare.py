@@ -374,8 +374,9 @@ def test_pooling_feeds_cell_means_and_sizes_to_the_solver(comparer, pair):
     from wpot.comparison import Comparer
     from wpot.cost import cost_matrix
 
-    cell = Comparer(max_vertices=150, energies=comparer.energies, **FAST)
-    none = cell.with_options(pooling="none")
+    none = Comparer(max_vertices=150, energies=comparer.energies, **FAST)
+    assert none.pooling == "none"  # the default: parts against wholes need it (see Comparer)
+    cell = none.with_options(pooling="cell")
     sig = cell.signatures(pair.source)
     p, q = cell.points(pair.source), none.points(pair.source)
     np.testing.assert_allclose(p.signatures, p.subsample.pool(sig), rtol=1e-14)

@@ -46,9 +46,10 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--transport", choices=("balanced", "partial"), default="balanced", help="transport (default: balanced)")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
     p.add_argument(
-        "--pooling", choices=("cell", "none"), default="cell",
-        help="with --max-vertices: each sample carries its cell's mean signature and size as mass (cell, default) "
-             "or only its own signature, uniform masses (none)",
+        "--pooling", choices=("none", "cell"), default="none",
+        help="with --max-vertices: each sample keeps its own signature, uniform masses (none, default), or carries "
+             "its cell's mean signature and size as mass (cell: better for whole shapes meshed alike, e.g. LD-SIFT "
+             "classification; not for parts against wholes)",
     )
     from wpot.comparison import DEFAULT_MASS_PENALTY
 
