@@ -10,6 +10,7 @@ from wpot.comparison import (
     DEFAULT_MASS_PENALTY,
     PENALTY_SCALES,
     Comparer,
+    Points,
     cost_scale,
     solver_mass_penalty,
 )
@@ -147,6 +148,6 @@ def test_comparer_records_and_applies_the_penalty(monkeypatch):
     sb = np.random.default_rng(4).random((30, 4))
     for comp, expect in ((c, lambda C: DEFAULT_MASS_PENALTY * C.mean() / np.sqrt(600)), (p, lambda C: 1.0)):
         seen.clear()
-        comp._solve(sa, sb)
+        comp._solve(Points(sa, None, None), Points(sb, None, None))
         (C, a), = seen
         assert a == pytest.approx(expect(C), rel=1e-12)
