@@ -119,3 +119,16 @@ def test_labels_csv_missing_and_unparsable_mesh(dataset, tmp_path):
     bad = tmp_path / "bad.off"
     bad.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")
     _one_line_error(wpot("compare", str(bad), str(dataset / "blob1.off")), "bad.off")
+
+
+def test_method_options_reach_the_comparer():
+    from wpot.cli import _comparer_options, build_parser
+    from wpot.comparison import Comparer
+
+    a = build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50", "--pooling", "cell",
+                                   "--scale-invariant", "--device", "cpu"])
+    p = Comparer(**_comparer_options(a)).params()
+    assert p["pooling"] == "cell" and p["scale_invariant"] is True and p["max_vertices"] == 50
+    d = Comparer(**_comparer_options(build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50",
+                                                                "--device", "cpu"]))).params()
+    assert d["pooling"] == "none" and d["scale_invariant"] is False  # the library's defaults
