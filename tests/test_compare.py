@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib.util
+import warnings
 
 import numpy as np
 import pytest
@@ -369,6 +370,7 @@ def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
     assert np.median(_errors(pair, c.correspondence)) < 3.0
 
 
+@pytest.mark.filterwarnings("ignore:n_eigen=100 but the mesh has only")  # the 75-vertex quarter below
 def test_pooling_feeds_cell_means_and_sizes_to_the_solver(comparer, pair):
     ot = pytest.importorskip("ot")
     from wpot.comparison import Comparer
@@ -394,6 +396,18 @@ def test_pooling_feeds_cell_means_and_sizes_to_the_solver(comparer, pair):
     assert cell.params()["pooling"] == "cell" and comparer.params()["pooling"] is None
     with pytest.raises(ValueError, match="pooling must be one of"):
         Comparer(pooling="max")
+    # a quarter against the whole at 60 samples: about 1.3 vertices per cell against 5; warned with "cell" only
+    from wpot.mesh import cut
+
+    v = pair.source.vertices
+    quarter, _ = cut(pair.source, (v[:, 0] > 0) & (v[:, 2] > 0))
+    few = Comparer(max_vertices=60, energies=comparer.energies, **FAST)
+    with pytest.warns(UserWarning, match="smoothed unequally"):
+        few.with_options(pooling="cell").transport_plan(quarter, pair.source)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        few.transport_plan(quarter, pair.source)
+        few.with_options(pooling="cell").transport_plan(pair.target, pair.source)  # two wholes: no warning
 
 
 def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):

@@ -78,6 +78,8 @@ MEMORY_FRACTION = 0.8
 FPS_METRICS = ("geodesic", "euclidean")
 #: how a farthest-point sample stands for its mesh (see `Comparer`, ``pooling``)
 POOLINGS = ("cell", "none")
+#: pooling="cell" warns when one mesh has more than this many times as many vertices per sample as the other
+MAX_CELL_RATIO = 2.0
 #: signatures kept in a `Comparer`'s memory cache, by count and bytes (the disk cache has no bound)
 MAX_CACHED_SHAPES = 128
 MAX_CACHED_BYTES = 2 << 30
@@ -784,9 +786,24 @@ class Comparer:
             return Points(sig[s.indices], None, s)
         return Points(s.pool(sig), s.counts / mesh.n_vertices, s)
 
+    def _check_cells(self, mesh_a: Mesh, mesh_b: Mesh) -> None:
+        """Warn when ``pooling="cell"`` would average over cells of very different sizes (see ``pooling``)."""
+        if self.pooling != "cell" or self.max_vertices is None:
+            return
+        per_cell = [m.n_vertices / min(m.n_vertices, self.max_vertices) for m in (mesh_a, mesh_b)]
+        if max(per_cell) > MAX_CELL_RATIO * min(per_cell):
+            warnings.warn(
+                f"pooling='cell' averages signatures over {per_cell[0]:.1f} vertices per sample on mesh_a and "
+                f"{per_cell[1]:.1f} on mesh_b: the two shapes are smoothed unequally (as for a part against a "
+                "whole), which biases the distance; use pooling='none' here",
+                UserWarning,
+                stacklevel=3,
+            )
+
     # ------------------------------------------------------------------------------ transport
     def transport_plan(self, mesh_a: Mesh, mesh_b: Mesh) -> Any:
         """Solve the transport between the (sampled) signatures of A and B; returns the solver's `OTResult`."""
+        self._check_cells(mesh_a, mesh_b)
         return self._solve(self.points(mesh_a), self.points(mesh_b))
 
     def _solve(self, pa: "Points", pb: "Points") -> Any:
@@ -822,6 +839,7 @@ class Comparer:
                 raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
         if self.signature == "wks" and self._energies is None:
             self.fit_energies([mesh_a, mesh_b])
+        self._check_cells(mesh_a, mesh_b)
         pa, pb = self.points(mesh_a), self.points(mesh_b)
         sub_a, sub_b = pa.subsample, pb.subsample
         res = self._solve(pa, pb)
