@@ -561,6 +561,7 @@ class Comparer:
         51.6 % to 70.4 % (leave-one-out 73.7 → 88.2 %; area-weighted cells did less: 64.2 %, 85.5 %). Not
         for a part against a whole: their cells then differ in size, the averaging smooths the two sides
         unequally, and on HEAD (6 heads, LD-SIFT partial, κ = 0.01) parent retrieval fell from 6/6 to 2/6.
+        A comparison warns when one mesh has over `MAX_CELL_RATIO` times as many vertices per sample.
     device : Warp device for signatures, cost and solver; None is Warp's default, resolved once here
     mass_penalty : partial transport's χ² penalty factor. With ``penalty_scale="relative"`` (default) it is
         κ in ``α(k) = κ · mean(C) / (√(N1 N2) ρ(k)²)``: spreading all of a side's mass on a fraction f of its
