@@ -75,7 +75,18 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     assert re.search(r"200 trials: 100\.0%", r.stdout), r.stdout
     assert re.search(r"leave-one-out 1-NN at level 'class' \(2 groups\): 100\.0%", r.stdout), r.stdout
     info = json.loads((run / "classification.json").read_text())
-    assert info["one_shot"]["mean"] == 1.0
+    assert info["one_shot"]["mean"] == 1.0 and info["not_converged"] == 0
+    assert "did not converge" not in r.stderr
+    # a pair the solver did not converge on is flagged, never used silently
+    import sqlite3
+
+    con = sqlite3.connect(run / "wpot.sqlite")
+    con.execute("UPDATE pairs SET converged = 0 WHERE rowid = (SELECT min(rowid) FROM pairs WHERE i <> j)")
+    con.commit()
+    con.close()
+    r = wpot("classify", str(run), "--trials", "200")
+    assert r.returncode == 0 and "warning: 1 of 6 pairs did not converge" in r.stderr, r.stderr
+    assert json.loads((run / "classification.json").read_text())["not_converged"] == 1
     r = wpot("report", str(run), "--trials", "200")
     assert r.returncode == 0, r.stderr
     text = (run / "report.md").read_text()

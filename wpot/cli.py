@@ -323,7 +323,9 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
         if np.isnan(db[off]).any():
             continue
         per_beta.append((float(b), one_shot_1nn(db, levels["class"], n_trials=min(trials, 1000), seed=seed).mean))
-    return {"one_shot": one, "loo": loo, "per_beta": per_beta, "levels": levels}
+    conv = store.converged_matrix()
+    not_converged = int((~conv[off]).sum() // 2)
+    return {"one_shot": one, "loo": loo, "per_beta": per_beta, "levels": levels, "not_converged": not_converged}
 
 
 def cmd_classify(a: argparse.Namespace) -> None:
@@ -340,9 +342,15 @@ def cmd_classify(a: argparse.Namespace) -> None:
           f"(std {100 * one.std:.1f})" + (f"   paper Table 1 (TOSCA8): {paper:.1f}%" if paper is not None else ""))
     for lv, res in r["loo"].items():
         print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {100 * res.accuracy:.1f}%")
+    if r["not_converged"]:
+        n = len(r["levels"]["class"])
+        print(f"warning: {r['not_converged']} of {n * (n - 1) // 2} pairs did not converge, and their D(inf) may be wrong, "
+              "so these accuracies may be too; `wpot report` lists them. Rerun with other solver options "
+              "(e.g. --ot-method ipm for balanced transport) in a new --out folder", file=sys.stderr)
     out = Path(a.run) / "classification.json"
     out.write_text(json.dumps({
         "one_shot": {"mean": one.mean, "std": one.std, "n_trials": one.n_trials, "seed": one.seed},
+        "not_converged": r["not_converged"],
         "leave_one_out": {lv: res.accuracy for lv, res in r["loo"].items()},
         "one_shot_per_beta": r["per_beta"],
     }, indent=2))
