@@ -123,6 +123,17 @@ def run_setting(base, ds, heads, fulls, label: str, log) -> dict:
     return {"summary": summary, "pairs": pairs, "distances": d.tolist(), "heads": list(heads), "fulls": list(fulls)}
 
 
+def base_comparer(a, sig: str, ds, names: list[str], out: Path):
+    """The partial-transport `Comparer` of a run (its WKS energy grid fitted to ``names``)."""
+    from wpot.comparison import Comparer
+
+    base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
+                    n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
+    if sig == "wks":
+        base.fit_energies([ds.mesh(n) for n in names])
+    return base
+
+
 def paper_kappa(base, ds, heads, fulls) -> float:
     """The relative κ that the paper's α = 1/ρ² amounts to, √(N1 N2)/mean(C), median over the parent pairs."""
     from wpot.comparison import cost_scale, SIGNATURE_METRIC
@@ -263,7 +274,6 @@ def main(argv=None) -> int:
         logf.write(msg + "\n")
         logf.flush()
 
-    from wpot.comparison import Comparer
     from wpot.datasets import build_head_dataset, load_head_dataset
 
     dsdir = out / "head_dataset"
@@ -283,10 +293,7 @@ def main(argv=None) -> int:
     log(f"HEAD: {len(heads)} heads x {len(fulls)} full shapes, max_vertices={a.max_vertices}, settings={settings}")
     if a.mass_figure is not None:
         for sig in a.signatures:
-            base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
-                            n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
-            if sig == "wks":
-                base.fit_energies([ds.mesh(n) for n in heads + fulls])
+            base = base_comparer(a, sig, ds, heads + fulls, out)
             path = out / f"mass_{sig}_{a.mass_figure}.png"
             mass_figure(base, ds, a.mass_figure, a.kappas, path, log)
             log(f"figure: {path}")
@@ -295,11 +302,8 @@ def main(argv=None) -> int:
     for sig in ([] if a.report_only else a.signatures):
         results_path = out / f"{stem}_{sig}.json"  # one file per signature: two processes can share --out
         results = json.loads(results_path.read_text()) if results_path.is_file() else {}
-        base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
-                        n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
         t0 = time.perf_counter()
-        if sig == "wks":
-            base.fit_energies([ds.mesh(n) for n in heads + fulls])
+        base = base_comparer(a, sig, ds, heads + fulls, out)
         for n in heads + fulls:
             base.signatures(ds.mesh(n))
             base.subsample(ds.mesh(n))

@@ -622,8 +622,9 @@ class Comparer:
             raise ValueError(f"mass_penalty must be a positive finite number, got {mass_penalty!r}")
         if penalty_scale not in PENALTY_SCALES:
             raise ValueError(f"penalty_scale must be one of {PENALTY_SCALES}, got {penalty_scale!r}")
-        if not isinstance(scale_invariant, (bool, np.bool_)):
-            raise ValueError(f"scale_invariant must be True or False, got {scale_invariant!r}")
+        from wpot.signatures._wks import check_scale_invariant
+
+        check_scale_invariant(scale_invariant)
         if not 0 < match_ratio <= 1:
             raise ValueError(f"match_ratio must be in (0, 1], got {match_ratio!r}")
         self.signature = signature
@@ -672,21 +673,26 @@ class Comparer:
             p.update(ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution)
         return p
 
+    def options(self) -> dict[str, Any]:
+        """The constructor arguments that rebuild this `Comparer` (``Comparer(**c.options())``)."""
+        return dict(
+            signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
+            fps_metric=self.fps_metric, pooling=self.pooling, device=self.device, mass_penalty=self.mass_penalty,
+            penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
+            scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
+            ldsift_resolution=self.ldsift_resolution, cache_dir=self.cache_dir,
+            solver_options=dict(self.solver_options), match_ratio=self.match_ratio,
+        )
+
     def with_options(self, **changes: Any) -> "Comparer":
         """A new `Comparer` with some settings changed (e.g. ``mass_penalty`` in a sweep).
 
         It shares this one's signature cache (keyed by the signature parameters, so always safe) unless
         ``cache_dir`` changes, its WKS energy grid unless ``energies`` is given or ``scale_invariant``
-        changes, and its farthest-point samples when ``max_vertices`` and ``fps_metric`` are unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
+        changes, and its farthest-point samples when ``max_vertices`` and ``fps_metric`` are unchanged.
+        Self-comparisons (Eq. 27) are not shared: they depend on every setting.
         """
-        kw: dict[str, Any] = dict(
-            signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
-            fps_metric=self.fps_metric, pooling=self.pooling, device=self.device, mass_penalty=self.mass_penalty,
-            penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
-            scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
-            ldsift_resolution=self.ldsift_resolution,
-            cache_dir=self.cache_dir, solver_options=self.solver_options, match_ratio=self.match_ratio,
-        )
+        kw = self.options()
         unknown = sorted(set(changes) - set(kw))
         if unknown:
             raise ValueError(f"unknown Comparer options {unknown}; known: {sorted(kw)}")

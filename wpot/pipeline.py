@@ -648,7 +648,8 @@ def run_all_vs_all(
             from wpot.comparison import _energy_grid
             from wpot.signatures._wks import wks_energies
 
-            config["energies"] = _energy_grid(wks_energies(spectra, n_energies=comparer.n_energies, scale_invariant=comparer.scale_invariant)).tolist()
+            grid = wks_energies(spectra, n_energies=comparer.n_energies, scale_invariant=comparer.scale_invariant)
+            config["energies"] = _energy_grid(grid).tolist()
             store.set("energies", config["energies"])
         needed = sorted({i for t in todo for i in t})
         _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
@@ -737,22 +738,8 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
 
 
 def _comparer_kwargs(c: Any) -> dict[str, Any]:
-    return {
-        "signature": c.signature,
-        "transport": c.transport,
-        "max_vertices": c.max_vertices,
-        "fps_metric": c.fps_metric,
-        "pooling": c.pooling,
-        "mass_penalty": c.mass_penalty,
-        "penalty_scale": c.penalty_scale,
-        "n_eigen": c.n_eigen,
-        "n_energies": c.n_energies,
-        "scale_invariant": c.scale_invariant,
-        "ldsift_K": c.ldsift_K,
-        "ldsift_resolution": c.ldsift_resolution,
-        "solver_options": dict(c.solver_options),
-        "match_ratio": c.match_ratio,
-    }
+    """The `Comparer` settings a worker rebuilds it from; device, grid and cache travel separately in the config."""
+    return {k: v for k, v in c.options().items() if k not in ("device", "energies", "cache_dir")}
 
 
 def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -> Iterator[tuple[Any, cf.Future]]:

@@ -67,11 +67,16 @@ class EnergyGrid(NamedTuple):
     sigma: float
 
 
-def _wks_spectrum(spectrum: Spectrum, scale_invariant: bool) -> Spectrum:
-    """The spectrum WKS uses: area-normalized, or at the mesh's own size (see the module docstring)."""
+def check_scale_invariant(scale_invariant: object) -> bool:
+    """``scale_invariant`` as a bool; a `ValueError` for anything but True or False (e.g. the string "yes")."""
     if not isinstance(scale_invariant, (bool, np.bool_)):
         raise ValueError(f"scale_invariant must be True or False, got {scale_invariant!r}")
-    return spectrum.rescaled(normalized=bool(scale_invariant))
+    return bool(scale_invariant)
+
+
+def _wks_spectrum(spectrum: Spectrum, scale_invariant: bool) -> Spectrum:
+    """The spectrum WKS uses: area-normalized, or at the mesh's own size (see the module docstring)."""
+    return spectrum.rescaled(normalized=check_scale_invariant(scale_invariant))
 
 
 def _positive_evals(spectrum: Spectrum) -> np.ndarray:
