@@ -230,6 +230,41 @@ def test_partial_huge_penalty_recovers_balanced():
     np.testing.assert_allclose(rq.mass1, r1**2 / np.sum(r1**2), atol=1e-4)
 
 
+def _uneven_problem(n, spread, seed):
+    """Points in R^3 and log-normal masses (max/min ~ 10^2-10^4, as cell-pooled samples of unevenly meshed
+    shapes give, or heavier)."""
+    rng = np.random.default_rng(seed)
+    X, Y = np.abs(rng.normal(size=(n, 3))), np.abs(rng.normal(size=(n, 3)))
+    C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
+    a, b = np.exp(spread * rng.normal(size=n)), np.exp(spread * rng.normal(size=n))
+    return C, a / a.sum(), b / b.sum()
+
+
+@pytest.mark.parametrize("spread,seed", [(1.5, 0), (1.5, 1), (2.5, 0)])
+def test_balanced_uneven_masses_match_emd(spread, seed):
+    # Regression: Newton used to stall at the first beta on such masses (residual stuck at 0.5; converged
+    # False and U off by ~100%)
+    C, a, b = _uneven_problem(40, spread, seed)
+    res = wo.solve_balanced(C, a, b, device="cpu")
+    assert res.converged
+    _check_balanced(C, a, b, res)
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_partial_uneven_masses_match_independent_qp(seed):
+    # Regression: one point holding ~40% of the mass drove a pivot entry to G ~ 1/2 (beta s ~ 0), where the
+    # fraction-to-boundary rule stopped every Newton step short
+    pytest.importorskip("cvxpy")
+    C, r1, r2 = _uneven_problem(40, 1.5, seed)
+    mp = 0.01 * C.mean() / 40
+    res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu")
+    val, m1, m2 = _qp(C, r1, r2, mp)
+    assert res.converged
+    assert abs(res.objective - val) <= 1e-6 * val
+    np.testing.assert_allclose(res.mass1, m1, atol=1e-6)
+    np.testing.assert_allclose(res.mass2, m2, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- validation
 def test_bad_inputs_raise_value_errors_naming_the_problem():
     C = np.random.default_rng(0).random((5, 6))

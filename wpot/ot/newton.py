@@ -42,6 +42,8 @@ REFRESH_EXTRA_CG = 2
 #: min(CG_LOOSE, residual), but never tighter than ``cg_rtol``. Far from the solution (the damped steps of the
 #: transition betas) a rough direction does as well as an accurate one
 CG_LOOSE = 0.1
+#: the fraction-to-zero step rule applies to pivots with beta s above this (see `Engine.newton`)
+FTB_MIN_X = 1.0
 
 
 @dataclass
@@ -322,23 +324,6 @@ class Engine:
         self.t.precond += time.perf_counter() - t0
         self.t.n_factor += 1
 
-    def _scaled(self, pt: Point) -> Point:
-        """Residuals scaled by (marginal / target): Newton on 1/marginal = 1/target instead of
-        marginal = target. For a plan entry G = 1/(beta s) the reciprocal is linear in s, so the step
-        does not overshoot when a marginal is far too small (the warm start after beta *= step); near
-        the solution the scale tends to 1 and the iteration is Newton's. The direction stays a descent
-        direction of ||g||^2 (J^-1 times a positive diagonal)."""
-        p = self.p
-        rg, cg = self.row_g.numpy(), self.col_g.numpy()
-        t1 = rg + pt.g1
-        t2 = cg + pt.g2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f1 = np.where(t1 > 0, rg / t1, 1.0)
-            f2 = np.where(t2 > 0, cg / t2, 1.0)
-        f1 = np.clip(f1, 1e-3, 1e3)
-        f2 = np.clip(f2, 1e-3, 1e3)
-        return Point(pt.g1 * f1, pt.g2 * f2, pt.merit, pt.residual)
-
     def _trial(self, alpha: float):
         p = self.p
         wp.launch(K.dd_axpy, dim=p.n_r, inputs=[self.lam[0], self.lam[1], alpha, self.d_a, self.d_b],
@@ -355,14 +340,16 @@ class Engine:
             if n_newton >= self.o.max_newton:
                 return pt, n_newton, n_lin, False
             reused = self._M is not None and not self._M_stale
-            k_lin, _ = self.direction(self._scaled(pt), rtol=min(CG_LOOSE, pt.residual))
+            k_lin, _ = self.direction(pt, rtol=min(CG_LOOSE, pt.residual))
             n_lin += k_lin
             n_newton += 1
-            # fraction to the boundary s = 0 on each row's pivot entry (its reduced cost moves by d_b
-            # exactly): the full step overshoots when a plan entry is too small (G ~ 1/(beta s))
+            # fraction to s = 0 on each row's pivot entry (its reduced cost moves by d_b exactly), for pivots
+            # in phi's 1/x tail (beta s > FTB_MIN_X): there the linear model overshoots (G ~ 1/(beta s)).
+            # s = 0 is not a bound (phi is smooth, G < 1): a pivot already near it is left to the line
+            # search, otherwise every step would stop 90% of the way and the iteration stall
             db = self.d_b.numpy()
             spv = self.s_piv.numpy()
-            neg = (db < 0) & (spv > 0)
+            neg = (db < 0) & (spv * beta > FTB_MIN_X)
             alpha = 1.0
             if np.any(neg):
                 alpha = min(1.0, 0.9 * float(np.min(spv[neg] / -db[neg])))
