@@ -1,6 +1,8 @@
 """Speed and accuracy of wpot.ot against POT, side by side in one run (issue 3).
 
-Problem: C = Euclidean distances between uniform random points in R^8, normalized to max 1, uniform masses.
+Problem: C = Euclidean distances between uniform random points in R^8, normalized to max 1; uniform masses, or
+with ``--mass-spread s`` log-normal ones (exp(s z), z ~ N(0, 1): max/min ~ 10^3 at s = 1.5, N = 500; unequal
+masses as cell-pooled samples give, where an earlier Newton variant stalled).
 Solvers: wpot.ot.solve_balanced (Warp; method="anneal" and method="ipm", default CG and optionally the dense
 direct solve), POT's exact ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
 Printed: wall time, relative gap of <C, plan> to ot.emd's optimum, L1 marginal error (relative to the
@@ -8,6 +10,7 @@ total mass), wpot's Newton/CG counts and where its time goes. Timings on a share
 
     python benchmarks/ot_speed.py                 # N = 500, 1000, 3400
     python benchmarks/ot_speed.py --sizes 500 1000 --quick
+    python benchmarks/ot_speed.py --sizes 500 1000 --quick --mass-spread 1.5
 """
 from __future__ import annotations
 
@@ -25,6 +28,16 @@ def problem(n: int, seed: int = 0):
     return C / C.max()
 
 
+def masses(n: int, spread: float, seed: int = 1):
+    """Two (n,) mass vectors summing to 1: uniform (spread 0) or log-normal with log-std ``spread``."""
+    if spread == 0:
+        a = np.full(n, 1.0 / n)
+        return a, a
+    rng = np.random.default_rng(seed)
+    a, b = np.exp(spread * rng.normal(size=n)), np.exp(spread * rng.normal(size=n))
+    return a / a.sum(), b / b.sum()
+
+
 def row(name, t, gap, merr, extra=""):
     print(f"  {name:<34} {t:9.2f} s   gap {gap:10.2e}   marg.err {merr:9.2e}   {extra}")
 
@@ -37,6 +50,8 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--methods", nargs="+", default=["anneal", "ipm"], choices=["anneal", "ipm"],
                     help="wpot solve_balanced methods to time (default both)")
+    ap.add_argument("--mass-spread", type=float, default=0.0,
+                    help="log-normal masses with this log-std (default 0: uniform)")
     ap.add_argument("--small", type=int, nargs="*", default=[],
                     help="also time repeated calls at these small N (per-call overhead; e.g. --small 200 250)")
     args = ap.parse_args()
@@ -78,22 +93,23 @@ def main():
 
     for n in args.sizes:
         C = problem(n)
-        a = np.full(n, 1.0 / n)
-        print(f"\nN = {n}  (C {n}x{n}, float64 {C.nbytes / 2**20:.0f} MiB)")
+        a, b = masses(n, args.mass_spread)
+        print(f"\nN = {n}  (C {n}x{n}, float64 {C.nbytes / 2**20:.0f} MiB; masses max/min {a.max() / a.min():.3g},"
+              f" {b.max() / b.min():.3g})")
         t = time.perf_counter()
-        G0 = ot.emd(a, a, C, numItermax=10**9)
+        G0 = ot.emd(a, b, C, numItermax=10**9)
         t_emd = time.perf_counter() - t
         u0 = float((G0 * C).sum())
-        row("POT ot.emd (exact)", t_emd, 0.0, np.abs(G0.sum(1) - a).sum() + np.abs(G0.sum(0) - a).sum())
+        row("POT ot.emd (exact)", t_emd, 0.0, np.abs(G0.sum(1) - a).sum() + np.abs(G0.sum(0) - b).sum())
 
         def report(name, G, t):
             gap = ((G * C).sum() - u0) / u0
-            merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - a).sum()
+            merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - b).sum()
             return gap, merr
 
         for method in args.methods:
             t = time.perf_counter()
-            r = wo.solve_balanced(C, device=args.device, method=method)
+            r = wo.solve_balanced(C, a, b, device=args.device, method=method)
             tw = time.perf_counter() - t
             gap, merr = report("wpot", r.plan, tw)
             tm = {k: v for k, v in timers.items()}
@@ -106,7 +122,7 @@ def main():
             print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
         if args.direct and n <= 2000:
             t = time.perf_counter()
-            rd = wo.solve_balanced(C, device=args.device, linear_solver="direct")
+            rd = wo.solve_balanced(C, a, b, device=args.device, linear_solver="direct")
             td = time.perf_counter() - t
             gap, merr = report("direct", rd.plan, td)
             row(f"wpot solve_balanced direct ({args.device})", td, gap, merr, f"newton={rd.n_newton}")
@@ -115,12 +131,12 @@ def main():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             t = time.perf_counter()
-            Gs = ot.bregman.sinkhorn_stabilized(a, a, C, 1e-3, tau=1e8, numItermax=100000, stopThr=1e-9)
+            Gs = ot.bregman.sinkhorn_stabilized(a, b, C, 1e-3, tau=1e8, numItermax=100000, stopThr=1e-9)
             ts = time.perf_counter() - t
             gap, merr = report("sink", Gs, ts)
             row("POT sinkhorn_stabilized reg=1e-3", ts, gap, merr)
             t = time.perf_counter()
-            Gu = ot.unbalanced.sinkhorn_unbalanced(a, a, C, 1e-3, 10.0, method="sinkhorn_stabilized",
+            Gu = ot.unbalanced.sinkhorn_unbalanced(a, b, C, 1e-3, 10.0, method="sinkhorn_stabilized",
                                                    numItermax=100000, stopThr=1e-9, tau=1e8)
             tu = time.perf_counter() - t
             gap, merr = report("unb", Gu, tu)
