@@ -198,17 +198,23 @@ def _qp(C, r1, r2, mp):
     return prob.value, m1.value, m2.value
 
 
-@pytest.mark.parametrize("mp", [1.0, 0.01])
-def test_partial_matches_independent_qp(mp):
-    rng = np.random.default_rng(1)
-    C = rng.random((12, 9))
-    r1, r2 = _masses(12, 3), _masses(9, 4)
+def _partial_checked_by_qp(C, r1, r2, mp):
+    """solve_partial's result, asserted converged and equal (objective, masses) to the cvxpy QP's optimum."""
     res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu")
     val, m1, m2 = _qp(C, r1, r2, mp)
     assert res.converged
     assert abs(res.objective - val) <= 1e-6 * val
     np.testing.assert_allclose(res.mass1, m1, atol=1e-6)
     np.testing.assert_allclose(res.mass2, m2, atol=1e-6)
+    return res
+
+
+@pytest.mark.parametrize("mp", [1.0, 0.01])
+def test_partial_matches_independent_qp(mp):
+    rng = np.random.default_rng(1)
+    C = rng.random((12, 9))
+    r1, r2 = _masses(12, 3), _masses(9, 4)
+    res = _partial_checked_by_qp(C, r1, r2, mp)
     assert abs(res.mass1.sum() - 1) < 1e-9
     pen = mp * np.sum((res.mass1 / r1) ** 2) + mp * np.sum((res.mass2 / r2) ** 2)
     assert abs(res.objective - (res.cost + pen)) <= 1e-9 * res.objective
@@ -245,24 +251,15 @@ def test_balanced_uneven_masses_match_emd(spread, seed):
     # Regression: Newton used to stall at the first beta on such masses (residual stuck at 0.5; converged
     # False and U off by ~100%)
     C, a, b = _uneven_problem(40, spread, seed)
-    res = wo.solve_balanced(C, a, b, device="cpu")
-    assert res.converged
-    _check_balanced(C, a, b, res)
+    _check_balanced(C, a, b, wo.solve_balanced(C, a, b, device="cpu"))  # asserts converged and emd's optimum
 
 
 @pytest.mark.parametrize("seed", [0, 2])
 def test_partial_uneven_masses_match_independent_qp(seed):
     # Regression: one point holding ~40% of the mass drove a pivot entry to G ~ 1/2 (beta s ~ 0), where the
     # fraction-to-boundary rule stopped every Newton step short
-    pytest.importorskip("cvxpy")
     C, r1, r2 = _uneven_problem(40, 1.5, seed)
-    mp = 0.01 * C.mean() / 40
-    res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu")
-    val, m1, m2 = _qp(C, r1, r2, mp)
-    assert res.converged
-    assert abs(res.objective - val) <= 1e-6 * val
-    np.testing.assert_allclose(res.mass1, m1, atol=1e-6)
-    np.testing.assert_allclose(res.mass2, m2, atol=1e-6)
+    _partial_checked_by_qp(C, r1, r2, 0.01 * C.mean() / 40)
 
 
 # --------------------------------------------------------------------------- validation
