@@ -76,6 +76,10 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     assert re.search(r"leave-one-out 1-NN at level 'class' \(2 groups\): 100\.0%", r.stdout), r.stdout
     info = json.loads((run / "classification.json").read_text())
     assert info["one_shot"]["mean"] == 1.0 and info["not_converged"] == 0
+    # D(beta) on the powers of ten, ending at the last annealing beta, where D(beta) is D(inf)
+    betas = np.array([b for b, _ in info["one_shot_per_beta"]])
+    np.testing.assert_allclose(np.log10(betas), np.round(np.log10(betas)), atol=1e-12)
+    assert np.all(np.diff(betas) > 0) and info["one_shot_per_beta"][-1][1] == 1.0
     assert "did not converge" not in r.stderr
     # a pair the solver did not converge on is flagged, never used silently
     import sqlite3

@@ -104,6 +104,27 @@ def test_distance_matrices_follow_each_pair_history_in_beta(tmp_path):
     np.testing.assert_allclose(d[-1, 0, 1], s.distance_matrix()[0, 1])
 
 
+def test_distance_matrices_on_the_decade_grid_read_each_history_at_powers_of_ten(tmp_path):
+    from wpot.pipeline import decade_grid
+
+    s = _store(tmp_path)
+    s.commit(_rec(0, 0, 1.0, [[2e3, 3.0], [2e4, 1.0]]))
+    s.commit(_rec(1, 1, 2.0, [[1.5e3, 2.0]]))
+    s.commit(_rec(0, 1, 5.0, [[2e3, 9.0], [2e4, 6.0], [2e5, 5.0]]))
+    betas, d = s.distance_matrices("decades")
+    np.testing.assert_allclose(betas, [1e3, 1e4, 1e5, 1e6])
+    # 1e3: below the pair's first beta; 1e4: the values at 2e3; then each history's last value at or below
+    assert np.isnan(d[0, 0, 1])
+    np.testing.assert_allclose(d[1:, 0, 1], [9 - 0.5 * (3 + 2), 6 - 0.5 * (1 + 2), 5 - 0.5 * (1 + 2)])
+    b2, d2 = s.distance_matrices([1e4, 3e4])
+    np.testing.assert_allclose(d2[:, 0, 1], [9 - 2.5, 6 - 1.5])
+    np.testing.assert_allclose(decade_grid(np.array([1e3, 1e11])), 10.0 ** np.arange(3, 12))
+    assert decade_grid(np.zeros(0)).size == 0
+    for bad in ("decade", [1e4, 1e3], [0.0, 1.0], [np.nan]):
+        with pytest.raises(ValueError, match="betas must"):
+            s.distance_matrices(bad)
+
+
 def test_discover_shapes_reads_a_folder_and_a_list_file(tmp_path):
     from wpot.examples import example_mesh
     from wpot.io import save_mesh

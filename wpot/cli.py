@@ -304,7 +304,7 @@ def _levels(store) -> dict[str, np.ndarray]:
 
 def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any]:
     """Table 1's one-shot 1-NN (level "class") and leave-one-out 1-NN at every label level, from D(∞),
-    plus the one-shot accuracy at every annealing β (D(β))."""
+    plus the one-shot accuracy from D(β) at every power of ten of β where every pair has a value."""
     from wpot.evaluate import leave_one_out_levels, one_shot_1nn
 
     d = store.distance_matrix()
@@ -317,7 +317,7 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
         raise CliError(f"the run in {store.folder} has no class labels; give --labels CSV to all-vs-all")
     one = one_shot_1nn(d, levels["class"], n_trials=trials, seed=seed)
     loo = leave_one_out_levels(d, levels)
-    betas, dbeta = store.distance_matrices()
+    betas, dbeta = store.distance_matrices("decades")
     per_beta = []
     for b, db in zip(betas, dbeta):
         if np.isnan(db[off]).any():
@@ -342,6 +342,8 @@ def cmd_classify(a: argparse.Namespace) -> None:
           f"(std {100 * one.std:.1f})" + (f"   paper Table 1 (TOSCA8): {paper:.1f}%" if paper is not None else ""))
     for lv, res in r["loo"].items():
         print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {100 * res.accuracy:.1f}%")
+    if r["per_beta"]:
+        print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {100 * acc:.1f}%" for b, acc in r["per_beta"]))
     if r["not_converged"]:
         n = len(r["levels"]["class"])
         print(f"warning: {r['not_converged']} of {n * (n - 1) // 2} pairs did not converge, and their D(inf) may be wrong, "
@@ -395,7 +397,7 @@ def cmd_report(a: argparse.Namespace) -> None:
                 lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {100 * res.accuracy:.1f}% | "
                              "Tables 2-4 (anatomical data) |")
             if r["per_beta"]:
-                lines += ["", "One-shot 1-NN accuracy from D(β) at each annealing β:", "", "| β | accuracy |", "|---|---|"]
+                lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
                 lines += [f"| {b:.3g} | {100 * acc:.1f}% |" for b, acc in r["per_beta"]]
             fig_path = Path(run) / "distance_matrix.png"
             plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)

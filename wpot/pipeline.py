@@ -71,6 +71,7 @@ __all__ = [
     "DaskExecutor",
     "choose_worker_device",
     "dask_executor",
+    "decade_grid",
     "discover_shapes",
     "run_all_vs_all",
 ]
@@ -357,24 +358,43 @@ class RunStore:
             c[i, j] = c[j, i] = bool(ok)
         return c
 
-    def distance_matrices(self) -> tuple[np.ndarray, np.ndarray]:
-        """D(β) at every annealing β that any pair reached.
+    def distance_matrices(self, betas: "np.ndarray | Sequence[float] | str | None" = None) -> tuple[np.ndarray, np.ndarray]:
+        """D(β), the paper's distance matrices along the annealing (§4.1.1: β from 1e3 to 1e11).
+
+        Parameters
+        ----------
+        betas : which β to read every pair's history at.
+
+            * None (default): every β that any pair reached. Each pair anneals from its own β0 (scaled to
+              its costs), so on a large run this is thousands of values, most of them seen by one pair.
+            * ``"decades"``: the powers of ten from the one at or below the smallest recorded β to the one at
+              or above the largest, the grid the paper plots (`decade_grid`).
+            * an increasing sequence of positive β.
 
         Returns
         -------
         betas : (n_β,) float64, increasing
         D : (n_β, n, n) float64; a pair that converged before β keeps its last value (the energies are
-            monotone in β and settle); NaN where missing. Partial: SU_β of Eq. 27, with the self
-            energies read at the same β. Diagonal 0.
+            monotone in β and settle); NaN where missing, including below a pair's first β. Partial:
+            SU_β of Eq. 27, with the self energies read at the same β. Diagonal 0.
         """
         from wpot.comparison import debias_history, history_at
 
         rows = self.con.execute("SELECT i, j, history FROM pairs").fetchall()
         hist = {(i, j): np.asarray(json.loads(h), dtype=np.float64).reshape(-1, 2) for i, j, h in rows}
         all_b = np.concatenate([h[:, 0] for h in hist.values()]) if hist else np.zeros(0)
-        betas = _unique_logs(all_b)
+        if betas is None:
+            grid = _unique_logs(all_b)
+        elif isinstance(betas, str):
+            if betas != "decades":
+                raise ValueError(f"betas must be None, 'decades' or a sequence of positive numbers, got {betas!r}")
+            grid = decade_grid(all_b)
+        else:
+            grid = np.asarray(betas, dtype=np.float64).reshape(-1)
+            if not (np.all(np.isfinite(grid)) and np.all(grid > 0) and np.all(np.diff(grid) > 0)):
+                raise ValueError(f"betas must be positive, finite and increasing, got {betas!r}")
         n = self.n_shapes
-        out = np.full((len(betas), n, n), np.nan)
+        out = np.full((len(grid), n, n), np.nan)
         idx = np.arange(n)
         out[:, idx, idx] = 0.0
         partial = self.transport == "partial"
@@ -385,9 +405,20 @@ class RunStore:
                 if (i, i) not in hist or (j, j) not in hist:
                     continue
                 h = debias_history(h, hist[(i, i)], hist[(j, j)])
-            v = history_at(h, betas)
+            v = history_at(h, grid)
             out[:, i, j] = out[:, j, i] = v
-        return betas, out
+        return grid, out
+
+
+def decade_grid(betas: np.ndarray) -> np.ndarray:
+    """Powers of ten covering ``betas``: from ``10**floor(log10(min))`` to ``10**ceil(log10(max))``
+    ((0,) when ``betas`` is empty)."""
+    b = np.asarray(betas, dtype=np.float64)
+    b = b[np.isfinite(b) & (b > 0)]
+    if b.size == 0:
+        return np.zeros(0)
+    lo, hi = np.floor(np.log10(b.min()) + 1e-9), np.ceil(np.log10(b.max()) - 1e-9)
+    return 10.0 ** np.arange(lo, hi + 1)
 
 
 def _unique_logs(b: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
