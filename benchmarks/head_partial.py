@@ -128,7 +128,8 @@ def base_comparer(a, sig: str, ds, names: list[str], out: Path):
     from wpot.comparison import Comparer
 
     base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
-                    n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, cache_dir=out / "cache")
+                    n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, vertices_per_sample=a.vertices_per_sample,
+                    cache_dir=out / "cache")
     if sig == "wks":
         base.fit_energies([ds.mesh(n) for n in names])
     return base
@@ -258,6 +259,8 @@ def main(argv=None) -> int:
                          "(and the paper's alpha unless --no-paper)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--pooling", default="none", choices=["none", "cell"], help="how samples stand for a mesh (Comparer)")
+    ap.add_argument("--vertices-per-sample", type=float, default=None,
+                    help="sample every mesh at this common density instead of --max-vertices each (Comparer)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--mass-figure", default=None, metavar="HEAD",
                     help="instead: draw HEAD's parent coloured by received mass at each of --kappas")

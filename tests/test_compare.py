@@ -410,6 +410,36 @@ def test_pooling_feeds_cell_means_and_sizes_to_the_solver(comparer, pair):
         few.with_options(pooling="cell").transport_plan(pair.target, pair.source)  # two wholes: no warning
 
 
+@pytest.mark.filterwarnings("ignore:n_eigen=100 but the mesh has only")
+def test_vertices_per_sample_gives_a_part_and_its_whole_cells_of_one_size(comparer, pair):
+    from wpot.comparison import Comparer
+    from wpot.mesh import cut
+
+    v = pair.source.vertices
+    quarter, _ = cut(pair.source, (v[:, 0] > 0) & (v[:, 2] > 0))
+    dense = Comparer(vertices_per_sample=5, pooling="cell", energies=comparer.energies, **FAST)
+    n_q, n_w = quarter.n_vertices, pair.source.n_vertices
+    assert dense.n_samples(n_w) == round(n_w / 5) and dense.n_samples(n_q) == round(n_q / 5)
+    sq, sw = dense.subsample(quarter), dense.subsample(pair.source)
+    assert (sq.n_samples, sw.n_samples) == (round(n_q / 5), round(n_w / 5))
+    assert abs(n_q / sq.n_samples - n_w / sw.n_samples) < 0.5  # the same cell size on both
+    with warnings.catch_warnings():  # the common count warns here (test above); the common density does not
+        warnings.filterwarnings("error", message=".*smoothed unequally")
+        r = dense.transport_plan(quarter, pair.source)
+    np.testing.assert_allclose(r.mass1, dense.points(quarter).masses, atol=1e-9)
+    # max_vertices caps it; a mesh with fewer vertices than one cell's worth keeps 3 samples; never more than N
+    assert dense.with_options(max_vertices=40).n_samples(n_w) == 40
+    assert dense.with_options(vertices_per_sample=1e6).n_samples(n_w) == 3
+    assert Comparer(vertices_per_sample=1, **FAST).subsample(quarter) is None
+    # a run key names it only when set, so runs stored before it existed still resume
+    assert dense.params()["vertices_per_sample"] == 5.0 and dense.params()["pooling"] == "cell"
+    assert "vertices_per_sample" not in comparer.params()
+    assert Comparer(**dense.options()).params() == dense.params()
+    for bad in (0.5, 0, -2, float("nan"), "x", True):
+        with pytest.raises(ValueError, match="vertices_per_sample must be"):
+            Comparer(vertices_per_sample=bad)
+
+
 def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):
     import wpot.comparison as wc
 

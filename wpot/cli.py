@@ -47,9 +47,14 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
     p.add_argument(
         "--pooling", choices=("none", "cell"), default="none",
-        help="with --max-vertices: each sample keeps its own signature, uniform masses (none, default), or carries "
+        help="with --max-vertices or --vertices-per-sample: each sample keeps its own signature, uniform masses (none, default), or carries "
              "its cell's mean signature and size as mass (cell: better for whole shapes meshed alike, e.g. LD-SIFT "
              "classification; not for parts against wholes)",
+    )
+    p.add_argument(
+        "--vertices-per-sample", type=float, default=None,
+        help="subsample every mesh at a common density instead: round(N / this) samples per mesh of N vertices "
+             "(at most --max-vertices), so cells match in size; with --pooling cell, for parts against wholes",
     )
     from wpot.comparison import DEFAULT_MASS_PENALTY
 
@@ -83,6 +88,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "transport": a.transport,
         "max_vertices": a.max_vertices,
         "pooling": a.pooling,
+        "vertices_per_sample": a.vertices_per_sample,
         "mass_penalty": a.mass_penalty,
         "n_eigen": a.n_eigen,
         "n_energies": a.n_energies,

@@ -19,8 +19,8 @@ every signature, cost unit and ``max_vertices``; ``penalty_scale="paper"`` is ex
 `Comparer` is the caching set-up class (signatures per shape in memory and on disk, one WKS energy grid
 shared by every shape it sees); `compare` is the one-shot function.
 
-Large meshes: ``max_vertices`` subsamples each mesh by farthest-point sampling (`farthest_point_sampling`)
-before transport. Signatures are still computed on the full mesh, then taken at the samples; the
+Large meshes: ``max_vertices`` (a common count) or ``vertices_per_sample`` (a common density) subsamples
+each mesh by farthest-point sampling (`farthest_point_sampling`) before transport. Signatures are still computed on the full mesh, then taken at the samples; the
 correspondence is extended back to every vertex through its nearest sample. Without ``max_vertices``, a
 problem whose dense ``N1 × N2`` float64 matrices would not fit in the device's free memory raises
 `ProblemTooLargeError` naming the option.
@@ -551,8 +551,14 @@ class Comparer:
     transport : "balanced" (Eq. 6–16) or "partial" (Eq. 17–26)
     max_vertices : subsample meshes with more vertices than this by farthest-point sampling (None: never;
         then a problem too large for the device raises `ProblemTooLargeError`)
+    vertices_per_sample : sample at a common density instead of a common count: a mesh of N vertices gets
+        ``max(3, round(N / vertices_per_sample))`` farthest-point samples (capped at ``max_vertices`` when both
+        are given), so every cell holds about ``vertices_per_sample`` vertices whatever the mesh's size. Use it
+        with ``pooling="cell"`` for a part against a whole cut from meshes of the same vertex density (HEAD):
+        with a common count, the part's cells are smaller and the averaging smooths the two sides unequally.
+        None (default): only ``max_vertices`` decides.
     fps_metric : "geodesic" or "euclidean", see `farthest_point_sampling`
-    pooling : how a sample stands for the mesh when ``max_vertices`` subsamples it. ``"none"`` (default): the
+    pooling : how a sample stands for the mesh when it is subsampled (``max_vertices``, ``vertices_per_sample``). ``"none"`` (default): the
         sampled vertex's own signature, uniform masses. ``"cell"``: each sample carries the mean signature of
         its cell (the vertices nearest to it, `Subsample.pool`) and a mass proportional to the cell's size,
         i.e. the paper's full-resolution problem (one unit of mass per vertex) coarse-grained onto the
@@ -595,6 +601,7 @@ class Comparer:
         max_vertices: int | None = None,
         fps_metric: str = "geodesic",
         pooling: str = "none",
+        vertices_per_sample: float | None = None,
         device: str | None = None,
         mass_penalty: float = DEFAULT_MASS_PENALTY,
         penalty_scale: str = "relative",
@@ -616,6 +623,13 @@ class Comparer:
             raise ValueError(f"max_vertices must be an integer >= 3 or None, got {max_vertices!r}")
         if fps_metric not in FPS_METRICS:
             raise ValueError(f"fps_metric must be one of {FPS_METRICS}, got {fps_metric!r}")
+        if vertices_per_sample is not None:
+            try:
+                vps = float(vertices_per_sample)
+            except (TypeError, ValueError):
+                vps = float("nan")
+            if isinstance(vertices_per_sample, bool) or not (np.isfinite(vps) and vps >= 1):
+                raise ValueError(f"vertices_per_sample must be a number >= 1 or None, got {vertices_per_sample!r}")
         if pooling not in POOLINGS:
             raise ValueError(f"pooling must be one of {POOLINGS}, got {pooling!r}")
         if not (np.isfinite(mass_penalty) and mass_penalty > 0):
@@ -632,6 +646,7 @@ class Comparer:
         self.max_vertices = None if max_vertices is None else int(max_vertices)
         self.fps_metric = fps_metric
         self.pooling = pooling
+        self.vertices_per_sample = None if vertices_per_sample is None else float(vertices_per_sample)
         self.device = _resolve_device(device)
         self.mass_penalty = float(mass_penalty)
         self.penalty_scale = penalty_scale
@@ -649,7 +664,7 @@ class Comparer:
         self._energies: np.ndarray | None = None
         if energies is not None:
             self.energies = energies
-        self._samples: dict[str, Subsample] = {}
+        self._samples: dict[tuple[str, int], Subsample] = {}
         self._self_energies: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------ parameters
@@ -659,11 +674,13 @@ class Comparer:
             "signature": self.signature,
             "transport": self.transport,
             "max_vertices": self.max_vertices,
-            "fps_metric": self.fps_metric if self.max_vertices is not None else None,
-            "pooling": self.pooling if self.max_vertices is not None else None,
+            "fps_metric": self.fps_metric if self._subsamples else None,
+            "pooling": self.pooling if self._subsamples else None,
             "match_ratio": self.match_ratio,
             "solver_options": {k: self.solver_options[k] for k in sorted(self.solver_options)},
         }
+        if self.vertices_per_sample is not None:  # absent otherwise, so runs stored before it existed still resume
+            p["vertices_per_sample"] = self.vertices_per_sample
         if self.transport == "partial":
             p["mass_penalty"] = self.mass_penalty
             p["penalty_scale"] = self.penalty_scale
@@ -677,7 +694,8 @@ class Comparer:
         """The constructor arguments that rebuild this `Comparer` (``Comparer(**c.options())``)."""
         return dict(
             signature=self.signature, transport=self.transport, max_vertices=self.max_vertices,
-            fps_metric=self.fps_metric, pooling=self.pooling, device=self.device, mass_penalty=self.mass_penalty,
+            fps_metric=self.fps_metric, pooling=self.pooling, vertices_per_sample=self.vertices_per_sample,
+            device=self.device, mass_penalty=self.mass_penalty,
             penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
             scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
             ldsift_resolution=self.ldsift_resolution, cache_dir=self.cache_dir,
@@ -689,7 +707,7 @@ class Comparer:
 
         It shares this one's signature cache (keyed by the signature parameters, so always safe) unless
         ``cache_dir`` changes, its WKS energy grid unless ``energies`` is given or ``scale_invariant``
-        changes, and its farthest-point samples when ``max_vertices`` and ``fps_metric`` are unchanged.
+        changes, and its farthest-point samples when ``fps_metric`` is unchanged (they are kept per sample count).
         Self-comparisons (Eq. 27) are not shared: they depend on every setting.
         """
         kw = self.options()
@@ -702,7 +720,7 @@ class Comparer:
         new = Comparer(**kw)
         if new.cache_dir == self.cache_dir:
             new._sig_cache = self._sig_cache
-        if (new.max_vertices, new.fps_metric) == (self.max_vertices, self.fps_metric):
+        if new.fps_metric == self.fps_metric:
             new._samples = self._samples
         return new
 
@@ -776,14 +794,34 @@ class Comparer:
 
         return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)
 
+    @property
+    def _subsamples(self) -> bool:
+        return self.max_vertices is not None or self.vertices_per_sample is not None
+
+    def n_samples(self, n_vertices: int) -> int:
+        """How many points stand for a mesh of ``n_vertices`` vertices (``n_vertices`` itself: no subsampling).
+
+        ``max(3, round(N / vertices_per_sample))`` when ``vertices_per_sample`` is set, then at most
+        ``max_vertices``; never more than N.
+        """
+        n = int(n_vertices)
+        k = n
+        if self.vertices_per_sample is not None:
+            k = max(3, int(round(n / self.vertices_per_sample)))
+        if self.max_vertices is not None:
+            k = min(k, self.max_vertices)
+        return min(k, n)
+
     def subsample(self, mesh: Mesh) -> Subsample | None:
-        """The farthest-point sample used for ``mesh`` (None when it has at most ``max_vertices`` vertices)."""
-        if self.max_vertices is None or mesh.n_vertices <= self.max_vertices:
+        """The farthest-point sample used for ``mesh`` (None when every vertex is used, see `n_samples`)."""
+        k = self.n_samples(mesh.n_vertices)
+        if k >= mesh.n_vertices:
             return None
-        s = self._samples.get(mesh.fingerprint)
+        key = (mesh.fingerprint, k)
+        s = self._samples.get(key)
         if s is None:
-            s = farthest_point_sampling(mesh, self.max_vertices, metric=self.fps_metric)
-            self._samples[mesh.fingerprint] = s
+            s = farthest_point_sampling(mesh, k, metric=self.fps_metric)
+            self._samples[key] = s
         return s
 
     def points(self, mesh: Mesh) -> "Points":
@@ -798,14 +836,15 @@ class Comparer:
 
     def _check_cells(self, mesh_a: Mesh, mesh_b: Mesh) -> None:
         """Warn when ``pooling="cell"`` would average over cells of very different sizes (see ``pooling``)."""
-        if self.pooling != "cell" or self.max_vertices is None:
+        if self.pooling != "cell" or not self._subsamples:
             return
-        per_cell = [m.n_vertices / min(m.n_vertices, self.max_vertices) for m in (mesh_a, mesh_b)]
+        per_cell = [m.n_vertices / self.n_samples(m.n_vertices) for m in (mesh_a, mesh_b)]
         if max(per_cell) > MAX_CELL_RATIO * min(per_cell):
             warnings.warn(
                 f"pooling='cell' averages signatures over {per_cell[0]:.1f} vertices per sample on mesh_a and "
                 f"{per_cell[1]:.1f} on mesh_b: the two shapes are smoothed unequally (as for a part against a "
-                "whole), which biases the distance; use pooling='none' here",
+                "whole), which biases the distance; sample at a common density (vertices_per_sample) or use "
+                "pooling='none' here",
                 UserWarning,
                 stacklevel=3,
             )
