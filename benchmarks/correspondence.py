@@ -72,10 +72,13 @@ def _tosca(default: Path) -> Path:
     return default if default.is_dir() else Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca_isometric_5k"
 
 
-def wpot_tag(signature: str, transport: str, max_vertices: int | None, scale_invariant: bool = False) -> str:
-    """The store's name for a wpot setting; ``-areanorm`` marks WKS on area-normalized meshes."""
+def wpot_tag(signature: str, transport: str, max_vertices: int | None, scale_invariant: bool = False,
+             pooling: str = "none") -> str:
+    """The store's name for a wpot setting; ``-areanorm`` marks WKS on area-normalized meshes, ``-cell`` cell
+    pooling."""
     tag = f"wpot-{signature}-{transport}-{max_vertices if max_vertices else 'full'}"
-    return tag + ("-areanorm" if scale_invariant and signature == "wks" else "")
+    tag += "-areanorm" if scale_invariant and signature == "wks" else ""
+    return tag + ("-cell" if pooling == "cell" and max_vertices else "")
 
 
 def select_pairs(pairs: list[tuple[str, str]], limit: int | None) -> list[tuple[str, str]]:
@@ -99,14 +102,14 @@ class WpotMatcher:
     """wpot's correspondence (argmax of each plan row, §4.1.3) through one caching `Comparer`."""
 
     def __init__(self, meshes: dict, *, signature: str, transport: str, max_vertices: int | None, n_eigen: int,
-                 n_energies: int, scale_invariant: bool, device: str, log) -> None:
+                 n_energies: int, scale_invariant: bool, device: str, log, pooling: str = "none") -> None:
         from wpot.comparison import Comparer
 
-        self.tag = wpot_tag(signature, transport, max_vertices, scale_invariant)
+        self.tag = wpot_tag(signature, transport, max_vertices, scale_invariant, pooling)
         self.meshes = meshes
         self.comparer = Comparer(signature=signature, transport=transport, max_vertices=max_vertices,
                                  n_eigen=n_eigen, n_energies=n_energies, scale_invariant=scale_invariant,
-                                 device=device)
+                                 device=device, pooling=pooling)
         self.setup_seconds: dict[str, float] = {}
         if signature == "wks":
             t0 = time.perf_counter()
@@ -394,6 +397,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-vertices", type=int, default=500, help="wpot's farthest-point sample size (0: none)")
     ap.add_argument("--signature", default="wks", choices=["wks", "ldsift"])
     ap.add_argument("--transport", default="balanced", choices=["balanced", "partial"])
+    ap.add_argument("--pooling", default="none", choices=["none", "cell"],
+                    help="wpot: each sample keeps its own signature (none) or its cell's mean and size (cell)")
     ap.add_argument("--n-eigen", type=int, default=500, help="WKS eigenpairs (paper: 500)")
     ap.add_argument("--n-energies", type=int, default=200, help="WKS energies (paper: 200)")
     ap.add_argument("--scale-invariant", action="store_true",
@@ -437,7 +442,8 @@ def main(argv=None) -> int:
 
 def method_tags(a) -> dict[str, str]:
     """The store's method tag for each ``--methods`` name at these settings."""
-    return {"wpot": wpot_tag(a.signature, a.transport, a.max_vertices or None, a.scale_invariant), "fmaps": FMAPS_TAG}
+    return {"wpot": wpot_tag(a.signature, a.transport, a.max_vertices or None, a.scale_invariant, a.pooling),
+            "fmaps": FMAPS_TAG}
 
 
 def run(a, out: Path, store: Store, log) -> None:
@@ -462,7 +468,7 @@ def run(a, out: Path, store: Store, log) -> None:
     if "wpot" in a.methods:
         matchers["wpot"] = WpotMatcher(meshes, signature=a.signature, transport=a.transport, max_vertices=maxv,
                                        n_eigen=a.n_eigen, n_energies=a.n_energies, scale_invariant=a.scale_invariant,
-                                       device=a.device, log=log)
+                                       device=a.device, log=log, pooling=a.pooling)
     for k, mt in matchers.items():
         log(f"{mt.tag} settings: {json.dumps(mt.settings())}")
     log(f"wpot code: {code_version()}")

@@ -102,6 +102,14 @@ def assemble_sparse_schur(data: SchurData, row_val, row_idx, col_val, col_idx) -
     return A.tocsc()
 
 
+#: relative diagonal shift of the preconditioner's sparse Schur approximation when it is exactly singular
+SINGULAR_SHIFT = 1e-8
+
+
+def _factor(P: sp.csc_matrix):
+    return spla.splu(P, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+
 class SchurPreconditioner:
     """z = M^-1 r with M = P - a a^T / sum(a) (Sherman-Morrison), P factorized by SuperLU.
     Balanced: P's last row/column are dropped (gauge dy[-1] = 0) and z[-1] = 0."""
@@ -114,8 +122,18 @@ class SchurPreconditioner:
             P = P[: n - 1, : n - 1]
         # P is symmetric and diagonally dominant (SPD once the gauge is fixed): no pivoting is needed, and
         # a symmetric elimination keeps the minimum-degree ordering's fill
-        self.lu = spla.splu(sp.csc_matrix(P), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                            options=dict(SymmetricMode=True))
+        P = sp.csc_matrix(P)
+        self.shifted = False
+        try:
+            self.lu = _factor(P)
+        except RuntimeError:
+            # exactly singular: the sparsified couplings fell apart into pieces, and a piece that does not
+            # hold the gauge has a singular (Laplacian) block. Any SPD M is a valid preconditioner, so shift
+            # the diagonal a little; CG on the exact Schur complement stays exact.
+            d = np.abs(P.diagonal())
+            scale = float(d.mean()) if d.size and d.mean() > 0 else 1.0
+            self.lu = _factor(P + sp.diags(SINGULAR_SHIFT * np.maximum(d, scale)))
+            self.shifted = True
         self.sm = None
         if np.any(a > 0):
             A = float(a.sum())
