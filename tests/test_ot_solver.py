@@ -262,6 +262,38 @@ def test_partial_uneven_masses_match_independent_qp(seed):
     _partial_checked_by_qp(C, r1, r2, 0.01 * C.mean() / 40)
 
 
+def test_a_newton_failure_after_a_solved_beta_returns_that_beta_s_solution(monkeypatch):
+    # Regression: a failed solve at a late beta (seen at beta 2.5e14 on a cell-pooled TOSCA pair) left its far
+    # from feasible iterate as the result (U 12 % below ot.emd's optimum), although the beta before was
+    # within 1e-7 of it. Now the result is the last solved beta's, flagged not converged, with a warning.
+    ot = pytest.importorskip("ot")
+    from wpot.ot import newton
+
+    C, a, b = _uneven_problem(30, 1.0, 0)
+    exact = ot.emd2(a, b, C)
+    calls = []
+    real = newton.Engine.newton
+
+    def flaky(self, beta, pt):
+        calls.append(beta)
+        pt, nn, nl, ok = real(self, beta, pt)
+        if len(calls) == 4:  # the fourth beta: wreck the duals and report failure
+            for arr in (*self.lam, *self.y):
+                arr.assign(wp.array(np.random.default_rng(1).normal(size=arr.shape) * 10, dtype=wp.float64, device=arr.device))
+            pt = self.evaluate(self.lam, self.y, beta)
+            ok = False
+        return pt, nn, nl, ok
+
+    monkeypatch.setattr(newton.Engine, "newton", flaky)
+    with pytest.warns(RuntimeWarning, match="failed at beta=.*the result is that of the last solved beta"):
+        r = wo.solve_balanced(C, a, b, device="cpu")
+    assert not r.converged and len(r.history) == 3
+    assert r.beta == pytest.approx(r.history[-1].beta) and r.cost == pytest.approx(r.history[-1].cost)
+    assert abs(r.cost - exact) <= r.history[-1].gap_bound + 1e-9 * exact
+    np.testing.assert_allclose(r.mass1, a, atol=1e-9)
+    np.testing.assert_allclose(r.mass2, b, atol=1e-9)
+
+
 # --------------------------------------------------------------------------- validation
 def test_bad_inputs_raise_value_errors_naming_the_problem():
     C = np.random.default_rng(0).random((5, 6))

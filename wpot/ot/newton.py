@@ -398,6 +398,8 @@ class Engine:
         stopped = False
         u_prev = None
         n_newton_tot = n_lin_tot = 0
+        good = None  # (lam, y) copies at the last beta whose Newton solve converged
+        failed_beta = None
         for it, beta in enumerate(betas):
             if it >= o.max_iter:
                 break
@@ -407,6 +409,22 @@ class Engine:
             else:
                 pt = self.evaluate(self.lam, self.y, beta)
             pt, nn, nl, ok = self.newton(beta, pt)
+            if not ok and good is not None:
+                # a failed solve after a solved beta: its iterate can be far from feasible (U off by 12 % on
+                # a cell-pooled TOSCA pair at beta 2.5e14, while the previous beta was within 1e-7 of the
+                # optimum), so end at the last solved beta instead
+                n_newton_tot += nn
+                n_lin_tot += nl
+                failed_beta = beta
+                all_newton_ok = False
+                self._copy(good[0], self.lam)
+                self._copy(good[1], self.y)
+                beta = raw[-1]["beta"]
+                pt = self.evaluate(self.lam, self.y, beta)
+                self.free_pass(self.lam, self.y, beta, pt)
+                self.beta = beta
+                self.last = pt
+                break
             # the device state (W, marginals, ...) is that of the current point: add F and W s
             self.free_pass(self.lam, self.y, beta, pt)
             if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
@@ -426,6 +444,12 @@ class Engine:
                       f"gap<={pt.xphi / beta:.2e} t_eval={self.t.eval:.2f}s")
             self.beta = beta
             self.last = pt
+            if ok:
+                if good is None:
+                    good = ([wp.clone(a) for a in self.lam], [wp.clone(a) for a in self.y])
+                else:
+                    self._copy(self.lam, good[0])
+                    self._copy(self.y, good[1])
             if u_prev is not None and ok:
                 # Algorithm 1 on the transport cost U (for the partial problem the penalty would mask it)
                 if relative_change(u_prev, pt.u) < o.tol or abs(pt.u - u_prev) <= o.atol:
@@ -435,7 +459,7 @@ class Engine:
         if o.verbose:
             print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
         return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
-                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history)
+                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta)
 
     def _predict(self, beta: float, beta_prev: float) -> Point:
         """Tangent predictor: (lam, y) + alpha d(lam, y)/d(log beta) with alpha = 1 - 1/q, i.e. linear in
@@ -499,7 +523,13 @@ class Engine:
 def warn_not_converged(kind: str, info: dict, beta_max_user: float):
     if info["converged"]:
         return
-    if not info["newton_ok"]:
+    if info.get("failed_beta") is not None:
+        last = info["raw"][-1]
+        msg = (f"{kind}: the Newton solve failed at beta={info['failed_beta']:.3g} (normalized); the result is that "
+               f"of the last solved beta={last['beta']:.3g}, whose U is optimal to within its gap bound "
+               f"{last['gap']:.2g} (normalized units) but which did not meet tol; increase max_newton or cg_max_iter, "
+               "or try linear_solver='direct'")
+    elif not info["newton_ok"]:
         msg = (f"{kind}: a Newton solve did not reach its tolerance (see result.history residuals); "
                "increase max_newton, use a smaller step, or try linear_solver='direct'")
     else:
