@@ -665,6 +665,7 @@ class Comparer:
         from wpot.cache import Cache
 
         self._sig_cache = Cache("signatures", max_entries=MAX_CACHED_SHAPES, max_bytes=MAX_CACHED_BYTES, cache_dir=cache_dir)
+        self._spectrum_cache = _spectrum_cache(cache_dir)
         self._energies: np.ndarray | None = None
         if energies is not None:
             self.energies = energies
@@ -724,6 +725,7 @@ class Comparer:
         new = Comparer(**kw)
         if new.cache_dir == self.cache_dir:
             new._sig_cache = self._sig_cache
+            new._spectrum_cache = self._spectrum_cache
         if new.fps_metric == self.fps_metric:
             new._samples = self._samples
         return new
@@ -752,7 +754,7 @@ class Comparer:
         from wpot.spectral import eigenpairs
 
         # as `wks` does, a mesh with fewer vertices than n_eigen uses all its eigenpairs
-        spectra = [eigenpairs(m, min(self.n_eigen, m.n_vertices)) for m in meshes]
+        spectra = [eigenpairs(m, min(self.n_eigen, m.n_vertices), cache=self._spectrum_cache) for m in meshes]
         self.energies = _energy_grid(wks_energies(spectra, n_energies=self.n_energies, scale_invariant=self.scale_invariant))
         return self.energies
 
@@ -793,7 +795,7 @@ class Comparer:
             from wpot.signatures._wks import wks
 
             return np.asarray(wks(mesh, n_eigen=self.n_eigen, n_energies=self.n_energies, energies=self._energies,
-                                  scale_invariant=self.scale_invariant), dtype=np.float64)
+                                  scale_invariant=self.scale_invariant, cache=self._spectrum_cache), dtype=np.float64)
         from wpot.signatures._ldsift import ldsift
 
         return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)
@@ -953,6 +955,17 @@ def _energy_grid(out: Any) -> np.ndarray:
     elif isinstance(out, tuple):
         out = out[0]
     return np.asarray(out, dtype=np.float64)
+
+
+def _spectrum_cache(cache_dir: Any) -> Any:
+    """The spectrum cache for a `Comparer`'s ``cache_dir``: the process-wide one (``$WPOT_CACHE_DIR``) for None,
+    else one under that folder (memory only for False), as for the signatures."""
+    if cache_dir is None:
+        return True
+    from wpot.cache import Cache
+    from wpot.spectral import spectrum_cache
+
+    return Cache("spectrum", max_entries=spectrum_cache.max_entries, max_bytes=spectrum_cache.max_bytes, cache_dir=cache_dir)
 
 
 def _resolve_device(device: str | None) -> str:

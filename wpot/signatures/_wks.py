@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..mesh import Mesh
+from ..cache import Cache
 from ..spectral import Spectrum, eigenpairs
 
 __all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
@@ -218,6 +219,7 @@ def wks(
     energies: ArrayLike | None = None,
     sigma: float | None = None,
     scale_invariant: bool = False,
+    cache: "Cache | bool" = True,
 ) -> np.ndarray:
     """Wave kernel signature of every vertex (paper Eq. 5, parameters of §3.2).
 
@@ -235,6 +237,8 @@ def wks(
     scale_invariant : False (default, the paper): the spectrum of the mesh at its own size, so size
         matters; True: of the mesh scaled to area 1. A shared grid must come from `wks_energies` with the
         same value. See the module docstring.
+    cache : where a mesh's spectrum is cached, as in `wpot.eigenpairs` (True: the process-wide cache, on disk
+        under ``$WPOT_CACHE_DIR``; a `wpot.cache.Cache`; False: none).
 
     Returns
     -------
@@ -250,7 +254,7 @@ def wks(
                 stacklevel=2,
             )
             k = mesh.n_vertices
-        spectrum = eigenpairs(mesh, k=k)
+        spectrum = eigenpairs(mesh, k=k, cache=cache)
     elif isinstance(mesh_or_spectrum, Spectrum):
         spectrum = mesh_or_spectrum
     else:
