@@ -45,7 +45,8 @@ __all__ = ["DepthRenderer", "depth_images", "RAY_OFFSET"]
 
 if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.1x: the init banner and module-load lines are INFO messages
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-wp.set_module_options({"enable_backward": False})
+# no fused multiply-add: the same depths on the CPU and CUDA up to float32 rounding of each operation
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 #: rays pass this far (in pixels, along +e1 and +e2) from the pixel centres; see the module docstring

@@ -40,6 +40,16 @@ def _assert_same(rl: wo.OTResult, rs: wo.OTResult):
     assert rl.n_newton == rs.n_newton and rl.converged == rs.converged
 
 
+def _assert_same_sparse(r0: wo.OTResult, r1: wo.OTResult, exact: bool):
+    """Two runs' sparse plans: the same entries (indices), with equal values (``exact``) or to 1e-10."""
+    assert np.array_equal(r0.plan_top.indptr, r1.plan_top.indptr)
+    assert np.array_equal(r0.plan_top.indices, r1.plan_top.indices) and np.array_equal(r0.argmax, r1.argmax)
+    if exact:
+        np.testing.assert_array_equal(r0.plan_top.data, r1.plan_top.data)
+    else:
+        np.testing.assert_allclose(r0.plan_top.data, r1.plan_top.data, rtol=1e-10, atol=1e-12 * r1.plan_top.data.max())
+
+
 def _check_sparse_plan(res: wo.OTResult, dense: np.ndarray, k: int):
     """plan_top holds each row's k largest entries of the dense plan, with their exact values."""
     n1, n2 = dense.shape
@@ -77,10 +87,11 @@ def test_balanced_matrix_free_equals_stored(metric, shape, device):
     _check_sparse_plan(rl, rl.plan, 5)
     # sanity of the shared solution: marginals met
     np.testing.assert_allclose(rl.mass1, a, rtol=1e-6)
-    # default: no dense plan in matrix-free mode, the same sparse one
+    # default: no dense plan in matrix-free mode, the same sparse one (bit for bit on the CPU; on CUDA the
+    # atomic column sums add in a varying order, so two runs agree to rounding: 9 of 9 differed on an H100)
     r0 = wo.solve_balanced(wo.FeatureCost(X, Y, metric, device=device), a, b, device=device, plan_topk=5)
     assert r0.plan is None
-    assert (r0.plan_top != rl.plan_top).nnz == 0 and np.array_equal(r0.argmax, rl.argmax)
+    _assert_same_sparse(r0, rl, exact=device == "cpu")
 
 
 @pytest.mark.parametrize("metric", ["l2", "wks"])

@@ -21,7 +21,8 @@ from wpot._warp import resolve_device
 
 __all__ = ["cost_matrix", "METRICS"]
 
-wp.set_module_options({"enable_backward": False})
+# no fused multiply-add: costs identical bit for bit on the CPU and CUDA (and symmetric on both)
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 METRICS = ("wks", "l2", "l1")
 
