@@ -277,7 +277,7 @@ def test_a_newton_failure_after_a_solved_beta_returns_that_beta_s_solution(monke
     def flaky(self, beta, pt):
         calls.append(beta)
         pt, nn, nl, ok = real(self, beta, pt)
-        if len(calls) == 4:  # the fourth beta: wreck the duals and report failure
+        if len(calls) >= 4:  # from the fourth solve on (midpoints too): wreck the duals and report failure
             for arr in (*self.lam, *self.y):
                 arr.assign(wp.array(np.random.default_rng(1).normal(size=arr.shape) * 10, dtype=wp.float64, device=arr.device))
             pt = self.evaluate(self.lam, self.y, beta)
@@ -292,6 +292,28 @@ def test_a_newton_failure_after_a_solved_beta_returns_that_beta_s_solution(monke
     assert abs(r.cost - exact) <= r.history[-1].gap_bound + 1e-9 * exact
     np.testing.assert_allclose(r.mass1, a, atol=1e-9)
     np.testing.assert_allclose(r.mass2, b, atol=1e-9)
+
+
+def test_a_beta_step_too_long_for_max_newton_is_split_and_still_reaches_the_optimum():
+    # Regression: on real 5,000-vertex WKS pairs (TOSCA cat0-cat1, horse0-dog0) the damped Newton solve from
+    # beta 2.5e7 to 2.5e8 (normalized), where the plan turns from spread out to a near-permutation, ran out of
+    # max_newton = 100 steps, and the result was beta0's, U 3x the optimum. The same happens here with a
+    # smaller max_newton; the failed step is now split at its geometric midpoint from the last solved duals.
+    ot = pytest.importorskip("ot")
+    rng = np.random.default_rng(3)
+    X, Y = rng.random((150, 5)), rng.random((150, 5))
+    C = np.sqrt(((X[:, None] - Y[None]) ** 2).sum(-1))
+    a = np.full(150, 1 / 150)
+    exact = ot.emd2(a, a, C)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning: every beta solved
+        r = wo.solve_balanced(C, device="cpu", max_newton=8)
+    assert r.converged
+    assert abs(r.cost - exact) <= r.history[-1].gap_bound + 1e-9 * exact
+    betas = np.array([h.beta for h in r.history])
+    steps = betas[1:] / betas[:-1]
+    assert np.all(steps > 1) and np.any(steps < 9.99)  # a step of the default 10 was split
+    assert np.all(np.isclose(np.log10(steps) * 16, np.round(np.log10(steps) * 16)))  # by halvings in log beta
 
 
 # --------------------------------------------------------------------------- validation
@@ -337,3 +359,76 @@ def test_non_convergence_is_reported():
 
 def test_debiased_eq27():
     assert wo.debiased(3.0, 1.0, 2.0) == 1.5
+
+
+@pytest.mark.parametrize("mode", ["balanced", "ipm", "partial", "matrix-free"])
+def test_strided_gpu_kernels_give_the_row_kernels_solution(monkeypatch, mode):
+    # GPUs run the passes over W as strided lanes (eval_lanes + eval_combine, schur_prep_cols, the Schur matvec
+    # as schur_row_partial / schur_row_delta / schur_col_sweep, recover_finish), the CPU as one thread per
+    # row. Forced on the CPU with a lane count that divides neither side, the strided kernels must give the
+    # same solution up to rounding (stored W and recomputed W), with the same pivots.
+    from wpot.ot import newton
+
+    rng = np.random.default_rng(2)
+    X, Y = rng.random((41, 4)), rng.random((29, 4))
+    a, b = rng.random(41) + 0.2, rng.random(29) + 0.2
+    a, b = a / a.sum(), b / b.sum()
+    if mode == "matrix-free":
+        def solve():
+            return wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2", device="cpu"), a, b, device="cpu")
+    else:
+        C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
+        if mode in ("balanced", "ipm"):
+            def solve():
+                return wo.solve_balanced(C, a, b, device="cpu", method="anneal" if mode == "balanced" else "ipm")
+        else:
+            def solve():
+                return wo.solve_partial(C, a, b, mass_penalty=0.05, device="cpu")
+    ref = solve()
+    monkeypatch.setattr(newton, "FORCE_LANES", 5)
+    got = solve()
+    assert got.converged and ref.converged
+    assert got.cost == pytest.approx(ref.cost, rel=1e-10)
+    np.testing.assert_allclose(got.mass1, ref.mass1, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.mass2, ref.mass2, rtol=0, atol=1e-12)
+    assert np.array_equal(got.argmax, ref.argmax) and got.n_newton == ref.n_newton
+
+
+@pytest.mark.parametrize("lanes", [1, 5, 64])
+def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(monkeypatch, lanes):
+    # eval_lanes + eval_combine (GPUs) against eval_rows (CPU) at one point, with tied weights in some rows:
+    # the same sums, and the same pivot (the largest weight, the first column on ties), tail and s there.
+    from wpot.ot import newton
+    from wpot.ot._common import make_options
+    from wpot.ot.balanced import orient, prepare_cost
+
+    rng = np.random.default_rng(4)
+    n1, n2 = 70, 23  # rows = the larger side: no transposition, so C's rows are the solver's
+    C = 0.1 + rng.random((n1, n2))
+    C[3, [5, 11, 20]] = 0.05  # three tied smallest costs: tied largest weights
+    C[7, :] = 0.5  # a constant row: every weight tied
+    cost = prepare_cost(C, "cpu")
+
+    def engine():
+        opts = make_options(n1=n1, n2=n2, scale=cost.scale, beta0=None, beta_max=None, step=10.0, tol=1e-6,
+                            atol=0.0, max_iter=100, max_newton=100, newton_tol=1e-10, linear_solver="cg",
+                            cg_rtol=1e-10, cg_max_iter=1000, topk=4, extrapolate=True, verbose=0)
+        prob = orient(cost, np.full(n1, 1 / n1), np.full(n2, 1 / n2), np.zeros(n1), np.zeros(n2), False, "cpu")
+        e = newton.Engine(prob, opts)
+        e.init_point(rng_duals.normal(size=prob.n_r) * 0.01, np.full(prob.n_c, 0.3))  # equal y: ties stay ties
+        return e
+
+    rng_duals = np.random.default_rng(0)
+    ref = engine()
+    assert ref.lanes == 0 and not ref.p.trans
+    pr = ref.evaluate(ref.lam, ref.y, 40.0)
+    monkeypatch.setattr(newton, "FORCE_LANES", lanes)
+    rng_duals = np.random.default_rng(0)
+    got = engine()
+    assert got.lanes == lanes
+    pg = got.evaluate(got.lam, got.y, 40.0)
+    for name in ("row_g", "col_g", "row_w", "tail", "row_u", "row_xphi", "s_piv"):
+        np.testing.assert_allclose(getattr(got, name).numpy(), getattr(ref, name).numpy(), rtol=1e-13, atol=0,
+                                   err_msg=name)
+    np.testing.assert_array_equal(got.piv.numpy(), ref.piv.numpy())
+    assert pg.merit == pytest.approx(pr.merit, rel=1e-12)

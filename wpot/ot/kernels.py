@@ -32,7 +32,10 @@ import warp as wp
 import wpot._warp  # noqa: F401  (quiet Warp start-up, shared by every module)
 from wpot.cost import pair_cost
 
-wp.set_module_options({"enable_backward": False})
+# no fused multiply-add (Warp's default on CUDA): the double-double sums below are error-free only when
+# each product is rounded on its own (fusing C * inv_scale into c + lam broke two_sum_err on an H100: row
+# sums of the plan 1.7e-7 off the marginals at high beta), and every kernel must round alike
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 f64 = wp.float64
 
@@ -501,6 +504,211 @@ def schur_matvec(
         wp.atomic_add(out, l, weight_at(wsrc, k, l) * ((v[l] - vp) - delta))
 
 
+#: lanes per row (per column) of the strided Schur matvec kernels below: the GPU then runs n * LANES
+#: threads, each reading every LANES-th entry, so that neighbouring threads read neighbouring entries
+MATVEC_LANES = 64
+
+
+@wp.kernel
+def schur_row_partial(
+    wsrc: Any,
+    n_c: int,
+    lanes: int,
+    piv: wp.array(dtype=wp.int32),
+    v: wp.array(dtype=wp.float64),
+    acc: wp.array(dtype=wp.float64),
+):
+    """Strided first sweep of `schur_matvec` for many-core devices: lane j of row k adds
+    sum_{l = j, j + lanes, ...} W(k, l) (v(l) - v(p)) to ``acc[k]`` (zeroed beforehand)."""
+    k, j = wp.tid()
+    vp = v[piv[k]]
+    a = _ZERO
+    for l in range(j, n_c, lanes):
+        a += weight_at(wsrc, k, l) * (v[l] - vp)
+    wp.atomic_add(acc, k, a)
+
+
+@wp.kernel
+def schur_row_delta(
+    piv: wp.array(dtype=wp.int32),
+    e1: wp.array(dtype=wp.float64),
+    b: wp.array(dtype=wp.float64),
+    v: wp.array(dtype=wp.float64),
+    acc: wp.array(dtype=wp.float64),
+):
+    """delta(k) = (acc(k) - b(k) v(p)) / E1(k), in place of ``acc`` (see `schur_matvec`)."""
+    k = wp.tid()
+    acc[k] = (acc[k] - b[k] * v[piv[k]]) / e1[k]
+
+
+@wp.kernel
+def schur_col_sweep(
+    wsrc: Any,
+    n_r: int,
+    lanes: int,
+    piv: wp.array(dtype=wp.int32),
+    v: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.float64),
+):
+    """Strided second sweep of `schur_matvec`: lane j of column l adds
+    sum_{k = j, j + lanes, ...} W(k, l) ((v(l) - v(p_k)) - delta(k)) to ``out[l]``."""
+    j, l = wp.tid()  # l fastest: a warp reads one row's neighbouring entries
+    vl = v[l]
+    a = _ZERO
+    for k in range(j, n_r, lanes):
+        a += weight_at(wsrc, k, l) * ((vl - v[piv[k]]) - delta[k])
+    wp.atomic_add(out, l, a)
+
+
+@wp.kernel
+def recover_finish(
+    piv: wp.array(dtype=wp.int32),
+    e1: wp.array(dtype=wp.float64),
+    b: wp.array(dtype=wp.float64),
+    g1: wp.array(dtype=wp.float64),
+    dy: wp.array(dtype=wp.float64),
+    acc: wp.array(dtype=wp.float64),
+    d_a: wp.array(dtype=wp.float64),
+    d_b: wp.array(dtype=wp.float64),
+):
+    """`recover_rows` from the strided row sums ``acc`` of `schur_row_partial` (with v = dy)."""
+    k = wp.tid()
+    vp = dy[piv[k]]
+    d_a[k] = -vp
+    d_b[k] = (-g1[k] - acc[k] + b[k] * vp) / e1[k]
+
+
+@wp.kernel
+def schur_prep_cols(
+    wsrc: Any,
+    n_r: int,
+    lanes: int,
+    piv: wp.array(dtype=wp.int32),
+    tail: wp.array(dtype=wp.float64),
+    e1: wp.array(dtype=wp.float64),
+    b: wp.array(dtype=wp.float64),
+    g1: wp.array(dtype=wp.float64),
+    diag_s: wp.array(dtype=wp.float64),
+    wtg: wp.array(dtype=wp.float64),
+):
+    """`schur_prep` without the top-k selection, as strided column lanes (see `schur_col_sweep`): lane j of
+    column l adds its rows' terms of diag(S_W)(l) and wtg(l) (``diag_s``, ``wtg`` zeroed beforehand)."""
+    j, l = wp.tid()
+    ds = _ZERO
+    wg = _ZERO
+    for k in range(j, n_r, lanes):
+        w = weight_at(wsrc, k, l)
+        ek = e1[k]
+        rest = ek - w
+        if l == piv[k]:
+            rest = tail[k] + b[k]
+        ds += w * rest / ek
+        wg += w * (g1[k] / ek)
+    wp.atomic_add(diag_s, l, ds)
+    wp.atomic_add(wtg, l, wg)
+
+
+@wp.kernel
+def eval_lanes(
+    csrc: Any,
+    wdst: Any,
+    n_c: int,
+    lanes: int,
+    beta: wp.float64,
+    lam_hi: wp.array(dtype=wp.float64),
+    lam_lo: wp.array(dtype=wp.float64),
+    y_hi: wp.array(dtype=wp.float64),
+    y_lo: wp.array(dtype=wp.float64),
+    # outputs
+    col_g: wp.array(dtype=wp.float64),
+    lane_f: wp.array3d(dtype=wp.float64),
+    lane_p: wp.array2d(dtype=wp.int32),
+):
+    """`eval_rows` as strided lanes (GPUs): lane j of row k scans columns j, j + lanes, ... and leaves its
+    partial results in lane_f[k, j] = (sum G, sum G C', sum x phi, largest W, sum of the other W, s at it)
+    and lane_p[k, j] = the largest W's column; `eval_combine` reduces them per row."""
+    k, j = wp.tid()
+    lh = lam_hi[k]
+    ll = lam_lo[k]
+    sg = _ZERO
+    su = _ZERO
+    sx = _ZERO
+    wmax = wp.float64(-1.0)
+    wrest = _ZERO
+    p = int(-1)
+    sp = _ZERO
+    for l in range(j, n_c, lanes):
+        c = cost_at(csrc, k, l)
+        x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
+        gw = phi_w(x)
+        g = gw[0]
+        w = beta * gw[1]
+        sg += g
+        wp.atomic_add(col_g, l, g)
+        put_weight(wdst, k, l, w)
+        wmax, wrest, p = track_pivot(w, l, wmax, wrest, p)
+        if p == l:
+            sp = x / beta
+        su += g * c
+        sx += x * g
+    lane_f[k, j, 0] = sg
+    lane_f[k, j, 1] = su
+    lane_f[k, j, 2] = sx
+    lane_f[k, j, 3] = wmax
+    lane_f[k, j, 4] = wrest
+    lane_f[k, j, 5] = sp
+    lane_p[k, j] = p
+
+
+@wp.kernel
+def eval_combine(
+    lanes: int,
+    lane_f: wp.array3d(dtype=wp.float64),
+    lane_p: wp.array2d(dtype=wp.int32),
+    # outputs (as eval_rows)
+    row_g: wp.array(dtype=wp.float64),
+    row_w: wp.array(dtype=wp.float64),
+    piv: wp.array(dtype=wp.int32),
+    tail: wp.array(dtype=wp.float64),
+    row_u: wp.array(dtype=wp.float64),
+    row_xphi: wp.array(dtype=wp.float64),
+    s_piv: wp.array(dtype=wp.float64),
+):
+    """Row k of `eval_rows` from its lanes: the sums, and the pivot = the largest W (the smallest column on
+    ties, as the row scan), its s, and the rest of the row's W summed without cancellation."""
+    k = wp.tid()
+    sg = _ZERO
+    su = _ZERO
+    sx = _ZERO
+    best = int(0)
+    for j in range(lanes):
+        sg += lane_f[k, j, 0]
+        su += lane_f[k, j, 1]
+        sx += lane_f[k, j, 2]
+        pj = lane_p[k, j]
+        if pj >= 0:
+            wj = lane_f[k, j, 3]
+            wb = lane_f[k, best, 3]
+            pb = lane_p[k, best]
+            if pb < 0 or wj > wb or (wj == wb and pj < pb):
+                best = j
+    rest = _ZERO
+    for j in range(lanes):
+        if lane_p[k, j] >= 0:
+            rest += lane_f[k, j, 4]
+            if j != best and lane_f[k, j, 3] > _ZERO:
+                rest += lane_f[k, j, 3]
+    wmax = lane_f[k, best, 3]
+    row_g[k] = sg
+    piv[k] = lane_p[k, best]
+    tail[k] = rest
+    row_w[k] = rest + wmax
+    row_u[k] = su
+    row_xphi[k] = sx
+    s_piv[k] = lane_f[k, best, 5]
+
+
 @wp.kernel
 def recover_rows(
     wsrc: Any,
@@ -658,11 +866,13 @@ def eval_phi(x: wp.array(dtype=wp.float64), out_phi: wp.array(dtype=wp.float64),
 _VARIANTS = {}
 for _c, _w in ((DenseCost, DenseW), (LazyCost, NoW)):
     _VARIANTS[(eval_rows, _c)] = wp.overload(eval_rows, {"csrc": _c, "wdst": _w})
+    _VARIANTS[(eval_lanes, _c)] = wp.overload(eval_lanes, {"csrc": _c, "wdst": _w})
 for _c in (DenseCost, LazyCost):
     for _k in (free_rows, plan_kernel, plan_topk):
         _VARIANTS[(_k, _c)] = wp.overload(_k, {"csrc": _c})
 for _w in (DenseW, LazyW):
-    for _k in (schur_prep, schur_prep_topk, col_topk, schur_matvec, recover_rows):
+    for _k in (schur_prep, schur_prep_topk, col_topk, schur_matvec, schur_row_partial, schur_col_sweep,
+               schur_prep_cols, recover_rows):
         _VARIANTS[(_k, _w)] = wp.overload(_k, {"wsrc": _w})
 
 

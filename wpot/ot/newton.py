@@ -33,6 +33,12 @@ from wpot.ot.result import BetaStep
 from wpot.ot.schedule import beta_schedule, relative_change
 
 
+#: lanes of the strided Schur matvec on every device (0: strided on GPUs only, see `Engine._record_matvec`);
+#: for tests of the strided kernels on the CPU
+FORCE_LANES = 0
+#: a beta step that fails (max_newton reached) is split at its geometric midpoint, down to this ratio
+#: (10 ** (1/16): four halvings of the default step in log beta)
+MIN_SPLIT_STEP = 10.0 ** (1.0 / 16.0)
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
 #: this many iterations beyond the count of its first solve (or a full Newton step with it gains less than
 #: 4x); it is then rebuilt at the next Newton point (at once, with a re-solve, when CG failed). Measured
@@ -140,6 +146,7 @@ class Engine:
         self.ctop_val = wp.zeros((n_c, kc), dtype=wp.float64, device=d)
         self.ctop_idx = wp.zeros((n_c, kc), dtype=wp.int32, device=d)
         self.v, self.mv = z(n_c), z(n_c)
+        self.delta = z(n_r)  # the row sweep's sums, then delta(k), of the strided matvec
         self.d_a, self.d_b = z(n_r), z(n_r)
         self.dy_a, self.zero_c = z(n_c), z(n_c)
         self.b.assign(wp.array(prob.b_r, dtype=wp.float64, device=d))
@@ -148,6 +155,11 @@ class Engine:
         self._n_tangent = 0
         self.a_sum = float(prob.a_c.sum())
         self._host = wp.get_device(d).is_cpu
+        # strided lanes on GPUs (see `_record_matvec`); one thread per row on the CPU
+        self.lanes = FORCE_LANES or (0 if self._host else K.MATVEC_LANES)
+        if self.lanes:
+            self.lane_f = wp.zeros((n_r, self.lanes, 6), dtype=wp.float64, device=d)
+            self.lane_p = wp.zeros((n_r, self.lanes), dtype=wp.int32, device=d)
         self._v_view = self.v.numpy() if self._host else None
         self._mv_view = self.mv.numpy() if self._host else None
         self._matvec_cmd = None
@@ -166,14 +178,22 @@ class Engine:
         t0 = time.perf_counter()
         p = self.p
         self.col_g.zero_()
-        wp.launch(
-            K.variant(K.eval_rows, self.csrc),
-            dim=p.n_r,
-            inputs=[self.csrc, self._wsink, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
-            outputs=[self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
-                     self.row_xphi, self.s_piv],
-            device=p.device,
-        )
+        if self.lanes:
+            wp.launch(K.variant(K.eval_lanes, self.csrc), dim=(p.n_r, self.lanes),
+                      inputs=[self.csrc, self._wsink, p.n_c, self.lanes, beta, lam[0], lam[1], y[0], y[1]],
+                      outputs=[self.col_g, self.lane_f, self.lane_p], device=p.device)
+            wp.launch(K.eval_combine, dim=p.n_r, inputs=[self.lanes, self.lane_f, self.lane_p],
+                      outputs=[self.row_g, self.row_w, self.piv, self.tail, self.row_u, self.row_xphi, self.s_piv],
+                      device=p.device)
+        else:
+            wp.launch(
+                K.variant(K.eval_rows, self.csrc),
+                dim=p.n_r,
+                inputs=[self.csrc, self._wsink, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
+                outputs=[self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
+                         self.row_xphi, self.s_piv],
+                device=p.device,
+            )
         self._w_point = (lam[0], lam[1], y[0], y[1], beta)
         rg, cg = self.row_g.numpy(), self.col_g.numpy()
         lam_h = lam[0].numpy() + lam[1].numpy()
@@ -235,16 +255,37 @@ class Engine:
             self.v.assign(v)
             self.mv.zero_()
         if self._matvec_cmd is None:  # recorded once per W source: only the arrays' contents change
-            self._matvec_cmd = wp.launch(K.variant(K.schur_matvec, self._wsrc), dim=p.n_r,
-                                         inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.v, self.mv],
-                                         device=p.device, record_cmd=True)
-        self._matvec_cmd.launch()
+            self._matvec_cmd = self._record_matvec()
+        if len(self._matvec_cmd) > 1:
+            self.delta.zero_()
+        for cmd in self._matvec_cmd:
+            cmd.launch()
         out = self.mv.numpy().copy()
         if p.partial:
             a = p.a_c
             out += a * v - a * (float(a @ v) / self.a_sum)
         self.t.n_matvec += 1
         return out
+
+    def _record_matvec(self) -> list:
+        """The launches of one Schur matvec (mv += S_W v). The CPU runs one thread per row, streaming its
+        row of W (`K.schur_matvec`); a GPU would then run only n_r threads, each reading a strided column
+        of W, and serialize on atomics into ``mv``. There the two sweeps are split into strided lanes
+        (`K.schur_row_partial`, `K.schur_row_delta`, `K.schur_col_sweep`): n * MATVEC_LANES threads whose
+        neighbours read neighbouring entries. Both orders compute the same sums up to rounding."""
+        p, w, d = self.p, self._wsrc, self.p.device
+        if not self.lanes:
+            return [wp.launch(K.variant(K.schur_matvec, w), dim=p.n_r,
+                              inputs=[w, p.n_c, self.piv, self.e1, self.b, self.v, self.mv], device=d, record_cmd=True)]
+        lanes = self.lanes
+        return [
+            wp.launch(K.variant(K.schur_row_partial, w), dim=(p.n_r, lanes),
+                      inputs=[w, p.n_c, lanes, self.piv, self.v, self.delta], device=d, record_cmd=True),
+            wp.launch(K.schur_row_delta, dim=p.n_r, inputs=[self.piv, self.e1, self.b, self.v, self.delta],
+                      device=d, record_cmd=True),
+            wp.launch(K.variant(K.schur_col_sweep, w), dim=(lanes, p.n_c),
+                      inputs=[w, p.n_r, lanes, self.piv, self.v, self.delta, self.mv], device=d, record_cmd=True),
+        ]
 
     def direction(self, pt: Point, rtol: float | None = None) -> tuple[int, bool]:
         """Solve the Newton system; leaves dlam = d_a + d_b and dy = dy_a on the device. Returns
@@ -267,9 +308,17 @@ class Engine:
         cg = self.o.linear_solver != "direct"
         fresh = cg and (self._M is None or self._M_stale)
         # row top-k selection only when the preconditioner is rebuilt
-        wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
-                  inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
-                  outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
+        if self.lanes:
+            wp.launch(K.variant(K.schur_prep_cols, self._wsrc), dim=(self.lanes, p.n_c),
+                      inputs=[self._wsrc, p.n_r, self.lanes, self.piv, self.tail, self.e1, self.b, self.g1,
+                              self.diag_s, self.wtg], device=p.device)
+            if fresh:
+                wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
+                          outputs=[self.top_val, self.top_idx], device=p.device)
+        else:
+            wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
+                      inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
+                      outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
         rhs = -pt.g2 + self.wtg.numpy()
         data = linear.SchurData(self.diag_s.numpy().copy(), e1, self.piv.numpy().copy(), p.a_c, not p.partial)
         self.t.prep += time.perf_counter() - t0
@@ -306,8 +355,16 @@ class Engine:
                     self._M_iters = info.iterations
         t0 = time.perf_counter()
         self._put(self.dy_a, dy)
-        wp.launch(K.variant(K.recover_rows, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
-                  outputs=[self.d_a, self.d_b], device=p.device)
+        if self.lanes:
+            self.delta.zero_()
+            wp.launch(K.variant(K.schur_row_partial, self._wsrc), dim=(p.n_r, self.lanes),
+                      inputs=[self._wsrc, p.n_c, self.lanes, self.piv, self.dy_a, self.delta], device=p.device)
+            wp.launch(K.recover_finish, dim=p.n_r, inputs=[self.piv, self.e1, self.b, self.g1, self.dy_a, self.delta],
+                      outputs=[self.d_a, self.d_b], device=p.device)
+        else:
+            wp.launch(K.variant(K.recover_rows, self._wsrc), dim=p.n_r,
+                      inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
+                      outputs=[self.d_a, self.d_b], device=p.device)
         self.t.other += time.perf_counter() - t0
         return n_lin, ok
 
@@ -400,8 +457,11 @@ class Engine:
         n_newton_tot = n_lin_tot = 0
         good = None  # (lam, y) copies at the last beta whose Newton solve converged
         failed_beta = None
-        for it, beta in enumerate(betas):
-            if it >= o.max_iter:
+        targets = list(betas)
+        n_split = 0
+        while targets:
+            beta = targets.pop(0)
+            if len(raw) >= o.max_iter:
                 break
             if raw and o.extrapolate:
                 pt = self._predict(beta, raw[-1]["beta"])
@@ -409,6 +469,19 @@ class Engine:
             else:
                 pt = self.evaluate(self.lam, self.y, beta)
             pt, nn, nl, ok = self.newton(beta, pt)
+            if not ok and good is not None and raw[-1]["ok"] and beta / raw[-1]["beta"] > MIN_SPLIT_STEP:
+                # the step from the last solved beta was too long for max_newton damped steps (real 5k-vertex
+                # WKS pairs at the plan's spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8,
+                # normalized): back to its duals, and reach beta through the geometric midpoint
+                n_newton_tot += nn
+                n_lin_tot += nl
+                n_split += 1
+                beta_prev = raw[-1]["beta"]
+                self._copy(good[0], self.lam)
+                self._copy(good[1], self.y)
+                self._refresh_tangent(beta_prev)
+                targets[:0] = [math.sqrt(beta_prev * beta), beta]
+                continue
             if not ok and good is not None:
                 # a failed solve after a solved beta: its iterate can be far from feasible (U off by 12 % on
                 # a cell-pooled TOSCA pair at beta 2.5e14, while the previous beta was within 1e-7 of the
@@ -427,11 +500,7 @@ class Engine:
                 break
             # the device state (W, marginals, ...) is that of the current point: add F and W s
             self.free_pass(self.lam, self.y, beta, pt)
-            if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
-                # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
-                self._n_tangent, _ = self.direction(Point(self.row_ws.numpy().copy(), self.col_ws.numpy().copy(), 0.0, 0.0))
-            else:
-                self._n_tangent = 0
+            self._tangent(pt)
             all_newton_ok &= ok
             n_newton_tot += nn
             n_lin_tot += nl
@@ -459,7 +528,24 @@ class Engine:
         if o.verbose:
             print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
         return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
-                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta)
+                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta,
+                    n_split=n_split)
+
+    def _tangent(self, pt: Point) -> None:
+        """d(lam, y)/d(log beta) at the solved point ``pt`` (device state at it, after `free_pass`), kept on the
+        device for `_predict`; skipped when the extrapolation is off or the point is not accurate enough."""
+        if self.o.extrapolate and pt.residual <= self.o.newton_tol * 1e3:
+            # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
+            self._n_tangent, _ = self.direction(Point(self.row_ws.numpy().copy(), self.col_ws.numpy().copy(), 0.0, 0.0))
+        else:
+            self._n_tangent = 0
+
+    def _refresh_tangent(self, beta: float) -> None:
+        """Re-evaluate the (restored) duals at ``beta`` and recompute the tangent there (a failed Newton solve
+        overwrote the device state and the direction arrays)."""
+        pt = self.evaluate(self.lam, self.y, beta)
+        self.free_pass(self.lam, self.y, beta, pt)
+        self._tangent(pt)
 
     def _predict(self, beta: float, beta_prev: float) -> Point:
         """Tangent predictor: (lam, y) + alpha d(lam, y)/d(log beta) with alpha = 1 - 1/q, i.e. linear in
