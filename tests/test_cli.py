@@ -147,3 +147,12 @@ def test_method_options_reach_the_comparer():
     d = Comparer(**_comparer_options(build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50",
                                                                 "--device", "cpu"]))).params()
     assert d["pooling"] == "none" and d["scale_invariant"] is False  # the library's defaults
+    # --ot-method: auto (default) leaves the choice to the Comparer (and the run key as before auto existed);
+    # anneal and ipm are passed on for balanced transport; partial transport always anneals
+    def solver(*extra):
+        args = build_parser().parse_args(["compare", "a.off", "b.off", "--device", "cpu", *extra])
+        return Comparer(**_comparer_options(args)).params()["solver_options"]
+
+    assert solver() == {} and solver("--ot-method", "auto") == {}
+    assert solver("--ot-method", "anneal") == {"method": "anneal"} and solver("--ot-method", "ipm") == {"method": "ipm"}
+    assert solver("--transport", "partial", "--ot-method", "anneal") == {}

@@ -492,3 +492,27 @@ def test_partial_distance_is_debiased_and_zero_on_itself():
 
 def transport_energy_of(c):
     return float(c.result.objective)
+
+
+def test_large_balanced_pairs_start_with_the_interior_point_method(comparer, pair, monkeypatch):
+    # Full-resolution pairs anneal an order of magnitude slower than the interior-point start (TOSCA cat0-cat1:
+    # 1,529 Newton steps against 116), so balanced pairs of >= AUTO_IPM_POINTS points each use method="ipm"
+    # unless solver_options names a method; the distance is the same optimum either way.
+    from wpot import comparison, ot
+
+    calls = []
+    real = ot.solve_balanced
+
+    def spy(*args, **kw):
+        calls.append(kw.get("method"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(ot, "solve_balanced", spy)
+    small = comparer.transport_plan(pair.source, pair.target)  # 300 points each < 2000
+    monkeypatch.setattr(comparison, "AUTO_IPM_POINTS", 300)
+    big = comparer.transport_plan(pair.source, pair.target)
+    forced = comparer.with_options(solver_options={"method": "anneal"}).transport_plan(pair.source, pair.target)
+    assert calls == [None, "ipm", "anneal"]
+    assert big.converged and small.converged
+    assert abs(big.cost - small.cost) <= small.history[-1].gap_bound + big.history[-1].gap_bound
+    assert forced.cost == small.cost and big.history[0].beta > small.history[0].beta  # ipm's history starts later

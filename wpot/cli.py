@@ -73,16 +73,16 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     )
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     p.add_argument(
-        "--ot-method", choices=("anneal", "ipm"), default="anneal",
-        help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta; default) or "
-              "'ipm' (interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: same D(inf), "
-              "about 2x faster for N >= 2000 and 12x on full-resolution 5,000-vertex TOSCA pairs; use it without "
-              "--max-vertices)"),
+        "--ot-method", choices=("auto", "anneal", "ipm"), default="auto",
+        help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta), 'ipm' "
+              "(interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: same D(inf), about "
+              "2x faster for N >= 2000 and 12x on full-resolution 5,000-vertex TOSCA pairs) or 'auto' (default: "
+              "'ipm' when both shapes have >= 2000 points, else 'anneal')"),
     )
 
 
 def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
-    if a.ot_method != "anneal" and a.transport != "balanced":
+    if a.ot_method == "ipm" and a.transport != "balanced":
         raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
     return {
         "signature": a.signature,
@@ -95,7 +95,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "n_energies": a.n_energies,
         "scale_invariant": a.scale_invariant,
         "device": a.device,
-        **({"solver_options": {"method": a.ot_method}} if a.ot_method != "anneal" else {}),
+        **({"solver_options": {"method": a.ot_method}} if a.ot_method != "auto" and a.transport == "balanced" else {}),
     }
 
 
