@@ -363,7 +363,7 @@ def test_debiased_eq27():
 
 @pytest.mark.parametrize("mode", ["balanced", "ipm", "partial", "matrix-free"])
 def test_strided_gpu_kernels_give_the_row_kernels_solution(monkeypatch, mode):
-    # GPUs run the passes over W as strided lanes (eval_lanes + eval_combine, schur_prep_cols, the Schur matvec
+    # GPUs run the passes over W as strided lanes (eval_rows in lanes + eval_combine, schur_prep_cols, the Schur matvec
     # as schur_row_partial / schur_row_delta / schur_col_sweep, recover_finish), the CPU as one thread per
     # row. Forced on the CPU with a lane count that divides neither side, the strided kernels must give the
     # same solution up to rounding (stored W and recomputed W), with the same pivots.
@@ -396,8 +396,8 @@ def test_strided_gpu_kernels_give_the_row_kernels_solution(monkeypatch, mode):
 
 @pytest.mark.parametrize("lanes", [1, 5, 64])
 def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(monkeypatch, lanes):
-    # eval_lanes + eval_combine (GPUs) against eval_rows (CPU) at one point, with tied weights in some rows:
-    # the same sums, and the same pivot (the largest weight, the first column on ties), tail and s there.
+    # eval_rows in 5 or 64 lanes (GPUs) against one lane (the CPU's row scan), each + eval_combine, at one
+    # point, with tied weights in some rows: the same sums, and the same pivot (the largest weight, the first column on ties), tail and s there.
     from wpot.ot import newton
     from wpot.ot._common import make_options
     from wpot.ot.balanced import orient, prepare_cost

@@ -299,63 +299,6 @@ def track_pivot(w: wp.float64, l: int, wmax: wp.float64, wrest: wp.float64, p: i
 
 
 @wp.kernel
-def eval_rows(
-    csrc: Any,
-    wdst: Any,
-    n_c: int,
-    beta: wp.float64,
-    lam_hi: wp.array(dtype=wp.float64),
-    lam_lo: wp.array(dtype=wp.float64),
-    y_hi: wp.array(dtype=wp.float64),
-    y_lo: wp.array(dtype=wp.float64),
-    # outputs
-    row_g: wp.array(dtype=wp.float64),
-    col_g: wp.array(dtype=wp.float64),
-    row_w: wp.array(dtype=wp.float64),
-    piv: wp.array(dtype=wp.int32),
-    tail: wp.array(dtype=wp.float64),
-    row_u: wp.array(dtype=wp.float64),
-    row_xphi: wp.array(dtype=wp.float64),
-    s_piv: wp.array(dtype=wp.float64),
-):
-    """One pass over row k: G = phi(beta s), its row sum (and column sums, atomically), W = beta |phi'|
-    (stored into ``wdst`` in stored mode), W's row sum, argmax (pivot), the row sum without the pivot
-    (``tail``, accumulated without cancellation), the pivot's s, sum G C' (U) and sum x phi(x) (beta x
-    duality gap)."""
-    k = wp.tid()
-    lh = lam_hi[k]
-    ll = lam_lo[k]
-    sg = _ZERO
-    su = _ZERO
-    sx = _ZERO
-    wmax = wp.float64(-1.0)
-    wrest = _ZERO
-    p = int(0)
-    sp = _ZERO
-    for l in range(n_c):
-        c = cost_at(csrc, k, l)
-        x = beta * reduced_cost(c, lh, ll, y_hi[l], y_lo[l])
-        gw = phi_w(x)
-        g = gw[0]
-        w = beta * gw[1]
-        sg += g
-        wp.atomic_add(col_g, l, g)
-        put_weight(wdst, k, l, w)
-        wmax, wrest, p = track_pivot(w, l, wmax, wrest, p)
-        if p == l:
-            sp = x / beta
-        su += g * c
-        sx += x * g
-    row_g[k] = sg
-    piv[k] = p
-    tail[k] = wrest
-    row_w[k] = wrest + wmax
-    row_u[k] = su
-    row_xphi[k] = sx
-    s_piv[k] = sp
-
-
-@wp.kernel
 def free_rows(
     csrc: Any,
     n_c: int,
@@ -610,7 +553,7 @@ def schur_prep_cols(
 
 
 @wp.kernel
-def eval_lanes(
+def eval_rows(
     csrc: Any,
     wdst: Any,
     n_c: int,
@@ -625,9 +568,12 @@ def eval_lanes(
     lane_f: wp.array3d(dtype=wp.float64),
     lane_p: wp.array2d(dtype=wp.int32),
 ):
-    """`eval_rows` as strided lanes (GPUs): lane j of row k scans columns j, j + lanes, ... and leaves its
-    partial results in lane_f[k, j] = (sum G, sum G C', sum x phi, largest W, sum of the other W, s at it)
-    and lane_p[k, j] = the largest W's column; `eval_combine` reduces them per row."""
+    """One pass over C at a point, in ``lanes`` strided lanes per row (1 on the CPU, which streams the row;
+    many on GPUs, so that neighbouring threads read neighbouring entries). Lane j of row k scans columns
+    j, j + lanes, ...: G = phi(beta s) (column sums added atomically), W = beta |phi'| (stored into ``wdst``
+    in stored mode), and leaves lane_f[k, j] = (sum G, sum G C' (U), sum x phi(x) (beta x duality gap),
+    largest W, sum of the other W (without cancellation), s at the largest) and lane_p[k, j] = the largest
+    W's column. `eval_combine` reduces the lanes of each row."""
     k, j = wp.tid()
     lh = lam_hi[k]
     ll = lam_lo[k]
@@ -666,7 +612,7 @@ def eval_combine(
     lanes: int,
     lane_f: wp.array3d(dtype=wp.float64),
     lane_p: wp.array2d(dtype=wp.int32),
-    # outputs (as eval_rows)
+    # outputs
     row_g: wp.array(dtype=wp.float64),
     row_w: wp.array(dtype=wp.float64),
     piv: wp.array(dtype=wp.int32),
@@ -675,8 +621,9 @@ def eval_combine(
     row_xphi: wp.array(dtype=wp.float64),
     s_piv: wp.array(dtype=wp.float64),
 ):
-    """Row k of `eval_rows` from its lanes: the sums, and the pivot = the largest W (the smallest column on
-    ties, as the row scan), its s, and the rest of the row's W summed without cancellation."""
+    """Row k of `eval_rows` from its lanes: G's row sum, U, sum x phi, the pivot = the largest W (the smallest
+    column on ties, as one lane's scan), its s, the rest of the row's W (``tail``, summed without
+    cancellation) and W's row sum = tail + the pivot's W. With one lane each value is that lane's, exactly."""
     k = wp.tid()
     sg = _ZERO
     su = _ZERO
@@ -866,7 +813,6 @@ def eval_phi(x: wp.array(dtype=wp.float64), out_phi: wp.array(dtype=wp.float64),
 _VARIANTS = {}
 for _c, _w in ((DenseCost, DenseW), (LazyCost, NoW)):
     _VARIANTS[(eval_rows, _c)] = wp.overload(eval_rows, {"csrc": _c, "wdst": _w})
-    _VARIANTS[(eval_lanes, _c)] = wp.overload(eval_lanes, {"csrc": _c, "wdst": _w})
 for _c in (DenseCost, LazyCost):
     for _k in (free_rows, plan_kernel, plan_topk):
         _VARIANTS[(_k, _c)] = wp.overload(_k, {"csrc": _c})

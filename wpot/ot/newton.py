@@ -157,9 +157,9 @@ class Engine:
         self._host = wp.get_device(d).is_cpu
         # strided lanes on GPUs (see `_record_matvec`); one thread per row on the CPU
         self.lanes = FORCE_LANES or (0 if self._host else K.MATVEC_LANES)
-        if self.lanes:
-            self.lane_f = wp.zeros((n_r, self.lanes, 6), dtype=wp.float64, device=d)
-            self.lane_p = wp.zeros((n_r, self.lanes), dtype=wp.int32, device=d)
+        self.eval_lanes = self.lanes or 1  # `K.eval_rows` runs one lane per row on the CPU
+        self.lane_f = wp.zeros((n_r, self.eval_lanes, 6), dtype=wp.float64, device=d)
+        self.lane_p = wp.zeros((n_r, self.eval_lanes), dtype=wp.int32, device=d)
         self._v_view = self.v.numpy() if self._host else None
         self._mv_view = self.mv.numpy() if self._host else None
         self._matvec_cmd = None
@@ -178,22 +178,12 @@ class Engine:
         t0 = time.perf_counter()
         p = self.p
         self.col_g.zero_()
-        if self.lanes:
-            wp.launch(K.variant(K.eval_lanes, self.csrc), dim=(p.n_r, self.lanes),
-                      inputs=[self.csrc, self._wsink, p.n_c, self.lanes, beta, lam[0], lam[1], y[0], y[1]],
-                      outputs=[self.col_g, self.lane_f, self.lane_p], device=p.device)
-            wp.launch(K.eval_combine, dim=p.n_r, inputs=[self.lanes, self.lane_f, self.lane_p],
-                      outputs=[self.row_g, self.row_w, self.piv, self.tail, self.row_u, self.row_xphi, self.s_piv],
-                      device=p.device)
-        else:
-            wp.launch(
-                K.variant(K.eval_rows, self.csrc),
-                dim=p.n_r,
-                inputs=[self.csrc, self._wsink, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
-                outputs=[self.row_g, self.col_g, self.row_w, self.piv, self.tail, self.row_u,
-                         self.row_xphi, self.s_piv],
-                device=p.device,
-            )
+        wp.launch(K.variant(K.eval_rows, self.csrc), dim=(p.n_r, self.eval_lanes),
+                  inputs=[self.csrc, self._wsink, p.n_c, self.eval_lanes, beta, lam[0], lam[1], y[0], y[1]],
+                  outputs=[self.col_g, self.lane_f, self.lane_p], device=p.device)
+        wp.launch(K.eval_combine, dim=p.n_r, inputs=[self.eval_lanes, self.lane_f, self.lane_p],
+                  outputs=[self.row_g, self.row_w, self.piv, self.tail, self.row_u, self.row_xphi, self.s_piv],
+                  device=p.device)
         self._w_point = (lam[0], lam[1], y[0], y[1], beta)
         rg, cg = self.row_g.numpy(), self.col_g.numpy()
         lam_h = lam[0].numpy() + lam[1].numpy()
@@ -458,7 +448,6 @@ class Engine:
         good = None  # (lam, y) copies at the last beta whose Newton solve converged
         failed_beta = None
         targets = list(betas)
-        n_split = 0
         while targets:
             beta = targets.pop(0)
             if len(raw) >= o.max_iter:
@@ -469,30 +458,26 @@ class Engine:
             else:
                 pt = self.evaluate(self.lam, self.y, beta)
             pt, nn, nl, ok = self.newton(beta, pt)
-            if not ok and good is not None and raw[-1]["ok"] and beta / raw[-1]["beta"] > MIN_SPLIT_STEP:
-                # the step from the last solved beta was too long for max_newton damped steps (real 5k-vertex
-                # WKS pairs at the plan's spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8,
-                # normalized): back to its duals, and reach beta through the geometric midpoint
+            if not ok and good is not None:
+                # a failed solve after a solved beta (good holds that beta's duals, raw[-1] its record): its
+                # iterate can be far from feasible, so go back to the solved duals
                 n_newton_tot += nn
                 n_lin_tot += nl
-                n_split += 1
-                beta_prev = raw[-1]["beta"]
                 self._copy(good[0], self.lam)
                 self._copy(good[1], self.y)
-                self._refresh_tangent(beta_prev)
-                targets[:0] = [math.sqrt(beta_prev * beta), beta]
-                continue
-            if not ok and good is not None:
-                # a failed solve after a solved beta: its iterate can be far from feasible (U off by 12 % on
-                # a cell-pooled TOSCA pair at beta 2.5e14, while the previous beta was within 1e-7 of the
-                # optimum), so end at the last solved beta instead
-                n_newton_tot += nn
-                n_lin_tot += nl
+                beta_prev = raw[-1]["beta"]
+                if beta / beta_prev > MIN_SPLIT_STEP:
+                    # the step was too long for max_newton damped steps (real 5k-vertex WKS pairs at the plan's
+                    # spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8, normalized): reach beta
+                    # through the geometric midpoint
+                    self._refresh_tangent(beta_prev)
+                    targets[:0] = [math.sqrt(beta_prev * beta), beta]
+                    continue
+                # no shorter step left (U was off by 12 % on a cell-pooled TOSCA pair at beta 2.5e14, while the
+                # previous beta was within 1e-7 of the optimum): end at the last solved beta
                 failed_beta = beta
                 all_newton_ok = False
-                self._copy(good[0], self.lam)
-                self._copy(good[1], self.y)
-                beta = raw[-1]["beta"]
+                beta = beta_prev
                 pt = self.evaluate(self.lam, self.y, beta)
                 self.free_pass(self.lam, self.y, beta, pt)
                 self.beta = beta
@@ -528,8 +513,7 @@ class Engine:
         if o.verbose:
             print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
         return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
-                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta,
-                    n_split=n_split)
+                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta)
 
     def _tangent(self, pt: Point) -> None:
         """d(lam, y)/d(log beta) at the solved point ``pt`` (device state at it, after `free_pass`), kept on the
