@@ -19,11 +19,9 @@ Options it does not know go to ``wpot all-vs-all``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import signal
-import sqlite3
 import statistics
 import subprocess
 import sys
@@ -68,14 +66,15 @@ def run_wpot(data: str, out: Path, device: str, jobs: int, seconds: float, extra
 
 
 def read_store(out: Path) -> dict:
-    con = sqlite3.connect(out / "wpot.sqlite")
-    rows = con.execute("SELECT i, j, energy, seconds, finished_at, converged, n_newton, n_linear FROM pairs "
-                       "WHERE i <> j ORDER BY finished_at").fetchall()
-    created = float(json.loads(con.execute("SELECT value FROM run WHERE key='created_at'").fetchone()[0]))
-    n_tasks = len(rows)
-    n_shapes = con.execute("SELECT COUNT(*) FROM shapes").fetchone()[0]
-    con.close()
-    return dict(rows=rows, created=created, n_shapes=n_shapes, n_done=n_tasks)
+    """The run's settings and its committed pairs (i, j, energy, seconds, finished_at, converged, n_newton,
+    n_linear), oldest first, from its `wpot.pipeline.RunStore`."""
+    from wpot.pipeline import RunStore
+
+    with RunStore(out) as store:
+        rows = store.con.execute("SELECT i, j, energy, seconds, finished_at, converged, n_newton, n_linear FROM pairs "
+                                 "WHERE i <> j ORDER BY finished_at").fetchall()
+        return dict(rows=rows, n_shapes=store.n_shapes, params=store.params, energies=store.get("energies"),
+                    paths={r[0]: r[2] for r in store.shape_rows()})
 
 
 def emd_pair(args) -> tuple[float, float]:
@@ -137,12 +136,8 @@ def main() -> None:
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    con = sqlite3.connect(out / "wpot.sqlite")
-    params = json.loads(con.execute("SELECT value FROM run WHERE key='params'").fetchone()[0])
-    energies_row = con.execute("SELECT value FROM run WHERE key='energies'").fetchone()
-    energies = json.loads(energies_row[0]) if energies_row else None
-    paths = dict(con.execute("SELECT idx, path FROM shapes").fetchall())
-    con.close()
+    params, energies, paths = st["params"], st["energies"], st["paths"]
+    cache = os.environ.get("WPOT_CACHE_DIR") or str(out / "cache")  # where the run kept its signatures
     if params.get("transport") != "balanced":
         print("\n(the ot.emd peer is for balanced runs only)")
         return
@@ -153,7 +148,7 @@ def main() -> None:
     if n_peer == 0:
         return
     peer_rows = st["rows"][:n_peer]  # the run's first pairs, from this session or an earlier one
-    todo = [(paths[r[0]], paths[r[1]], opts, energies, str(out / "cache")) for r in peer_rows]
+    todo = [(paths[r[0]], paths[r[1]], opts, energies, cache) for r in peer_rows]
     t0 = time.time()
     res = []
     with cf.ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("spawn")) as ex:
