@@ -129,7 +129,7 @@ def base_comparer(a, sig: str, ds, names: list[str], out: Path):
 
     base = Comparer(signature=sig, transport="partial", max_vertices=a.max_vertices, device=a.device,
                     n_eigen=a.n_eigen, n_energies=a.n_energies, pooling=a.pooling, vertices_per_sample=a.vertices_per_sample,
-                    cache_dir=out / "cache")
+                    ldsift_slab=a.ldsift_slab, cache_dir=out / "cache")
     if sig == "wks":
         base.fit_energies([ds.mesh(n) for n in names])
     return base
@@ -261,6 +261,7 @@ def main(argv=None) -> int:
     ap.add_argument("--pooling", default="none", choices=["none", "cell"], help="how samples stand for a mesh (Comparer)")
     ap.add_argument("--vertices-per-sample", type=float, default=None,
                     help="sample every mesh at this common density instead of --max-vertices each (Comparer)")
+    ap.add_argument("--ldsift-slab", type=float, default=1.0, help="LD-SIFT depth slab half-thickness in units of S(v) (Comparer)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--mass-figure", default=None, metavar="HEAD",
                     help="instead: draw HEAD's parent coloured by received mass at each of --kappas")
@@ -293,7 +294,8 @@ def main(argv=None) -> int:
         settings = [("relative", k) for k in sorted(a.kappas, reverse=True)]
         if not a.no_paper:
             settings.append(("paper", 1.0))
-    log(f"HEAD: {len(heads)} heads x {len(fulls)} full shapes, max_vertices={a.max_vertices}, settings={settings}")
+    log(f"HEAD: {len(heads)} heads x {len(fulls)} full shapes, max_vertices={a.max_vertices}, settings={settings}"
+        + (f", ldsift_slab={a.ldsift_slab:g}" if a.ldsift_slab != 1.0 else ""))
     if a.mass_figure is not None:
         for sig in a.signatures:
             base = base_comparer(a, sig, ds, heads + fulls, out)

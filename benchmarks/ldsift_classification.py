@@ -17,7 +17,7 @@ match (ground truth ``corres/*.vts``) for a few same-class pairs, a pointwise me
 
     OPENBLAS_NUM_THREADS=1 WPOT_CACHE_DIR=... python benchmarks/ldsift_classification.py \\
         [--data ../shared/data] [--per-class 4] [--samples 200 400 800] [--sampling fps|random] \\
-        [--metric l2|l1|wks] [--K 3] [--resolution 21] [--rank]
+        [--metric l2|l1|wks] [--K 3] [--resolution 21] [--slab 1] [--rank]
 
 Needs POT (the ``dev`` extra). Single process; timings are not the point.
 """
@@ -83,6 +83,7 @@ def main() -> None:
     ap.add_argument("--metric", choices=("l2", "l1", "wks"), default="l2")
     ap.add_argument("--K", type=float, default=3.0)
     ap.add_argument("--resolution", type=int, default=21)
+    ap.add_argument("--slab", type=float, default=1.0, help="depth slab half-thickness in units of S(v)")
     ap.add_argument("--rank", action="store_true")
     args = ap.parse_args()
 
@@ -91,10 +92,12 @@ def main() -> None:
     names = [p.stem for p in paths]
     labels = np.array([class_label(n) for n in names])
     meshes = [wpot.load_mesh(p) for p in paths]
-    comparer = wpot.Comparer(signature="ldsift", ldsift_K=args.K, ldsift_resolution=args.resolution, device="cpu")
+    comparer = wpot.Comparer(signature="ldsift", ldsift_K=args.K, ldsift_resolution=args.resolution,
+                             ldsift_slab=args.slab, device="cpu")
     t0 = time.perf_counter()
     sigs = [comparer.signatures(m) for m in meshes]
-    print(f"{len(meshes)} shapes, {len(set(labels))} classes; LD-SIFT K={args.K} R={args.resolution}: {time.perf_counter() - t0:.1f} s")
+    print(f"{len(meshes)} shapes, {len(set(labels))} classes; LD-SIFT K={args.K} R={args.resolution} slab={args.slab}: "
+          f"{time.perf_counter() - t0:.1f} s")
 
     if args.rank:
         for a, b in PAIRS:

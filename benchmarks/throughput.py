@@ -142,8 +142,10 @@ def main() -> None:
         print("\n(the ot.emd peer is for balanced runs only)")
         return
     keys = ("signature", "transport", "max_vertices", "fps_metric", "pooling", "vertices_per_sample", "n_eigen",
-            "n_energies", "scale_invariant", "ldsift_K", "ldsift_resolution", "match_ratio", "solver_options")
+            "n_energies", "scale_invariant", "ldsift_K", "ldsift_resolution", "ldsift_slab", "match_ratio", "solver_options")
     opts = {k: params[k] for k in keys if params.get(k) is not None}
+    if params.get("signature") == "ldsift":
+        opts.setdefault("ldsift_slab", 1.0)  # runs stored without the key used slab 1.0 (`Comparer.params`)
     n_peer = min(len(st["rows"]), args.jobs if args.peer_pairs is None else args.peer_pairs)
     if n_peer == 0:
         return

@@ -156,3 +156,16 @@ def test_method_options_reach_the_comparer():
     assert solver() == {} and solver("--ot-method", "auto") == {}
     assert solver("--ot-method", "anneal") == {"method": "anneal"} and solver("--ot-method", "ipm") == {"method": "ipm"}
     assert solver("--transport", "partial", "--ot-method", "anneal") == {}
+
+
+def test_ldsift_slab_reaches_the_comparer_and_runs_stored_before_it_resume():
+    from wpot.cli import _comparer_options, build_parser
+    from wpot.comparison import Comparer
+
+    def params(*extra):
+        args = build_parser().parse_args(["compare", "a.off", "b.off", "--signature", "ldsift", "--device", "cpu", *extra])
+        return Comparer(**_comparer_options(args)).params()
+
+    assert params("--ldsift-slab", "0.25")["ldsift_slab"] == 0.25
+    # the default, 1, was the only slab before the option existed: the run key is the one of then
+    assert "ldsift_slab" not in params() and params() == params("--ldsift-slab", "1")

@@ -1,7 +1,6 @@
 """wpot.comparison: registration (closed form), farthest-point sampling, memory guard, and end-to-end comparisons."""
 from __future__ import annotations
 
-import importlib.util
 import warnings
 
 import numpy as np
@@ -516,3 +515,20 @@ def test_large_balanced_pairs_start_with_the_interior_point_method(comparer, pai
     assert big.converged and small.converged
     assert abs(big.cost - small.cost) <= small.history[-1].gap_bound + big.history[-1].gap_bound
     assert forced.cost == small.cost and big.history[0].beta > small.history[0].beta  # ipm's history starts later
+
+
+def test_ldsift_slab_is_part_of_the_run_key_and_the_signature_cache_key():
+    from wpot.comparison import Comparer
+
+    old = Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    thin = old.with_options(ldsift_slab=0.25)
+    assert old.ldsift_slab == 1.0 and thin.params()["ldsift_slab"] == 0.25
+    # slab 1.0 (the default), the only one before the option existed: same run key and signature cache key
+    # as then, so stored runs resume and cached signatures are reused
+    assert "ldsift_slab" not in old.params() and "slab" not in old._signature_params()
+    assert thin._signature_key() != old._signature_key()
+    assert Comparer(**thin.options()).params() == thin.params()
+    assert "ldsift_slab" not in Comparer(signature="wks", ldsift_slab=0.5).params()  # WKS ignores it
+    for bad in (0, -1.0, float("nan"), float("inf"), True, "thin"):
+        with pytest.raises(ValueError, match="slab must be"):
+            Comparer(signature="ldsift", ldsift_slab=bad)

@@ -101,7 +101,47 @@ def test_cpu_and_device_agree(bumpy, device):
     b = L.ldsift_images(bumpy, device=device)
     np.testing.assert_allclose(a, b, atol=1e-5)
     s = L.local_frames(bumpy).half_sizes
-    assert np.all(np.abs(a) <= s[:, None, None] * (1 + 1e-6))  # heights lie in the slab [-S, S]
+    assert np.all(np.abs(a) <= L.SLAB * s[:, None, None] * (1 + 1e-6))  # heights lie in the slab [-t S, t S]
+
+
+def _two_floors(h_over_s: float) -> tuple[Mesh, int, float]:
+    """A flat 13 x 13 grid (z = 0, faces up) and, above its centre vertex c, a small 5 x 5 grid at
+    height h = h_over_s * S(c), with S(c) = 3 D(c) computed from the lower grid alone."""
+    def grid(n, z, x0):
+        xs = x0 + np.arange(n, dtype=float)
+        v = np.array([(x, y, z) for y in xs for x in xs])
+        f = [(i * n + j, i * n + j + 1, (i + 1) * n + j + 1) for i in range(n - 1) for j in range(n - 1)]
+        f += [(i * n + j, (i + 1) * n + j + 1, (i + 1) * n + j) for i in range(n - 1) for j in range(n - 1)]
+        return v, np.array(f)
+
+    v0, f0 = grid(13, 0.0, -6.0)
+    c = 6 * 13 + 6
+    s = L.local_frames(Mesh(v0, f0)).half_sizes[c]
+    v1, f1 = grid(5, h_over_s * s, -2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # two connected components, on purpose
+        return Mesh(np.vstack([v0, v1]), np.vstack([f0, f1 + len(v0)])), c, s
+
+
+@pytest.mark.parametrize("h_over_s", [0.4, 0.8])
+def test_slab_decides_whether_a_surface_above_the_plane_counts(h_over_s):
+    """Closed form: a surface at height h above the centre vertex's plane is what its centre pixel sees
+    when h < slab S(v) (the ray starts above it), and is ignored when h > slab S(v) (the ray starts below
+    it and meets the vertex's own plane, height 0). Every height stays in [-slab S, slab S]."""
+    mesh, c, s = _two_floors(h_over_s)
+    fr = L.local_frames(mesh)
+    assert abs(abs(fr.frames[c, 2, 2]) - 1) < 1e-6  # the upper floor does not tilt the dominant plane
+    mid = 10  # centre pixel of the 21 x 21 image
+    for slab in (0.25, 0.5, 1.0, 2.0):
+        img = L.ldsift_images(mesh, slab=slab, device="cpu")[c]
+        seen = img[mid, mid]
+        if h_over_s < slab:
+            assert seen == pytest.approx(h_over_s * s, rel=1e-5)
+        else:
+            assert seen == pytest.approx(0.0, abs=1e-5 * s)
+        assert np.all(np.abs(img) <= slab * s * (1 + 1e-6))
+    with pytest.raises(ValueError, match="slab must be"):
+        L.ldsift_images(mesh, slab=0.0)
 
 
 def test_true_match_ranks_high_on_tosca(tosca5k):

@@ -594,6 +594,9 @@ class Comparer:
     energies : a fixed WKS energy grid (n_energies,) shared by all shapes; when None, the grid is built by
         `fit_energies` (from a dataset) or, for a lone pair, from the two shapes' spectra
     ldsift_K, ldsift_resolution : LD-SIFT scale constant K (paper 3) and image size (paper 21)
+    ldsift_slab : LD-SIFT depth slab half-thickness in units of S(v) (default 1.0; 0.25 classifies articulated
+        shapes such as TOSCA better, 1.0 keeps the broad features of smooth ones: `wpot.signatures.ldsift`).
+        It enters the run key only when it is not 1.0, so runs stored before the option existed resume
     cache_dir : folder for the on-disk signature cache (`wpot.cache.Cache`, content-keyed npz); None uses
         ``$WPOT_CACHE_DIR`` when set (else memory only); False keeps signatures in memory only
     solver_options : extra keyword arguments for `wpot.ot.solve_balanced` / `solve_partial` (beta0, tol, ...).
@@ -624,6 +627,7 @@ class Comparer:
         energies: ArrayLike | None = None,
         ldsift_K: float = 3.0,
         ldsift_resolution: int = 21,
+        ldsift_slab: float | None = None,
         cache_dir: str | Path | None | bool = None,
         solver_options: Mapping[str, Any] | None = None,
         match_ratio: float = 0.9,
@@ -668,6 +672,9 @@ class Comparer:
         self.scale_invariant = bool(scale_invariant)
         self.ldsift_K = float(ldsift_K)
         self.ldsift_resolution = int(ldsift_resolution)
+        from wpot.signatures._ldsift import SLAB, _check_slab
+
+        self.ldsift_slab = SLAB if ldsift_slab is None else _check_slab(ldsift_slab)
         self.solver_options = dict(solver_options or {})
         self.match_ratio = float(match_ratio)
         self.cache_dir = cache_dir
@@ -702,6 +709,8 @@ class Comparer:
             p.update(n_eigen=self.n_eigen, n_energies=self.n_energies, scale_invariant=self.scale_invariant)
         else:
             p.update(ldsift_K=self.ldsift_K, ldsift_resolution=self.ldsift_resolution)
+            if self.ldsift_slab != 1.0:  # absent = 1.0, the only slab before the option: those runs still resume
+                p["ldsift_slab"] = self.ldsift_slab
         return p
 
     def options(self) -> dict[str, Any]:
@@ -712,7 +721,7 @@ class Comparer:
             device=self.device, mass_penalty=self.mass_penalty,
             penalty_scale=self.penalty_scale, n_eigen=self.n_eigen, n_energies=self.n_energies,
             scale_invariant=self.scale_invariant, energies=self._energies, ldsift_K=self.ldsift_K,
-            ldsift_resolution=self.ldsift_resolution, cache_dir=self.cache_dir,
+            ldsift_resolution=self.ldsift_resolution, ldsift_slab=self.ldsift_slab, cache_dir=self.cache_dir,
             solver_options=dict(self.solver_options), match_ratio=self.match_ratio,
         )
 
@@ -777,6 +786,8 @@ class Comparer:
                      energies=self._energies, version=_wks.VERSION)
         else:
             p.update(K=self.ldsift_K, resolution=self.ldsift_resolution, version=_ldsift.VERSION)
+            if self.ldsift_slab != 1.0:  # signatures cached before the option existed were all at slab 1.0
+                p["slab"] = self.ldsift_slab
         return p
 
     def _signature_key(self) -> str:
@@ -807,7 +818,8 @@ class Comparer:
                                   scale_invariant=self.scale_invariant, cache=self._spectrum_cache), dtype=np.float64)
         from wpot.signatures._ldsift import ldsift
 
-        return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, device=self.device), dtype=np.float64)
+        return np.asarray(ldsift(mesh, K=self.ldsift_K, resolution=self.ldsift_resolution, slab=self.ldsift_slab,
+                                 device=self.device), dtype=np.float64)
 
     @property
     def _subsamples(self) -> bool:
