@@ -614,7 +614,8 @@ def run_all_vs_all(
         n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` (the signature and spectrum
         cache, shared by runs over the same shapes) defaults to ``$WPOT_CACHE_DIR``, else ``out/cache``.
     jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores);
-        with ``scheduler="local"``, the number of Dask workers
+        with ``scheduler="local"``, the number of Dask workers. The workers are spawned, so a script that
+        calls this with ``jobs != 1`` must do so under ``if __name__ == "__main__":`` (notebooks need nothing)
     executor : any `concurrent.futures.Executor` (e.g. a Dask ``client.get_executor()``); overrides ``jobs``
     scheduler : run the tasks on Dask (see `dask_executor`): ``"local"`` (an embedded `LocalCluster` of
         ``jobs`` processes) or a scheduler address ``"tcp://host:port"``. None (default): no Dask.
