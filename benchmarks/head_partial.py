@@ -88,7 +88,6 @@ def run_setting(base, ds, heads, fulls, label: str, log) -> dict:
     """All head × full comparisons with one Comparer; returns metrics per pair and retrieval."""
     pairs = {}
     t0 = time.perf_counter()
-    kappa_paper = []
     for h in heads:
         for f in fulls:
             with warnings.catch_warnings():
