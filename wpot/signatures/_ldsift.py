@@ -20,7 +20,7 @@ For every vertex v of a mesh:
    0-255 (`render.to_uint8`), because OpenCV's SIFT takes only 8-bit images (contrast changes do not
    change a SIFT descriptor; the stretch only sets the quantization step).
 
-   Why a slab, and why a thin one: the paper does not say where its renderer's camera and clipping planes
+   Why a slab, and how thick: the paper does not say where its renderer's camera and clipping planes
    sit. Everything here is relative to S(v), so any choice keeps scale invariance.
 
    * Against an unclipped camera at infinity (every surface counts, background = the image's lowest
@@ -123,24 +123,25 @@ def _check_mesh(mesh: Mesh) -> Mesh:
     return mesh
 
 
-def _check_slab(slab: float) -> float:
+def _positive_finite(value: float, name: str, unit: str = "") -> float:
+    """``value`` as a float, or ValueError naming ``name`` unless it is a positive finite number (not a bool)."""
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a positive finite number{unit}, got {value!r}")
     try:
-        v = float(slab)
+        v = float(value)
     except (TypeError, ValueError):
-        v = float("nan")
-    if isinstance(slab, bool) or not (np.isfinite(v) and v > 0):
-        raise ValueError(f"slab must be a positive finite number (a multiple of S(v)), got {slab!r}")
+        raise ValueError(f"{name} must be a positive number{unit}, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive finite number{unit}, got {value!r}")
     return v
 
 
+def _check_slab(slab: float) -> float:
+    return _positive_finite(slab, "slab", " (a multiple of S(v))")
+
+
 def _check_K(K: float) -> float:
-    try:
-        k = float(K)
-    except (TypeError, ValueError):
-        raise ValueError(f"K must be a positive number, got {K!r}") from None
-    if not (np.isfinite(k) and k > 0):
-        raise ValueError(f"K must be a positive finite number, got {K!r}")
-    return k
+    return _positive_finite(K, "K")
 
 
 def local_frames(mesh: Mesh, *, K: float = 3.0) -> LocalFrames:
