@@ -97,6 +97,27 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     assert "| OT (balanced) | — | 83.3 | 100.0 | 100.0 |" in text
     assert "| OT (partial) | — | 97.3 | — | 98.6 |" in text
     assert (run / "distance_matrix.png").is_file()
+    assert "One-shot classes below 100 % (and what they were taken for): none." in text
+    # make one shape of each class the other's nearest: both are named, with what they were taken for
+    con = sqlite3.connect(run / "wpot.sqlite")
+    names = dict(con.execute("SELECT idx, name FROM shapes"))
+    labels = dict(con.execute("SELECT idx, label FROM labels WHERE level = 'class'"))
+    i = min(k for k in labels if labels[k] == labels[0] and k != 0)
+    j = min(k for k in labels if labels[k] != labels[0])
+    con.execute("UPDATE pairs SET distance = 1e-9 * distance WHERE i = ? AND j = ?", (min(i, j), max(i, j)))
+    con.commit()
+    con.close()
+    r = wpot("classify", str(run), "--trials", "200")
+    assert r.returncode == 0, r.stderr
+    info = json.loads((run / "classification.json").read_text())
+    wrong = {(w["shape"], w["nearest"]) for w in info["leave_one_out_wrong"]["class"]}
+    assert wrong == {(names[i], names[j]), (names[j], names[i])}
+    for a, b in wrong:
+        assert f"{a} ({labels[[k for k in names if names[k] == a][0]]}) -> {b}" in r.stdout, r.stdout
+    conf = np.array(info["one_shot"]["confusion"])
+    np.testing.assert_allclose(conf.sum(1), 1.0)
+    assert np.diag(conf).mean() == pytest.approx(info["one_shot"]["mean"])  # two classes of two: equal weights
+    assert info["one_shot"]["mean"] < 1 and "classes below 100%: " in r.stdout
     # the same folder with other parameters is refused, in one line
     r = wpot("all-vs-all", str(dataset), "--transport", "partial", "--out", str(run), "--no-progress", *FAST_CLI)
     _one_line_error(r, "other parameters", "transport")
@@ -169,3 +190,12 @@ def test_ldsift_slab_reaches_the_comparer_and_runs_stored_before_it_resume():
     assert params("--ldsift-slab", "0.25")["ldsift_slab"] == 0.25
     # the default, 1, was the only slab before the option existed: the run key is the one of then
     assert "ldsift_slab" not in params() and params() == params("--ldsift-slab", "1")
+
+
+def test_percentages_never_round_up_to_100_or_down_to_0():
+    from wpot.cli import _pct
+
+    assert _pct(1.0) == "100.0%" and _pct(0.0) == "0.0%" and _pct(0.5) == "50.0%"
+    assert _pct(0.9998) == "99.98%" and _pct(0.99996) == "99.996%" and _pct(0.99949) == "99.9%"
+    assert _pct(0.00004) == "0.004%" and _pct(0.0004) == "0.04%"
+    assert _pct(1 - 1e-9) == "99.9999%"  # at most 4 decimals; short of 100 % shows as 99.9999 %

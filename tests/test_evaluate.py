@@ -56,6 +56,12 @@ def test_one_shot_expected_accuracy_analytic():
     assert set(np.unique(r.accuracies)) <= {0.5, 1.0}
     assert abs(r.mean - 0.75) < 5 * 0.25 / np.sqrt(t)
     assert r.std == pytest.approx(0.25, abs=0.02)
+    # the A left out is always right; the B left out is the one at 3 half of the time, and it is taken for an A
+    assert r.classes == ("A", "B")
+    np.testing.assert_allclose(r.confusion[0], [1.0, 0.0])
+    assert abs(r.confusion[1, 0] - 0.5) < 5 * 0.5 / np.sqrt(t)
+    np.testing.assert_allclose(r.confusion.sum(1), 1.0)
+    assert r.class_accuracy == {"A": 1.0, "B": pytest.approx(r.confusion[1, 1])}
 
 
 def test_one_shot_matches_exhaustive_enumeration():
@@ -66,16 +72,24 @@ def test_one_shot_matches_exhaustive_enumeration():
     lab = np.array([0, 0, 0, 1, 1, 2, 2])
     members = [np.nonzero(lab == c)[0] for c in range(3)]
     accs = []
+    counts = np.zeros((3, 3))
     for train in itertools.product(*members):  # every training set, each equally likely
         train = np.array(train)
         test = np.setdiff1d(np.arange(7), train)
         pred = lab[train[np.argmin(d[np.ix_(test, train)], axis=1)]]
         accs.append(np.mean(pred == lab[test]))
+        np.add.at(counts, (lab[test], pred), 1)
     exact_mean, exact_std = np.mean(accs), np.std(accs)
+    exact_confusion = counts / counts.sum(1, keepdims=True)
     t = 6000
     r = one_shot_1nn(d, lab, n_trials=t, seed=11, chunk=1000)
     assert set(np.round(np.unique(r.accuracies), 12)) <= set(np.round(accs, 12))
     assert abs(r.mean - exact_mean) < 5 * exact_std / np.sqrt(t) + 1e-12
+    # each confusion entry is a mean of per-trial fractions in [0, 1]: within 5 / sqrt(t) of the exact value
+    np.testing.assert_allclose(r.confusion, exact_confusion, atol=5 * 0.5 / np.sqrt(t))
+    # the mean accuracy is the diagonal weighted by each class's test count
+    n_test = np.bincount(lab) - 1
+    assert (np.diag(r.confusion) * n_test).sum() / n_test.sum() == pytest.approx(r.mean, rel=1e-12)
 
 
 def test_ties_are_split_not_biased():
@@ -87,7 +101,11 @@ def test_ties_are_split_not_biased():
     r = leave_one_out_1nn(d, lab)
     np.testing.assert_allclose(r.score, [2 / 5] * 3 + [1 / 5] * 2 + [0])
     # one-shot: the 3 training shapes tie, exactly one has the right class
-    assert one_shot_1nn(d, lab, n_trials=50).mean == pytest.approx(1 / 3)
+    r = one_shot_1nn(d, lab, n_trials=50)
+    assert r.mean == pytest.approx(1 / 3)
+    # so every tested query's vote is split evenly; "c" has one shape, always the training one: never tested
+    np.testing.assert_allclose(r.confusion[:2], 1 / 3)
+    assert np.isnan(r.confusion[2]).all()
 
 
 def test_relabelling_invariance_and_levels():

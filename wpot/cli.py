@@ -18,7 +18,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -309,6 +309,43 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {fails[0][2]}); rerun to retry them")
 
 
+def _pct(x: float) -> str:
+    """``x`` (a fraction) as a percentage with one decimal, or with as many more as it takes (up to 4) for a
+    value short of 100 % (or above 0 %) not to print as 100.0 % (or 0.0 %): 0.9998 gives "99.98%", and
+    anything closer still gives "99.9999%" (or "0.0001%")."""
+    v = 100 * x
+    for dec in range(1, 5):
+        text = f"{v:.{dec}f}"
+        if not (0 < x < 1) or float(text) not in (0.0, 100.0):
+            return text + "%"
+    return ("99.9999" if x > 0.5 else "0.0001") + "%"
+
+
+def _confusions(one: Any, *, top: int = 3) -> list[str]:
+    """One entry per class whose one-shot accuracy is below 100 %: its accuracy, then the (at most ``top``)
+    classes it was taken for most often."""
+    out = []
+    for a, cls in enumerate(one.classes):
+        row = one.confusion[a]
+        if not np.isfinite(row).all() or row[a] >= 1.0:
+            continue
+        wrong = sorted(((row[b], one.classes[b]) for b in range(len(row)) if b != a and row[b] > 0), reverse=True)[:top]
+        out.append(f"{cls} {_pct(row[a])}" + (" (taken for " + ", ".join(f"{c} {_pct(v)}" for v, c in wrong) + ")" if wrong else ""))
+    return out
+
+
+def _loo_misses(names: Sequence[str], res: Any, labels: np.ndarray) -> list[dict[str, Any]]:
+    """The shapes that leave-one-out 1-NN gets wrong (score < 1; a tie may give part credit), each with its
+    nearest other shape."""
+    return [{"shape": names[i], "label": str(labels[i]), "nearest": names[res.nearest[i]],
+             "nearest_label": str(labels[res.nearest[i]]), "score": float(res.score[i])}
+            for i in np.nonzero(res.score < 1)[0]]
+
+
+def _miss_text(m: Mapping[str, Any]) -> str:
+    return f"{m['shape']} ({m['label']}) -> {m['nearest']} ({m['nearest_label']})"
+
+
 def _levels(store) -> dict[str, np.ndarray]:
     out = {}
     for lv in store.label_levels():
@@ -341,7 +378,9 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
         per_beta.append((float(b), one_shot_1nn(db, levels["class"], n_trials=min(trials, 1000), seed=seed).mean))
     conv = store.converged_matrix()
     not_converged = int((~conv[off]).sum() // 2)
-    return {"one_shot": one, "loo": loo, "per_beta": per_beta, "levels": levels, "not_converged": not_converged}
+    misses = {lv: _loo_misses(store.names, res, levels[lv]) for lv, res in loo.items()}
+    return {"one_shot": one, "loo": loo, "loo_misses": misses, "per_beta": per_beta, "levels": levels,
+            "not_converged": not_converged}
 
 
 def cmd_classify(a: argparse.Namespace) -> None:
@@ -354,12 +393,17 @@ def cmd_classify(a: argparse.Namespace) -> None:
     key = (p.get("signature"), p.get("transport"))
     paper = PAPER_TABLE1.get(key)
     print(f"run: {a.run}  ({SIGNATURE_NAMES.get(key[0], key[0])}, {key[1]} transport; {len(r['levels']['class'])} shapes, {len(one.classes)} classes)")
-    print(f"1-NN, one random training shape per class, {one.n_trials} trials: {100 * one.mean:.1f}% "
+    print(f"1-NN, one random training shape per class, {one.n_trials} trials: {_pct(one.mean)} "
           f"(std {100 * one.std:.1f})" + (f"   paper Table 1 (TOSCA8): {paper:.1f}%" if paper is not None else ""))
+    conf = _confusions(one)
+    if conf:
+        print("  classes below 100%: " + "; ".join(conf))
     for lv, res in r["loo"].items():
-        print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {100 * res.accuracy:.1f}%")
+        print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {_pct(res.accuracy)}")
+        if r["loo_misses"][lv]:
+            print("  wrong: " + "; ".join(_miss_text(m) for m in r["loo_misses"][lv]))
     if r["per_beta"]:
-        print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {100 * acc:.1f}%" for b, acc in r["per_beta"]))
+        print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {_pct(acc)}" for b, acc in r["per_beta"]))
     if r["not_converged"]:
         n = len(r["levels"]["class"])
         print(f"warning: {r['not_converged']} of {n * (n - 1) // 2} pairs did not converge, and their D(inf) may be wrong, "
@@ -367,9 +411,12 @@ def cmd_classify(a: argparse.Namespace) -> None:
               "(e.g. --ot-method ipm for balanced transport) in a new --out folder", file=sys.stderr)
     out = Path(a.run) / "classification.json"
     out.write_text(json.dumps({
-        "one_shot": {"mean": one.mean, "std": one.std, "n_trials": one.n_trials, "seed": one.seed},
+        "one_shot": {"mean": one.mean, "std": one.std, "n_trials": one.n_trials, "seed": one.seed,
+                     "classes": list(one.classes),
+                     "confusion": [[None if not np.isfinite(v) else float(v) for v in row] for row in one.confusion]},
         "not_converged": r["not_converged"],
         "leave_one_out": {lv: res.accuracy for lv, res in r["loo"].items()},
+        "leave_one_out_wrong": r["loo_misses"],
         "one_shot_per_beta": r["per_beta"],
     }, indent=2))
 
@@ -404,17 +451,23 @@ def cmd_report(a: argparse.Namespace) -> None:
                 sections.append("\n".join(lines))
                 continue
             one = r["one_shot"]
-            table1[key] = 100 * one.mean
+            table1[key] = one.mean
             paper = PAPER_TABLE1.get(key)
             lines += ["", "| measure | ours | paper |", "|---|---|---|"]
-            lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {100 * one.mean:.1f}% "
+            lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {_pct(one.mean)} "
                          f"| {f'{paper:.1f}% (Table 1, TOSCA8)' if paper is not None else 'n/a'} |")
             for lv, res in r["loo"].items():
-                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {100 * res.accuracy:.1f}% | "
+                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {_pct(res.accuracy)} | "
                              "Tables 2-4 (anatomical data) |")
+            conf = _confusions(one)
+            lines += ["", "One-shot classes below 100 % (and what they were taken for): "
+                      + ("; ".join(conf) if conf else "none.")]
+            for lv, misses in r["loo_misses"].items():
+                if misses:
+                    lines += ["", f"Leave-one-out at level `{lv}` gets wrong: " + "; ".join(_miss_text(m) for m in misses)]
             if r["per_beta"]:
                 lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
-                lines += [f"| {b:.3g} | {100 * acc:.1f}% |" for b, acc in r["per_beta"]]
+                lines += [f"| {b:.3g} | {_pct(acc)} |" for b, acc in r["per_beta"]]
             fig_path = Path(run) / "distance_matrix.png"
             plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)
             lines += ["", f"![distance matrix]({os.path.relpath(fig_path.resolve(), out.parent.resolve())})", ""]
@@ -425,7 +478,7 @@ def cmd_report(a: argparse.Namespace) -> None:
         cells = []
         for sig in ("ldsift", "wks"):
             ours = table1.get((sig, tr))
-            cells += ["—" if ours is None else f"{ours:.1f}", f"{PAPER_TABLE1[(sig, tr)]:.1f}"]
+            cells += ["—" if ours is None else _pct(ours)[:-1], f"{PAPER_TABLE1[(sig, tr)]:.1f}"]
         head.append(f"| {name} | " + " | ".join(cells) + " |")
     head += ["", "The paper's numbers are on TOSCA8 (48 shapes at ~3,400 vertices); ours are on the runs below.", ""]
     text = "\n".join(head + sections) + "\n"

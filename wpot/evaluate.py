@@ -77,12 +77,17 @@ def _check_distances(distances: ArrayLike, labels: ArrayLike) -> tuple[np.ndarra
     return d, lab, classes, code.astype(np.int64)
 
 
+def _tie_shares(dq: np.ndarray) -> np.ndarray:
+    """For distances ``dq`` (..., K) to K candidates: each candidate's share (..., K) of the vote, 1/m for each
+    of the m candidates tied at the smallest distance, 0 for the others."""
+    tie = dq == dq.min(axis=-1, keepdims=True)
+    return tie / tie.sum(-1, keepdims=True)
+
+
 def _tie_credit(dq: np.ndarray, correct: np.ndarray) -> np.ndarray:
     """Score of each query given its distances ``dq`` (..., K) to K candidates and ``correct`` (..., K) bool:
     the fraction of the nearest (tied) candidates that are correct."""
-    m = dq.min(axis=-1, keepdims=True)
-    tie = dq == m
-    return (tie & correct).sum(-1) / tie.sum(-1)
+    return (_tie_shares(dq) * correct).sum(-1)
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,11 @@ class OneShotClassification:
     ``accuracies`` ((n_trials,) float64) holds, per trial, the fraction of the test shapes (all shapes but the
     C training ones) classified correctly; ``mean`` and ``std`` summarize it (``std`` is the spread over
     trials, not the error of the mean, which is ``std / sqrt(n_trials)``).
+
+    ``confusion`` ((C, C) float64, rows and columns in the order of ``classes``): ``confusion[a, b]`` is the
+    fraction of the test queries of class ``a``, over all trials, that were given class ``b`` (ties split as
+    everywhere here). Each row sums to 1 (a class with a single shape is never tested: its row is NaN); its diagonal is the per-class accuracy (`class_accuracy`), and
+    ``mean`` is the diagonal weighted by each class's test count ``n_a - 1``.
     """
 
     mean: float
@@ -100,10 +110,16 @@ class OneShotClassification:
     n_trials: int
     seed: int | None
     classes: tuple[str, ...]
+    confusion: np.ndarray = field(repr=False)
 
     @property
     def standard_error(self) -> float:
         return self.std / np.sqrt(self.n_trials)
+
+    @property
+    def class_accuracy(self) -> dict[str, float]:
+        """One-shot accuracy of each class's test queries (the diagonal of ``confusion``)."""
+        return {c: float(self.confusion[k, k]) for k, c in enumerate(self.classes)}
 
 
 def one_shot_1nn(
@@ -136,16 +152,22 @@ def one_shot_1nn(
     members = [np.nonzero(code == k)[0] for k in range(c)]
     # (n_trials, C): the training shape of each class in each trial
     train = np.stack([m[rng.integers(0, len(m), size=n_trials)] for m in members], axis=1)
-    correct = (code[:, None] == np.arange(c)[None, :])[:, None, :]  # (n, 1, C)
+    onehot = code[:, None] == np.arange(c)[None, :]  # (n, C)
     acc = np.empty(n_trials)
+    votes = np.zeros((n, c))  # per query: summed share of each predicted class over the trials it was tested in
     for s in range(0, n_trials, chunk):
         tr = train[s : s + chunk]  # (t, C)
         t = len(tr)
-        credit = _tie_credit(d[:, tr], correct)  # (n, t)
-        is_train = np.zeros((t, n), dtype=bool)
-        is_train[np.arange(t)[:, None], tr] = True
-        acc[s : s + t] = (credit.T * ~is_train).sum(1) / (n - c)
-    return OneShotClassification(float(acc.mean()), float(acc.std()), acc, n_trials, seed, tuple(classes.tolist()))
+        share = _tie_shares(d[:, tr])  # (n, t, C): the share of each class among the nearest training shapes
+        is_test = np.ones((t, n), dtype=bool)
+        is_test[np.arange(t)[:, None], tr] = False
+        share *= is_test.T[:, :, None]
+        acc[s : s + t] = (share * onehot[:, None, :]).sum((0, 2)) / (n - c)
+        votes += share.sum(1)
+    tested = n_trials * (np.bincount(code, minlength=c) - 1)  # a class of one shape is never tested: NaN row
+    with np.errstate(invalid="ignore", divide="ignore"):
+        confusion = (onehot.T.astype(np.float64) @ votes) / tested[:, None]
+    return OneShotClassification(float(acc.mean()), float(acc.std()), acc, n_trials, seed, tuple(classes.tolist()), confusion)
 
 
 @dataclass(frozen=True)
