@@ -96,7 +96,8 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     text = (run / "report.md").read_text()
     assert "| OT (balanced) | — | 83.3 | 100.0 | 100.0 |" in text
     assert "| OT (partial) | — | 97.3 | — | 98.6 |" in text
-    assert (run / "distance_matrix.png").is_file()
+    assert (run / "distance_matrix.png").is_file() and (run / "confusion.png").is_file()
+    assert "![one-shot confusion](confusion.png)" in text
     assert "One-shot classes below 100 % (and what they were taken for): none." in text
     # make one shape of each class the other's nearest: both are named, with what they were taken for
     con = sqlite3.connect(run / "wpot.sqlite")
@@ -193,9 +194,12 @@ def test_ldsift_slab_reaches_the_comparer_and_runs_stored_before_it_resume():
 
 
 def test_percentages_never_round_up_to_100_or_down_to_0():
-    from wpot.cli import _pct
+    from wpot.evaluate import format_percent as _pct
 
     assert _pct(1.0) == "100.0%" and _pct(0.0) == "0.0%" and _pct(0.5) == "50.0%"
     assert _pct(0.9998) == "99.98%" and _pct(0.99996) == "99.996%" and _pct(0.99949) == "99.9%"
     assert _pct(0.00004) == "0.004%" and _pct(0.0004) == "0.04%"
     assert _pct(1 - 1e-9) == "99.9999%"  # at most 4 decimals; short of 100 % shows as 99.9999 %
+    assert _pct(0.9997, decimals=0) == "99.97%" and _pct(0.97, decimals=0) == "97%" and _pct(1.0, decimals=0) == "100%"
+    with pytest.raises(ValueError, match="decimals"):
+        _pct(0.5, decimals=-1)

@@ -53,6 +53,26 @@ def test_distance_matrix_png(tmp_path):
         plot.plot_distance_matrix(d[:3], lab)
 
 
+def test_confusion_png(tmp_path):
+    from wpot.evaluate import one_shot_1nn
+
+    # "a" and "b" are far apart; "c" sits next to "b", so "c" is often taken for "b"
+    x = np.array([0, 1, 2, 10, 11, 12, 12.4, 13, 30])
+    lab = np.array(["a", "a", "a", "b", "b", "c", "c", "c", "d"])
+    r = one_shot_1nn(np.abs(x[:, None] - x[None]), lab, n_trials=400, seed=0)
+    fig = plot.plot_confusion(r, title="one-shot", path=tmp_path / "conf.png")
+    assert (tmp_path / "conf.png").stat().st_size > 0
+    np.testing.assert_allclose(fig.axes[0].images[0].get_array(), 100 * np.ma.masked_invalid(r.confusion))
+    # one label per non-zero cell, at its (column, row), with its percentage
+    cells = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in fig.axes[0].texts}
+    nz = {(i, j) for i, j in zip(*np.nonzero(np.nan_to_num(r.confusion) > 0))}
+    assert set(cells) == nz and cells[(0, 0)] == "100"
+    assert r.confusion[2, 1] > 0.01 and float(cells[(2, 1)]) == pytest.approx(100 * r.confusion[2, 1], abs=0.5)
+    assert np.isnan(r.confusion[3]).all()  # "d" has one shape: never tested, a blank row
+    with pytest.raises(ValueError, match="confusion"):
+        plot.plot_confusion(np.eye(3))
+
+
 def test_cumulative_errors_png(tmp_path, sphere):
     truth = np.arange(sphere.n_vertices)
     rng = np.random.default_rng(1)

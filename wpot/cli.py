@@ -309,28 +309,18 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {fails[0][2]}); rerun to retry them")
 
 
-def _pct(x: float) -> str:
-    """``x`` (a fraction) as a percentage with one decimal, or with as many more as it takes (up to 4) for a
-    value short of 100 % (or above 0 %) not to print as 100.0 % (or 0.0 %): 0.9998 gives "99.98%", and
-    anything closer still gives "99.9999%" (or "0.0001%")."""
-    v = 100 * x
-    for dec in range(1, 5):
-        text = f"{v:.{dec}f}"
-        if not (0 < x < 1) or float(text) not in (0.0, 100.0):
-            return text + "%"
-    return ("99.9999" if x > 0.5 else "0.0001") + "%"
-
-
 def _confusions(one: Any, *, top: int = 3) -> list[str]:
     """One entry per class whose one-shot accuracy is below 100 %: its accuracy, then the (at most ``top``)
     classes it was taken for most often."""
+    from wpot.evaluate import format_percent
+
     out = []
     for a, cls in enumerate(one.classes):
         row = one.confusion[a]
         if not np.isfinite(row).all() or row[a] >= 1.0:
             continue
         wrong = sorted(((row[b], one.classes[b]) for b in range(len(row)) if b != a and row[b] > 0), reverse=True)[:top]
-        out.append(f"{cls} {_pct(row[a])}" + (" (taken for " + ", ".join(f"{c} {_pct(v)}" for v, c in wrong) + ")" if wrong else ""))
+        out.append(f"{cls} {format_percent(row[a])}" + (" (taken for " + ", ".join(f"{c} {format_percent(v)}" for v, c in wrong) + ")" if wrong else ""))
     return out
 
 
@@ -384,6 +374,7 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
 
 
 def cmd_classify(a: argparse.Namespace) -> None:
+    from wpot.evaluate import format_percent
     from wpot.pipeline import RunStore
 
     with RunStore(a.run) as store:
@@ -393,17 +384,17 @@ def cmd_classify(a: argparse.Namespace) -> None:
     key = (p.get("signature"), p.get("transport"))
     paper = PAPER_TABLE1.get(key)
     print(f"run: {a.run}  ({SIGNATURE_NAMES.get(key[0], key[0])}, {key[1]} transport; {len(r['levels']['class'])} shapes, {len(one.classes)} classes)")
-    print(f"1-NN, one random training shape per class, {one.n_trials} trials: {_pct(one.mean)} "
+    print(f"1-NN, one random training shape per class, {one.n_trials} trials: {format_percent(one.mean)} "
           f"(std {100 * one.std:.1f})" + (f"   paper Table 1 (TOSCA8): {paper:.1f}%" if paper is not None else ""))
     conf = _confusions(one)
     if conf:
         print("  classes below 100%: " + "; ".join(conf))
     for lv, res in r["loo"].items():
-        print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {_pct(res.accuracy)}")
+        print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {format_percent(res.accuracy)}")
         if r["loo_misses"][lv]:
             print("  wrong: " + "; ".join(_miss_text(m) for m in r["loo_misses"][lv]))
     if r["per_beta"]:
-        print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {_pct(acc)}" for b, acc in r["per_beta"]))
+        print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {format_percent(acc)}" for b, acc in r["per_beta"]))
     if r["not_converged"]:
         n = len(r["levels"]["class"])
         print(f"warning: {r['not_converged']} of {n * (n - 1) // 2} pairs did not converge, and their D(inf) may be wrong, "
@@ -423,7 +414,8 @@ def cmd_classify(a: argparse.Namespace) -> None:
 
 def cmd_report(a: argparse.Namespace) -> None:
     from wpot.pipeline import RunStore
-    from wpot.plot import plot_distance_matrix
+    from wpot.evaluate import format_percent
+    from wpot.plot import plot_confusion, plot_distance_matrix
 
     sections: list[str] = []
     table1: dict[tuple[str, str], float] = {}
@@ -454,10 +446,10 @@ def cmd_report(a: argparse.Namespace) -> None:
             table1[key] = one.mean
             paper = PAPER_TABLE1.get(key)
             lines += ["", "| measure | ours | paper |", "|---|---|---|"]
-            lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {_pct(one.mean)} "
+            lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {format_percent(one.mean)} "
                          f"| {f'{paper:.1f}% (Table 1, TOSCA8)' if paper is not None else 'n/a'} |")
             for lv, res in r["loo"].items():
-                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {_pct(res.accuracy)} | "
+                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {format_percent(res.accuracy)} | "
                              "Tables 2-4 (anatomical data) |")
             conf = _confusions(one)
             lines += ["", "One-shot classes below 100 % (and what they were taken for): "
@@ -467,10 +459,13 @@ def cmd_report(a: argparse.Namespace) -> None:
                     lines += ["", f"Leave-one-out at level `{lv}` gets wrong: " + "; ".join(_miss_text(m) for m in misses)]
             if r["per_beta"]:
                 lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
-                lines += [f"| {b:.3g} | {_pct(acc)} |" for b, acc in r["per_beta"]]
+                lines += [f"| {b:.3g} | {format_percent(acc)} |" for b, acc in r["per_beta"]]
             fig_path = Path(run) / "distance_matrix.png"
             plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)
-            lines += ["", f"![distance matrix]({os.path.relpath(fig_path.resolve(), out.parent.resolve())})", ""]
+            conf_path = Path(run) / "confusion.png"
+            plot_confusion(one, title=f"one-shot 1-NN (%): {key[0]}, {key[1]}", path=conf_path)
+            lines += ["", f"![distance matrix]({os.path.relpath(fig_path.resolve(), out.parent.resolve())}) "
+                      f"![one-shot confusion]({os.path.relpath(conf_path.resolve(), out.parent.resolve())})", ""]
             sections.append("\n".join(lines))
     head = ["# wpot report", "", "## Table 1: 1-NN success rate (%), one random training shape per class", "",
             "| | LD-SIFT (ours) | LD-SIFT (paper) | WKS (ours) | WKS (paper) |", "|---|---|---|---|---|"]
@@ -478,7 +473,7 @@ def cmd_report(a: argparse.Namespace) -> None:
         cells = []
         for sig in ("ldsift", "wks"):
             ours = table1.get((sig, tr))
-            cells += ["—" if ours is None else _pct(ours)[:-1], f"{PAPER_TABLE1[(sig, tr)]:.1f}"]
+            cells += ["—" if ours is None else format_percent(ours)[:-1], f"{PAPER_TABLE1[(sig, tr)]:.1f}"]
         head.append(f"| {name} | " + " | ".join(cells) + " |")
     head += ["", "The paper's numbers are on TOSCA8 (48 shapes at ~3,400 vertices); ours are on the runs below.", ""]
     text = "\n".join(head + sections) + "\n"

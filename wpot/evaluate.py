@@ -35,6 +35,7 @@ from .mesh import Mesh
 
 __all__ = [
     "OneShotClassification",
+    "format_percent",
     "LeaveOneOut",
     "one_shot_1nn",
     "leave_one_out_1nn",
@@ -88,6 +89,20 @@ def _tie_credit(dq: np.ndarray, correct: np.ndarray) -> np.ndarray:
     """Score of each query given its distances ``dq`` (..., K) to K candidates and ``correct`` (..., K) bool:
     the fraction of the nearest (tied) candidates that are correct."""
     return (_tie_shares(dq) * correct).sum(-1)
+
+
+def format_percent(fraction: float, decimals: int = 1) -> str:
+    """``fraction`` as a percentage with ``decimals`` decimals, or with as many more as it takes (up to 4) for
+    a value short of 100 % (or above 0 %) not to print as 100 % (or 0 %): 0.9998 gives "99.98%", and anything
+    closer still gives "99.9999%" (or "0.0001%"). Accuracies reported to users go through this."""
+    if decimals < 0:
+        raise ValueError(f"decimals must be >= 0, got {decimals}")
+    v = 100 * float(fraction)
+    for dec in range(decimals, max(decimals, 4) + 1):
+        text = f"{v:.{dec}f}"
+        if not (0 < fraction < 1) or float(text) not in (0.0, 100.0):
+            return text + "%"
+    return ("99.9999" if fraction > 0.5 else "0.0001") + "%"
 
 
 @dataclass(frozen=True)

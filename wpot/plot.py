@@ -7,6 +7,7 @@ than mplot3d's ``plot_trisurf`` for meshes of thousands of faces. The view conve
 ``azim`` turns the camera about z (0 looks along -x), ``elev`` raises it.
 
 * `plot_distance_matrix`: a distance matrix ordered by class with class separators (paper Fig. 3, 7);
+* `plot_confusion`: which classes one-shot 1-NN takes for which (from `wpot.evaluate.one_shot_1nn`);
 * `plot_cumulative_errors`: cumulative geodesic-error curves of several methods (Fig. 6);
 * `plot_vertex_scalar`: a shape coloured by a per-vertex value such as the matched mass;
 * `plot_registration`: a part drawn on its full shape after a similarity transform (Fig. 1);
@@ -28,12 +29,14 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
+from .evaluate import format_percent
 from .mesh import Mesh
 
 __all__ = [
     "class_order",
     "draw_mesh",
     "plot_distance_matrix",
+    "plot_confusion",
     "plot_cumulative_errors",
     "plot_vertex_scalar",
     "plot_registration",
@@ -135,6 +138,52 @@ def plot_distance_matrix(
     ax.set_xticks(centres, block, rotation=60, ha="right", fontsize=8)
     ax.set_yticks(centres, block, fontsize=8)
     fig.colorbar(im, ax=ax, shrink=0.8, label="distance")
+    if title:
+        ax.set_title(title)
+    return _finish(fig, path, dpi)
+
+
+def plot_confusion(
+    result: Any,
+    *,
+    title: str | None = None,
+    cmap: str = "Blues",
+    ax: Axes | None = None,
+    path: str | Path | None = None,
+    dpi: int = 150,
+) -> Figure:
+    """Heatmap of a one-shot 1-NN confusion matrix, each cell labelled with its percentage.
+
+    ``result`` is a `wpot.evaluate.OneShotClassification` (anything with ``classes`` and a (C, C)
+    ``confusion``): row = true class, column = the class its test shapes were given, each row summing to 100 %.
+    Cells of 0 are left blank so that the confusions stand out; a class with a single shape, never tested,
+    is a blank (NaN) row.
+    """
+    classes = list(getattr(result, "classes", ()))
+    conf = np.asarray(getattr(result, "confusion", None), dtype=np.float64)
+    if not classes or conf.shape != (len(classes), len(classes)):
+        raise ValueError(
+            f"result must have classes and a (C, C) confusion matrix (a wpot.evaluate.OneShotClassification), "
+            f"got {type(result).__name__} with {len(classes)} classes and confusion of shape {conf.shape}"
+        )
+    c = len(classes)
+    if ax is None:
+        fig = _new_figure((1.2 + 0.55 * c, 1.0 + 0.5 * c))
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    pct = 100 * conf
+    ax.imshow(np.ma.masked_invalid(pct), cmap=cmap, vmin=0, vmax=100, interpolation="nearest")
+    for a in range(c):
+        for b in range(c):
+            v = pct[a, b]
+            if np.isfinite(v) and v > 0:
+                text = format_percent(conf[a, b], decimals=0 if v >= 9.5 else 1)[:-1]
+                ax.text(b, a, text, ha="center", va="center", fontsize=7, color="w" if v > 60 else "k")
+    ax.set_xticks(range(c), classes, rotation=60, ha="right", fontsize=8)
+    ax.set_yticks(range(c), classes, fontsize=8)
+    ax.set_xlabel("taken for")
+    ax.set_ylabel("class")
     if title:
         ax.set_title(title)
     return _finish(fig, path, dpi)
