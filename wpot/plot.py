@@ -59,6 +59,14 @@ def _new_figure(figsize: tuple[float, float]) -> Figure:
     return fig
 
 
+def _figure_and_axes(ax: Axes | None, figsize: tuple[float, float]) -> tuple[Figure, Axes]:
+    """The given axes and their figure, or a new figure of ``figsize`` with one axes."""
+    if ax is not None:
+        return ax.figure, ax
+    fig = _new_figure(figsize)
+    return fig, fig.add_subplot()
+
+
 def _finish(fig: Figure, path: str | Path | None, dpi: int) -> Figure:
     if path is not None:
         path = Path(path)
@@ -125,11 +133,7 @@ def plot_distance_matrix(
     if np.asarray(labels).shape != (d.shape[0],):
         raise ValueError(f"labels must have shape ({d.shape[0]},), got {np.asarray(labels).shape}")
     order, block, starts = class_order(labels, classes=classes)
-    if ax is None:
-        fig = _new_figure((6.4, 5.6))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax = _figure_and_axes(ax, (6.4, 5.6))
     im = ax.imshow(np.ma.masked_invalid(d[np.ix_(order, order)]), cmap=cmap, interpolation="nearest")
     for s in starts[1:-1]:
         ax.axhline(s - 0.5, color="w", lw=1.0)
@@ -167,11 +171,7 @@ def plot_confusion(
             f"got {type(result).__name__} with {len(classes)} classes and confusion of shape {conf.shape}"
         )
     c = len(classes)
-    if ax is None:
-        fig = _new_figure((1.2 + 0.55 * c, 1.0 + 0.5 * c))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax = _figure_and_axes(ax, (1.2 + 0.55 * c, 1.0 + 0.5 * c))
     pct = 100 * conf
     ax.imshow(np.ma.masked_invalid(pct), cmap=cmap, vmin=0, vmax=100, interpolation="nearest")
     for a in range(c):
@@ -221,11 +221,7 @@ def plot_cumulative_errors(
     """
     if not curves:
         raise ValueError("curves is empty")
-    if ax is None:
-        fig = _new_figure((5.6, 4.2))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax = _figure_and_axes(ax, (5.6, 4.2))
     tmax = 0.0
     for name, v in curves.items():
         t, c, auc = _curve_of(v)
@@ -339,11 +335,7 @@ def plot_vertex_scalar(
         raise ValueError(f"values must have shape ({mesh.n_vertices},) (one per vertex), got {v.shape}")
     if not np.all(np.isfinite(v)):
         raise ValueError(f"values has {int((~np.isfinite(v)).sum())} NaN or infinite entries")
-    if ax is None:
-        fig = _new_figure((5.6, 4.2))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax = _figure_and_axes(ax, (5.6, 4.2))
     norm = Normalize(v.min() if vmin is None else vmin, v.max() if vmax is None else vmax)
     cm = colormaps[cmap]
     draw_mesh(ax, mesh, cm(norm(_vertex_to_face(mesh, v))), elev=elev, azim=azim, shade=0.35)
@@ -393,11 +385,7 @@ def plot_registration(
 
     s, r, t = _transform_of(registration, scale, rotation, translation)
     moved = part.transformed(rotation=r, translation=t, scale=s)
-    if ax is None:
-        fig = _new_figure((5.6, 4.2))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax = _figure_and_axes(ax, (5.6, 4.2))
     # the part lies on the full shape where the registration is good: draw it over it
     bias = 2.0 * max(full.mean_edge_length, moved.mean_edge_length)
     draw_mesh(ax, [full, moved], [to_rgba(full_color), to_rgba(part_color)], elev=elev, azim=azim,
