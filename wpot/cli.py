@@ -332,8 +332,10 @@ def _loo_misses(names: Sequence[str], res: Any, labels: np.ndarray) -> list[dict
             for i in np.nonzero(res.score < 1)[0]]
 
 
-def _miss_text(m: Mapping[str, Any]) -> str:
-    return f"{m['shape']} ({m['label']}) -> {m['nearest']} ({m['nearest_label']})"
+def _misses_text(misses: Sequence[Mapping[str, Any]], *, limit: int = 12) -> str:
+    """"shape (label) -> nearest (label)" for the first ``limit`` misses, then how many more."""
+    text = "; ".join(f"{m['shape']} ({m['label']}) -> {m['nearest']} ({m['nearest_label']})" for m in misses[:limit])
+    return text + (f"; and {len(misses) - limit} more" if len(misses) > limit else "")
 
 
 def _levels(store) -> dict[str, np.ndarray]:
@@ -392,7 +394,7 @@ def cmd_classify(a: argparse.Namespace) -> None:
     for lv, res in r["loo"].items():
         print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {format_percent(res.accuracy)}")
         if r["loo_misses"][lv]:
-            print("  wrong: " + "; ".join(_miss_text(m) for m in r["loo_misses"][lv]))
+            print("  wrong: " + _misses_text(r["loo_misses"][lv]))
     if r["per_beta"]:
         print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {format_percent(acc)}" for b, acc in r["per_beta"]))
     if r["not_converged"]:
@@ -456,7 +458,7 @@ def cmd_report(a: argparse.Namespace) -> None:
                       + ("; ".join(conf) if conf else "none.")]
             for lv, misses in r["loo_misses"].items():
                 if misses:
-                    lines += ["", f"Leave-one-out at level `{lv}` gets wrong: " + "; ".join(_miss_text(m) for m in misses)]
+                    lines += ["", f"Leave-one-out at level `{lv}` gets wrong: " + _misses_text(misses)]
             if r["per_beta"]:
                 lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
                 lines += [f"| {b:.3g} | {format_percent(acc)} |" for b, acc in r["per_beta"]]
