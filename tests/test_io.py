@@ -213,6 +213,64 @@ def test_real_nonmanifold_edges_reported_with_independent_count(shared_data):
     assert "camel-gallop-01.off" in str(rec[0].message) and "not repaired" in str(rec[0].message)
 
 
+# ------------------------------------------------------------------------------------------------- STL
+def _stl_binary(corners: np.ndarray) -> bytes:
+    """A binary STL of facets ``corners`` ((F, 3, 3)), written here by hand (80-byte header, count, records)."""
+    rec = np.zeros(len(corners), dtype=np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
+    rec["v"] = corners
+    return b"written by a test".ljust(80, b" ") + np.uint32(len(corners)).tobytes() + rec.tobytes()
+
+
+def _stl_ascii(corners: np.ndarray) -> str:
+    body = "".join("facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {x!r} {y!r} {z!r}\n" for x, y, z in tri)
+                   + "endloop\nendfacet\n" for tri in corners.tolist())
+    return "solid test\n" + body + "endsolid test\n"
+
+
+def _first_use(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of ``mesh`` in order of first use by its faces, and its faces renumbered to match."""
+    ids, first = np.unique(mesh.faces.reshape(-1), return_index=True)
+    order = ids[np.argsort(first)]
+    number = np.empty(mesh.n_vertices, dtype=np.int64)
+    number[order] = np.arange(len(order))
+    return mesh.vertices[order], number[mesh.faces]
+
+
+def test_stl_is_welded_back_to_the_mesh(small, tmp_path):
+    corners = small.vertices[small.faces]  # (F, 3, 3): what an STL stores
+    v, f = _first_use(small)
+    # ASCII keeps full precision: exactly the mesh, vertices in order of first use
+    (tmp_path / "a.stl").write_text(_stl_ascii(corners))
+    back = load_mesh(tmp_path / "a.stl")
+    assert back.n_vertices == small.n_vertices
+    np.testing.assert_array_equal(back.vertices, v)
+    np.testing.assert_array_equal(back.faces, f)
+    # binary stores float32: the same mesh with rounded coordinates
+    (tmp_path / "b.stl").write_bytes(_stl_binary(corners))
+    back = load_mesh(tmp_path / "b.stl")
+    np.testing.assert_array_equal(back.vertices, v.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(back.faces, f)
+
+
+def test_stl_slivers_dropped_signed_zeros_welded_garbage_refused(tmp_path):
+    tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    corners = tet[faces].copy()
+    corners[1, 0] = [-0.0, -0.0, 0.0]  # the same point, written with signed zeros
+    sliver = np.array([[[1.0, 0, 0], [1.0, 0, 0], [0, 1, 0]]])  # two corners coincide: no area
+    (tmp_path / "t.stl").write_bytes(_stl_binary(np.concatenate([corners[:2], sliver, corners[2:]])))
+    with pytest.warns(MeshWarning, match=r"t\.stl: dropped 1 STL facets whose corners coincide"):
+        m = load_mesh(tmp_path / "t.stl")
+    assert m.n_vertices == 4 and m.n_faces == 4  # a closed tetrahedron: no hole, no extra vertex
+    assert m == Mesh(*_first_use(Mesh(tet, faces)))
+    (tmp_path / "g.stl").write_bytes(b"not an STL file at all" * 10)
+    with pytest.raises(ValueError, match=r"g\.stl: malformed STL file"):
+        load_mesh(tmp_path / "g.stl")
+    (tmp_path / "e.stl").write_text("solid empty\nendsolid empty\n")
+    with pytest.raises(ValueError, match=r"e\.stl: malformed STL file: no facets found"):
+        load_mesh(tmp_path / "e.stl")
+
+
 # ----------------------------------------------------------------------------------- invalid input
 def test_missing_file_and_unknown_extension(tmp_path):
     missing = tmp_path / "nope.off"
@@ -221,12 +279,17 @@ def test_missing_file_and_unknown_extension(tmp_path):
             fn(missing)
     with pytest.raises(OSError):
         load_mesh(tmp_path / "dir.off" if (tmp_path / "dir.off").mkdir() is None else None)
-    (tmp_path / "m.stl").write_text("solid x\nendsolid x\n")
-    with pytest.raises(ValueError, match=r"unsupported mesh file extension '.stl'; supported: .off, .ply, .obj, .mat"):
-        load_mesh(tmp_path / "m.stl")
+    (tmp_path / "m.stp").write_text("ISO-10303-21;\n")
+    with pytest.raises(ValueError, match=r"unsupported mesh file extension '.stp'; supported: .off, .ply, .obj, .stl, .mat"):
+        load_mesh(tmp_path / "m.stp")
     with pytest.raises(ValueError, match="supported"):
+        save_mesh(Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]), tmp_path / "m.stp")
+    with pytest.raises(ValueError, match="reads STL but does not write it"):
         save_mesh(Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]), tmp_path / "m.stl")
-    assert set(MESH_FORMATS) == set(MESH_EXTS)
+    assert set(MESH_FORMATS) == set(MESH_EXTS) | {".stl"}
+    from wpot.datasets import MESH_EXTENSIONS
+
+    assert set(MESH_EXTENSIONS) == set(MESH_FORMATS)  # a folder yields only files load_mesh reads
 
 
 QUAD_V = [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0], [3, 0, 0]]

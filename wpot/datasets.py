@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .io import load_mesh, load_vertex_map, load_vts, save_mesh
+from .io import MESH_FORMATS, load_mesh, load_vertex_map, load_vts, save_mesh
 from .mesh import Mesh, cut
 
 __all__ = [
@@ -43,8 +43,8 @@ __all__ = [
     "head_ground_truth",
 ]
 
-#: file extensions `list_shapes` picks up in a folder
-MESH_EXTENSIONS = (".off", ".obj", ".ply", ".stl", ".mat")
+#: file extensions `list_shapes` picks up in a folder: those `load_mesh` reads
+MESH_EXTENSIONS = MESH_FORMATS
 
 #: TOSCA classes that share a correspondence template (``.vts`` lines match across them)
 TOSCA_TEMPLATE_GROUPS: dict[str, str] = {"david": "human_male", "michael": "human_male"}

@@ -12,6 +12,11 @@ Meshes
   every face that is not a triangle and the error names them. The scan also checks that trimesh
   returned exactly the vertex and face counts the file declares (a truncated OFF is an error, not a
   smaller mesh).
+* ``.stl`` (binary or ASCII, through trimesh's parser): a soup of facets with no shared vertices, so
+  corners with identical coordinates are welded into one vertex (exact equality only: a tolerance would
+  move the geometry), numbered in order of first use. Facets whose corners then coincide are dropped with
+  a `MeshWarning` that counts them. Binary STL stores float32 coordinates. STL is read, never written
+  (`save_mesh` refuses it: it could not give the same mesh back).
 * ``.mat`` (MATLAB v5/v7, read with `scipy.io.loadmat`) in two layouts:
 
   - TOSCA: a struct (usually named ``surface``) with fields ``X``, ``Y``, ``Z`` (N-vectors) and
@@ -71,8 +76,8 @@ __all__ = [
     "save_vertex_map",
 ]
 
-#: file extensions `load_mesh` and `save_mesh` understand
-MESH_FORMATS = (".off", ".ply", ".obj", ".mat")
+#: file extensions `load_mesh` reads (`save_mesh` writes all but ".stl")
+MESH_FORMATS = (".off", ".ply", ".obj", ".stl", ".mat")
 
 PathLike = str | os.PathLike
 
@@ -393,6 +398,35 @@ def _read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+# -------------------------------------------------------------------------------------------------- STL
+def _read_stl(data: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+    """Binary or ASCII STL: a soup of facets, each with its own three corners. Corners with identical
+    coordinates are welded into one vertex (exact equality, -0.0 == 0.0; no tolerance, which would move
+    the geometry), numbered in order of first use; facets whose corners then coincide (zero-area slivers
+    that STL writers leave) are dropped and counted. Returns vertices, faces and the number dropped."""
+    from trimesh.exchange.stl import load_stl
+
+    kw = load_stl(io.BytesIO(data))
+    if "vertices" in kw:
+        parts = [kw]
+    else:  # several ASCII solids, or nothing recognizable at all
+        parts = list((kw.get("geometry") or {}).values())
+    parts = [q for q in parts if q.get("vertices") is not None and len(q["vertices"])]
+    if not parts:
+        raise _Malformed("no facets found (an empty solid, or not an STL file)")
+    soup = np.concatenate([np.asarray(q["vertices"], dtype=np.float64)[np.asarray(q["faces"]).reshape(-1)] for q in parts])
+    soup = soup.reshape(-1, 3) + 0.0  # -0.0 -> 0.0, so that signed zeros weld
+    points, welded = np.unique(soup, axis=0, return_inverse=True)
+    f = welded.reshape(-1, 3)
+    collapsed = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    f = f[~collapsed]
+    used, first = np.unique(f.reshape(-1), return_index=True)
+    used = used[np.argsort(first)]  # the vertices of the kept facets, in order of first use
+    number = np.empty(len(points), dtype=np.int64)
+    number[used] = np.arange(len(used))
+    return points[used], number[f], int(collapsed.sum())
+
+
 # -------------------------------------------------------------------------------------------------- MAT
 _TOSCA_FIELDS = ("X", "Y", "Z", "TRIV")
 _SHREC_FIELDS = ("VERT", "TRIV")
@@ -481,11 +515,12 @@ def _read_mat(data: bytes, variable: str | None) -> tuple[np.ndarray, np.ndarray
 
 # ------------------------------------------------------------------------------------------- public API
 def load_mesh(path: PathLike, *, warn: bool = True, variable: str | None = None) -> Mesh:
-    """Read a triangle mesh, keeping the file's vertex order and count.
+    """Read a triangle mesh, keeping the file's vertex order and count (STL: welded, in order of first use).
 
     Parameters
     ----------
-    path : ``.off``, ``.ply``, ``.obj`` or ``.mat`` (TOSCA / SHREC'19 layouts, see the module docstring)
+    path : ``.off``, ``.ply``, ``.obj``, ``.stl`` (welded, see the module docstring) or ``.mat``
+        (TOSCA / SHREC'19 layouts)
     warn : emit `MeshWarning` (naming the file) for defects: zero-area triangles, unreferenced
         vertices, non-manifold edges, several connected components.
     variable : ``.mat`` only: the variable that holds the mesh, when the file has several.
@@ -510,6 +545,10 @@ def load_mesh(path: PathLike, *, warn: bool = True, variable: str | None = None)
     fmt = ext[1:].upper()
     if ext == ".mat":
         v, f = _guarded(p, "MATLAB", lambda: _read_mat(data, variable))
+    elif ext == ".stl":
+        v, f, dropped = _guarded(p, fmt, lambda: _read_stl(data))
+        if dropped and warn:
+            warnings.warn(f"{p}: dropped {dropped} STL facets whose corners coincide (zero-area slivers)", MeshWarning, stacklevel=2)
     else:
         v, f = _guarded(p, fmt, lambda: readers[ext](data))
     with warnings.catch_warnings(record=True) as caught:
@@ -546,6 +585,11 @@ def save_mesh(mesh: Mesh, path: PathLike) -> Path:
         raise ValueError(f"save_mesh expects a wpot.Mesh, got {type(mesh).__name__}")
     p = Path(path)
     ext = _suffix(p)
+    if ext == ".stl":
+        raise ValueError(
+            f"{p}: wpot reads STL but does not write it: STL keeps float32 corners per facet and no shared "
+            "vertices, so the mesh read back would not be this one; write .ply (binary, double) instead"
+        )
     v = mesh.vertices
     f = mesh.faces
     if ext == ".off":
