@@ -279,6 +279,18 @@ def test_matched_pairs_and_masses_are_consistent_with_the_plan(ab):
     assert ab.history.shape[1] == 2 and ab.history[-1, 1] == pytest.approx(ab.distance, rel=1e-6)
 
 
+def test_reprs_are_summaries_not_array_dumps(ab, pair):
+    # a notebook shows these: the dataclass default printed every array (19 kB for 150 vertices)
+    r = repr(ab)
+    assert len(r) < 300 and "\n" not in r, r
+    assert f"distance={ab.distance:.6g}" in r and f"matched={len(ab.matched)} pairs" in r
+    assert f"{pair.source.n_vertices}->{pair.target.n_vertices} vertices" in r and "converged=True" in r
+    assert f"scale {ab.registration.scale:.4g}" in r
+    o = repr(ab.result)
+    n1, n2 = np.asarray(ab.result.plan).shape
+    assert len(o) < 300 and f"OTResult({n1}x{n2}, cost={ab.result.cost:.6g}" in o, o
+
+
 def test_registration_recovers_the_rigid_motion_between_the_pair(ab, pair):
     reg = ab.registration
     assert reg is not None
@@ -367,6 +379,7 @@ def test_max_vertices_subsamples_and_extends_to_every_vertex(comparer, pair):
     assert np.isin(c.correspondence, c.sample_b.indices).all()
     assert np.isin(c.matched[:, 0], c.sample_a.indices).all() and np.isin(c.matched[:, 1], c.sample_b.indices).all()
     assert np.median(_errors(pair, c.correspondence)) < 3.0
+    assert f"{pair.source.n_vertices}->{pair.target.n_vertices} vertices (transport on 150x150 samples)" in repr(c)
 
 
 @pytest.mark.filterwarnings("ignore:n_eigen=100 but the mesh has only")  # the 75-vertex quarter below

@@ -480,6 +480,17 @@ class Comparison:
     sample_a: Subsample | None = None
     sample_b: Subsample | None = None
 
+    def __repr__(self) -> str:
+        # a summary for notebooks: the dataclass default would print every array, the OT result's included
+        sizes = f"{len(self.correspondence)}->{len(self.sample_b.nearest) if self.sample_b is not None else len(self.mass2)} vertices"
+        if self.sample_a is not None or self.sample_b is not None:
+            sizes += f" (transport on {len(self.mass1)}x{len(self.mass2)} samples)"
+        reg = "none" if self.registration is None else (
+            f"scale {self.registration.scale:.4g}, rms {self.registration.rms:.4g} on {self.registration.n_pairs} pairs")
+        return (f"Comparison({self.signature}, {self.transport}, {sizes}, distance={self.distance:.6g}, "
+                f"converged={bool(getattr(self.result, 'converged', False))}, matched={len(self.matched)} pairs, "
+                f"registration: {reg})")
+
 
 # ----------------------------------------------------------------------------------- energy bookkeeping
 def transport_energy(result: Any, transport: str) -> float:

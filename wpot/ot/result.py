@@ -74,6 +74,13 @@ class OTResult:
     n_linear: int
     history: tuple[BetaStep, ...]
 
+    def __repr__(self) -> str:
+        # a summary: the dataclass default would print every array (the plan alone is N1 x N2)
+        return (f"OTResult({len(self.mass1)}x{len(self.mass2)}, cost={self.cost:.6g}, objective={self.objective:.6g}, "
+                f"free_energy={self.free_energy:.6g}, beta={self.beta:.3g}, converged={self.converged}, "
+                f"n_beta={len(self.history)}, n_newton={self.n_newton}, n_linear={self.n_linear}, "
+                f"mass={self.mass1.sum():.6g}->{self.mass2.sum():.6g}, plan={'stored' if self.plan is not None else 'top-k only'})")
+
 
 def debiased(u12: float, u11: float, u22: float) -> float:
     """Debiased transport cost SU (paper Eq. 27): u12 - 0.5 (u11 + u22).
