@@ -62,6 +62,15 @@ def test_compare_two_files(dataset, tmp_path):
     info2 = json.loads((tmp_path / "c2" / "comparison.json").read_text())
     assert info2["distance"] == pytest.approx(info["distance"], rel=1e-6)
     assert len(info2["history"]) < len(info["history"])
+    # a lower --match-ratio can only match more pairs; the summary says which ratio, and why no registration
+    matched = lambda out, ratio: int(re.search(rf"matched pairs \(G > {ratio} m1\): (\d+) of", out).group(1))
+    r3 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--match-ratio", "0.3")
+    assert r3.returncode == 0, r3.stderr
+    assert matched(r3.stdout, "0.3") >= matched(r.stdout, "0.9")
+    for out in (r.stdout, r3.stdout):
+        assert re.search(r"^registration: (scale \S+, rms residual|none, fewer than 3 non-collinear pairs matched \()", out, re.M), out
+    _one_line_error(wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), "--match-ratio", "1.5"),
+                    "match_ratio must be in (0, 1], got 1.5")
 
 
 def test_all_vs_all_classify_report(dataset, tmp_path):
@@ -203,3 +212,18 @@ def test_percentages_never_round_up_to_100_or_down_to_0():
     assert _pct(0.9997, decimals=0) == "99.97%" and _pct(0.97, decimals=0) == "97%" and _pct(1.0, decimals=0) == "100%"
     with pytest.raises(ValueError, match="decimals"):
         _pct(0.5, decimals=-1)
+
+
+def test_summary_says_why_balanced_transport_matched_nothing():
+    from types import SimpleNamespace
+
+    from wpot.cli import _summary_lines
+
+    res = SimpleNamespace(converged=True, beta=1e9, n_newton=10, n_linear=100)
+    c = SimpleNamespace(distance=1.0, transport="balanced", signature="wks", result=res, matched=np.zeros((0, 2)),
+                        correspondence=np.zeros(100), mass1=np.full(100, 0.01), mass2=np.full(120, 1 / 120),
+                        registration=None)
+    text = "\n".join(_summary_lines(c, 0.9))
+    # 120 > 100 / 0.9: no vertex of A can put 0.9 of its mass on one vertex of B
+    assert "only when 120 <= 100/0.9; use --transport partial" in text
+    assert "only when" not in "\n".join(_summary_lines(c, 0.8))  # 120 <= 125: the sizes are not the reason

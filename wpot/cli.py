@@ -89,6 +89,12 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
     )
 
 
+def _add_match_ratio(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--match-ratio", type=float, default=0.9,
+                   help="a pair (i, j) is matched, and used for the registration, when G(i, j) > this x m1(i) "
+                        "(default 0.9, the paper's)")
+
+
 def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
     if a.ot_method == "ipm" and a.transport != "balanced":
         raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
@@ -104,6 +110,7 @@ def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
         "scale_invariant": a.scale_invariant,
         "ldsift_slab": a.ldsift_slab,
         "device": a.device,
+        **({"match_ratio": a.match_ratio} if "match_ratio" in a else {}),
         **({"solver_options": {"method": a.ot_method}} if a.ot_method != "auto" and a.transport == "balanced" else {}),
     }
 
@@ -119,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="wpot-demo", help="folder for the picture (default: ./wpot-demo)")
     p.add_argument("--n", type=int, default=DEMO["n"], help=f"vertices of the example shape (default {DEMO['n']})")
     _add_method_options(p, n_eigen=DEMO["n_eigen"], n_energies=DEMO["n_energies"])
+    _add_match_ratio(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("compare", help="compare two mesh files")
@@ -126,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh_b")
     p.add_argument("--out", default=None, help="folder for comparison.json, correspondence.npz and correspondence.png")
     _add_method_options(p)
+    _add_match_ratio(p)
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder")
@@ -185,17 +194,23 @@ def _load(path: str):
     return load_mesh(path)
 
 
-def _summary_lines(c: Any) -> list[str]:
+def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     lines = [
         f"distance: {c.distance:.6g}  ({'U, Eq. 6' if c.transport == 'balanced' else 'SU, Eq. 27'}; "
         f"{SIGNATURE_NAMES[c.signature]}, {c.transport} transport)",
         f"converged: {bool(c.result.converged)} at beta {float(c.result.beta):.3g}"
         f" ({int(c.result.n_newton)} Newton steps, {int(c.result.n_linear)} linear iterations)",
-        f"matched pairs (G > 0.9 m1): {len(c.matched)} of {len(c.correspondence)} vertices",
+        f"matched pairs (G > {match_ratio:g} m1): {len(c.matched)} of {len(c.correspondence)} vertices",
     ]
     if c.registration is not None:
         r = c.registration
         lines.append(f"registration: scale {r.scale:.4g}, rms residual {r.rms:.4g} over {r.n_pairs} pairs")
+    else:
+        n1, n2 = len(c.mass1), len(c.mass2)
+        why = (f"with balanced transport a point of A (mass 1/{n1}) fits in one of B (mass 1/{n2}) only when "
+               f"{n2} <= {n1}/{match_ratio:g}; use --transport partial, equal --max-vertices, or a lower --match-ratio"
+               if c.transport == "balanced" and n2 > n1 / match_ratio else "lower --match-ratio, or try --transport partial")
+        lines.append(f"registration: none, fewer than 3 non-collinear pairs matched ({why})")
     return lines
 
 
@@ -249,7 +264,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
     err = np.linalg.norm(pair.target_in_source_frame[c.correspondence] - src.vertices, axis=1) / src.mean_edge_length
     files = _save_comparison(c, src, tgt, Path(a.out), {"median_error_edge_lengths": float(np.median(err))})
     print(f"example shapes: {src.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
-    for line in _summary_lines(c):
+    for line in _summary_lines(c, a.match_ratio):
         print(line)
     print(f"correspondence error vs ground truth: median {np.median(err):.2f} mean edge lengths, "
           f"{100 * np.mean(err <= 2):.0f}% of vertices within 2 edge lengths")
@@ -267,7 +282,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
     c = compare(ma, mb, **opts)
     print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
-    for line in _summary_lines(c):
+    for line in _summary_lines(c, a.match_ratio):
         print(line)
     if a.out:
         files = _save_comparison(c, ma, mb, Path(a.out), {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b)})
