@@ -1,7 +1,6 @@
 """wpot.pipeline: the resumable SQLite store, parameter checks, D(β) read-back, and interrupted real runs."""
 from __future__ import annotations
 
-import json
 import os
 import signal
 import sqlite3

@@ -742,7 +742,7 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
     if n_workers is not None and n_workers < 1:
         raise ValueError(f"n_workers must be >= 1 or None, got {n_workers!r}")
     try:
-        import dask
+        import dask  # noqa: F401  (checked here so that the message below names what is missing)
         from distributed import Client, LocalCluster
     except ImportError as exc:
         raise ImportError(
