@@ -139,7 +139,9 @@ def test_rigid_motion_invariance_and_scaling(blob):
     # on one shared grid, Eq. 29 sees a size ratio of 1.13 (TOSCA's Michael to David) only at their own size
     bigger = blob.transformed(scale=1.13)
     for si, differs in ((False, True), (True, False)):
-        grid = wks_energies([eigenpairs(blob, k=60), eigenpairs(bigger, k=60)], n_energies=50, scale_invariant=si)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", WKSWarning)  # 1.13 is no reason to warn
+            grid = wks_energies([eigenpairs(blob, k=60), eigenpairs(bigger, k=60)], n_energies=50, scale_invariant=si)
         wa = wks(blob, n_eigen=60, energies=grid.energies, sigma=grid.sigma, scale_invariant=si)
         wb = wks(bigger, n_eigen=60, energies=grid.energies, sigma=grid.sigma, scale_invariant=si)
         d = np.diag(cost_matrix(wa, wb, metric="wks", device="cpu"))
@@ -147,6 +149,15 @@ def test_rigid_motion_invariance_and_scaling(blob):
     # sizes too far apart for the computed spectra to overlap: a clear error that names the remedy
     with pytest.raises(ValueError, match="share one unit of length"):
         wks_energies([eigenpairs(blob, k=60), eigenpairs(big, k=60)], n_energies=50)
+    # sizes so far apart that the shared band is ~30 % of each spectrum's: a warning that names sizes and remedy
+    ev = eigenpairs(blob, k=60).nonzero_evals
+    band = np.log(ev[-1] / ev[0])
+    far = blob.transformed(scale=float(np.exp(0.35 * band)))  # the band shifts by 2 log(scale) = 0.7 of itself
+    with pytest.warns(WKSWarning, match=r"share only 3\d% of their log-eigenvalue band.*\(x[\d.]+\): if the meshes are not in one unit of length, pass scale_invariant=True"):
+        wks_energies([eigenpairs(blob, k=60), eigenpairs(far, k=60)], n_energies=50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", WKSWarning)
+        wks_energies([eigenpairs(blob, k=60), eigenpairs(far, k=60)], n_energies=50, scale_invariant=True)
 
 
 def test_relabelling_invariance(blob):
