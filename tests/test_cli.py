@@ -1,6 +1,7 @@
 """The `wpot` command end to end (subprocesses), on a handful of small generated shapes."""
 from __future__ import annotations
 
+import csv
 import json
 import re
 import subprocess
@@ -103,6 +104,26 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     r = wpot("report", str(run), "--trials", "200")
     assert r.returncode == 0, r.stderr
     text = (run / "report.md").read_text()
+    assert "- not converged (1; their distances may be wrong): " in text  # the pair classify warned about
+    # export: CSV with names, NPZ without pickles; both warn about the pair that did not converge
+    from wpot.pipeline import RunStore
+
+    with RunStore(run) as store:
+        d_run, names_run = store.distance_matrix(), store.names
+    r = wpot("export", str(run))
+    assert r.returncode == 0 and "pairs did not converge" in r.stderr, r.stderr
+    rows = list(csv.reader((run / "distances.csv").open()))
+    assert rows[0] == ["", *names_run] and [row[0] for row in rows[1:]] == names_run
+    np.testing.assert_array_equal(np.array([[float(x) for x in row[1:]] for row in rows[1:]]), d_run)
+    r = wpot("export", str(run), "--out", str(tmp_path / "d.npz"))
+    assert r.returncode == 0, r.stderr
+    with np.load(tmp_path / "d.npz", allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["distances"], d_run)
+        assert z["names"].tolist() == names_run and z["converged"].sum() == len(d_run) * (len(d_run) - 1) - 2
+        assert z["distances_beta"].shape == (len(z["betas"]), len(d_run), len(d_run))
+        np.testing.assert_allclose(z["distances_beta"][-1], d_run, rtol=1e-6)  # the last decade is D(inf)
+        assert sorted(set(z["labels_class"])) == sorted(set(n.rstrip("0123456789") for n in names_run))
+    _one_line_error(wpot("export", str(run), "--out", str(tmp_path / "d.txt")), "export writes .csv or .npz")
     assert "| OT (balanced) | — | 83.3 | 100.0 | 100.0 |" in text
     assert "| OT (partial) | — | 97.3 | — | 98.6 |" in text
     assert (run / "distance_matrix.png").is_file() and (run / "confusion.png").is_file()
@@ -131,6 +152,15 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     # the same folder with other parameters is refused, in one line
     r = wpot("all-vs-all", str(dataset), "--transport", "partial", "--out", str(run), "--no-progress", *FAST_CLI)
     _one_line_error(r, "other parameters", "transport")
+    # an incomplete run exports with the gap marked (an empty cell), and says so
+    con = sqlite3.connect(run / "wpot.sqlite")
+    con.execute("DELETE FROM pairs WHERE i = 0 AND j = 1")
+    con.commit()
+    con.close()
+    r = wpot("export", str(run), "--out", str(tmp_path / "part.csv"))
+    assert r.returncode == 0 and "the run is incomplete: 1 pairs are missing" in r.stderr, r.stderr
+    rows = list(csv.reader((tmp_path / "part.csv").open()))
+    assert rows[1][2] == "" and rows[2][1] == "" and "5 of 6 pairs" in r.stdout
 
 
 def test_partial_all_vs_all_with_labels(dataset, tmp_path):

@@ -157,6 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_classify)
 
+    p = sub.add_parser("export", help="write a run's distance matrix as CSV (names as header) or NPZ (with D(beta))")
+    p.add_argument("run")
+    p.add_argument("--out", default=None, help="a .csv or .npz file (default: RUN/distances.csv)")
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("report", help="Markdown summary of one or more runs beside the paper's tables")
     p.add_argument("runs", nargs="+")
     p.add_argument("--out", default=None, help="Markdown file (default: RUN/report.md of the first run)")
@@ -429,6 +434,25 @@ def cmd_classify(a: argparse.Namespace) -> None:
     }, indent=2))
 
 
+def cmd_export(a: argparse.Namespace) -> None:
+    from wpot.pipeline import RunStore
+
+    with RunStore(a.run) as store:
+        out = store.export(Path(a.out) if a.out else Path(a.run) / "distances.csv")
+        d, conv = store.distance_matrix(), store.converged_matrix()
+        n = len(d)
+        off = ~np.eye(n, dtype=bool)
+        missing = int(np.isnan(d[off]).sum() // 2)
+        not_conv = int((~conv[off] & ~np.isnan(d[off])).sum() // 2)
+    print(f"saved {out} ({n} shapes, {n * (n - 1) // 2 - missing} of {n * (n - 1) // 2} pairs)")
+    if missing:
+        print(f"warning: the run is incomplete: {missing} pairs are missing (empty in CSV, NaN in NPZ); finish it "
+              "with the same all-vs-all command", file=sys.stderr)
+    if not_conv:
+        print(f"warning: {not_conv} pairs did not converge and their distances may be wrong; `wpot report` lists them",
+              file=sys.stderr)
+
+
 def cmd_report(a: argparse.Namespace) -> None:
     from wpot.pipeline import RunStore
     from wpot.evaluate import format_percent
@@ -449,6 +473,11 @@ def cmd_report(a: argparse.Namespace) -> None:
             lines.append(f"- parameters: `{json.dumps(p, sort_keys=True)}`")
             lines.append(f"- shapes: {store.n_shapes}; pairs done: {len(rows)} of {total}; "
                          f"converged: {sum(r['converged'] for r in rows)}; failures: {len(store.failures())}")
+            names = store.names
+            bad = [f"{names[r['i']]}–{names[r['j']]}" for r in rows if not r["converged"]]
+            if bad:
+                lines.append(f"- not converged ({len(bad)}; their distances may be wrong): " + ", ".join(bad[:30])
+                             + (f", and {len(bad) - 30} more" if len(bad) > 30 else ""))
             secs = [r["seconds"] for r in rows if r["seconds"] is not None]
             if secs:
                 lines.append(f"- solve time per pair: mean {np.mean(secs):.2f} s, median {np.median(secs):.2f} s, "

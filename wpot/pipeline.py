@@ -409,6 +409,40 @@ class RunStore:
             out[:, i, j] = out[:, j, i] = v
         return grid, out
 
+    def export(self, path: str | Path) -> Path:
+        """Write the run's distances for other tools; the format follows the extension.
+
+        * ``.csv``: D(∞) as an (n + 1) x (n + 1) table, shape names as the header row and first column
+          (Python, R, a spreadsheet), distances to 17 significant digits, an empty cell where a pair is missing.
+        * ``.npz`` (read with ``allow_pickle=False``): ``distances`` (n, n) D(∞) with NaN where missing,
+          ``converged`` (n, n) bool, ``names`` (n,), ``labels_<level>`` (n,) for each label level ("" where a
+          shape has none), and D(β) at the powers of ten (``betas`` (n_β,), ``distances_beta`` (n_β, n, n)).
+
+        The caller checks completeness (`distance_matrix` has NaN for missing pairs, `converged_matrix` False
+        for pairs that did not converge); `wpot export` warns about both. Returns the path written.
+        """
+        import csv
+
+        path = Path(path)
+        ext = path.suffix.lower()
+        if ext not in (".csv", ".npz"):
+            raise ValueError(f"export writes .csv or .npz, got {str(path)!r}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        d, names = self.distance_matrix(), self.names
+        if ext == ".csv":
+            with open(path, "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["", *names])
+                for name, row in zip(names, d):
+                    w.writerow([name, *("" if np.isnan(x) else f"{x:.17g}" for x in row)])
+            return path
+        betas, d_beta = self.distance_matrices("decades")
+        labels = {f"labels_{lv}": np.array(["" if x is None else x for x in self.labels(lv)], dtype=str)
+                  for lv in self.label_levels()}
+        np.savez_compressed(path, distances=d, converged=self.converged_matrix(), names=np.array(names, dtype=str),
+                            betas=betas, distances_beta=d_beta, **labels)
+        return path
+
 
 def decade_grid(betas: np.ndarray) -> np.ndarray:
     """Powers of ten covering ``betas``: from ``10**floor(log10(min))`` to ``10**ceil(log10(max))``
