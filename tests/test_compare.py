@@ -279,13 +279,15 @@ def test_matched_pairs_and_masses_are_consistent_with_the_plan(ab):
     assert ab.history.shape[1] == 2 and ab.history[-1, 1] == pytest.approx(ab.distance, rel=1e-6)
 
 
-def test_reprs_are_summaries_not_array_dumps(ab, pair):
+def test_reprs_are_summaries_not_array_dumps(ab, pair, comparer):
     # a notebook shows these: the dataclass default printed every array (19 kB for 150 vertices)
     r = repr(ab)
     assert len(r) < 300 and "\n" not in r, r
     assert f"distance={ab.distance:.6g}" in r and f"matched={len(ab.matched)} pairs" in r
     assert f"{pair.source.n_vertices}->{pair.target.n_vertices} vertices" in r and "converged=True" in r
     assert f"scale {ab.registration.scale:.4g}" in r
+    c = repr(comparer)
+    assert c.startswith("Comparer(signature='wks', transport='balanced'") and f"energies: {len(comparer.energies)} fitted" in c
     o = repr(ab.result)
     n1, n2 = np.asarray(ab.result.plan).shape
     assert len(o) < 300 and f"OTResult({n1}x{n2}, cost={ab.result.cost:.6g}" in o, o

@@ -54,6 +54,10 @@ def test_balanced_store_skips_self_pairs_and_stores_u(tmp_path):
     s.commit(_rec(0, 2, 3.5))
     d = s.distance_matrix()
     assert d[0, 2] == d[2, 0] == 3.5 and np.isnan(d[0, 1])
+    s.commit(_rec(0, 1, 2.0, converged=False))
+    assert repr(s) == f"RunStore({str(tmp_path / 'run')!r}: wks, balanced, 3 shapes, 2 of 3 comparisons done, 1 converged)"
+    s.close()
+    assert repr(s).endswith(", closed)")
 
 
 def test_a_pair_is_stored_once_and_every_computation_is_logged(tmp_path):

@@ -736,6 +736,13 @@ class Comparer:
             solver_options=dict(self.solver_options), match_ratio=self.match_ratio,
         )
 
+    def __repr__(self) -> str:
+        p = self.params()
+        grid = "" if self.signature != "wks" else (
+            ", energies: none yet" if self._energies is None else f", energies: {len(self._energies)} fitted")
+        dev = "" if self.device is None else f", device={self.device!r}"
+        return "Comparer(" + ", ".join(f"{k}={v!r}" for k, v in p.items() if v is not None and v != {}) + dev + grid + ")"
+
     def with_options(self, **changes: Any) -> "Comparer":
         """A new `Comparer` with some settings changed (e.g. ``mass_penalty`` in a sweep).
 

@@ -183,6 +183,16 @@ class RunStore:
     def close(self) -> None:
         self.con.close()
 
+    def __repr__(self) -> str:
+        try:
+            p = self.params
+            n_done = int(self.con.execute("SELECT COUNT(*) FROM pairs").fetchone()[0])
+            n_conv = int(self.con.execute("SELECT COUNT(*) FROM pairs WHERE converged").fetchone()[0])
+            return (f"RunStore({str(self.folder)!r}: {p.get('signature')}, {p.get('transport')}, {self.n_shapes} shapes, "
+                    f"{n_done} of {len(self.tasks())} comparisons done, {n_conv} converged)")
+        except sqlite3.ProgrammingError:  # closed
+            return f"RunStore({str(self.folder)!r}, closed)"
+
     def __enter__(self) -> "RunStore":
         return self
 
