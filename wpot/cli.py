@@ -367,15 +367,22 @@ def _levels(store) -> dict[str, np.ndarray]:
     return out
 
 
+def _pair_counts(store) -> tuple[np.ndarray, int, int]:
+    """D(∞), and how many of its pairs i < j are missing and how many stored ones did not converge."""
+    d, conv = store.distance_matrix(), store.converged_matrix()
+    upper = np.triu(np.ones(d.shape, dtype=bool), k=1)
+    missing = np.isnan(d) & upper
+    return d, int(missing.sum()), int((~conv & ~missing & upper).sum())
+
+
 def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any]:
     """Table 1's one-shot 1-NN (level "class") and leave-one-out 1-NN at every label level, from D(∞),
     plus the one-shot accuracy from D(β) at every power of ten of β where every pair has a value."""
     from wpot.evaluate import leave_one_out_levels, one_shot_1nn
 
-    d = store.distance_matrix()
+    d, missing, not_converged = _pair_counts(store)
     off = ~np.eye(len(d), dtype=bool)
-    if np.isnan(d[off]).any():
-        missing = int(np.isnan(d[off]).sum() // 2)
+    if missing:
         raise CliError(f"the run in {store.folder} is incomplete ({missing} pairs missing); finish it with the same all-vs-all command")
     levels = _levels(store)
     if "class" not in levels:
@@ -388,8 +395,6 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
         if np.isnan(db[off]).any():
             continue
         per_beta.append((float(b), one_shot_1nn(db, levels["class"], n_trials=min(trials, 1000), seed=seed).mean))
-    conv = store.converged_matrix()
-    not_converged = int((~conv[off]).sum() // 2)
     misses = {lv: _loo_misses(store.names, res, levels[lv]) for lv, res in loo.items()}
     return {"one_shot": one, "loo": loo, "loo_misses": misses, "per_beta": per_beta, "levels": levels,
             "not_converged": not_converged}
@@ -439,11 +444,8 @@ def cmd_export(a: argparse.Namespace) -> None:
 
     with RunStore(a.run) as store:
         out = store.export(Path(a.out) if a.out else Path(a.run) / "distances.csv")
-        d, conv = store.distance_matrix(), store.converged_matrix()
+        d, missing, not_conv = _pair_counts(store)
         n = len(d)
-        off = ~np.eye(n, dtype=bool)
-        missing = int(np.isnan(d[off]).sum() // 2)
-        not_conv = int((~conv[off] & ~np.isnan(d[off])).sum() // 2)
     print(f"saved {out} ({n} shapes, {n * (n - 1) // 2 - missing} of {n * (n - 1) // 2} pairs)")
     if missing:
         print(f"warning: the run is incomplete: {missing} pairs are missing (empty in CSV, NaN in NPZ); finish it "
