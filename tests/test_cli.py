@@ -74,6 +74,21 @@ def test_compare_two_files(dataset, tmp_path):
                     "match_ratio must be in (0, 1], got 1.5")
 
 
+def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path):
+    import wpot as w
+
+    a, b = dataset / "blob1.off", dataset / "blob2.off"
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--zoomout", "--out", str(tmp_path / "z"))
+    assert r.returncode == 0, r.stderr
+    z = np.load(tmp_path / "z" / "correspondence.npz")
+    ma, mb = w.load_mesh(a), w.load_mesh(b)
+    expected = w.zoomout(ma, mb, z["correspondence"])
+    np.testing.assert_array_equal(z["correspondence_zoomout"], expected)
+    changed = float(re.search(r"^ZoomOut: (\S+)% of A's vertices changed their match", r.stdout, re.M).group(1))
+    assert changed == pytest.approx(100 * np.mean(expected != z["correspondence"]), abs=0.05)
+    assert json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout"] is True
+
+
 def test_all_vs_all_classify_report(dataset, tmp_path):
     run = tmp_path / "run"
     r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress", *FAST_CLI)
@@ -184,6 +199,7 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["classify", "no-such-run"], ["no wpot run", "no-such-run"]),
         (["report", "no-such-run"], ["no wpot run"]),
         (["compare", "a.off", "b.off", "--transport", "partial", "--ot-method", "ipm"], ["--ot-method ipm", "balanced"]),
+        (["compare", "a.off", "b.off", "--transport", "partial", "--zoomout"], ["--zoomout", "whole", "--transport partial"]),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):

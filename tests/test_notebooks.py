@@ -82,6 +82,7 @@ def test_quickstart(kernel_env):
     assert s["full"] is False
     # the generated pair is the same surface: a working WKS + OT map is mostly right
     assert s["balanced_auc"] > 0.5
+    assert s["zoomout_auc"] >= s["balanced_auc"]  # wpot.zoomout refines the map, never worse here
     # partial transport puts most of the part's mass on the true part, and the registration recovers the motion
     assert s["partial_mass_in_part"] > 0.6
     assert s["partial_rotation_error_deg"] < 30

@@ -88,6 +88,8 @@ _EXPORTS: dict[str, str] = {
     "cost_scale": "wpot.comparison",
     "DEFAULT_MASS_PENALTY": "wpot.comparison",
     "PENALTY_SCALES": "wpot.comparison",
+    # refining a correspondence
+    "zoomout": "wpot.refine",
     # dataset runs
     "run_all_vs_all": "wpot.pipeline",
     "RunStore": "wpot.pipeline",
@@ -96,7 +98,7 @@ _EXPORTS: dict[str, str] = {
     "dask_executor": "wpot.pipeline",
     "choose_worker_device": "wpot.pipeline",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "evaluate", "datasets", "examples", "pipeline", "plot", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 

@@ -135,6 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="folder for comparison.json, correspondence.npz and correspondence.png")
     _add_method_options(p)
     _add_match_ratio(p)
+    p.add_argument("--zoomout", action="store_true",
+                   help="also refine the correspondence by ZoomOut (spectral upsampling, wpot.zoomout; whole, "
+                   "near-isometric shapes only, so not with --transport partial); saved as "
+                   "correspondence_zoomout and drawn in the picture")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder")
@@ -219,7 +223,10 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     return lines
 
 
-def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = None) -> list[Path]:
+def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = None,
+                     refined: np.ndarray | None = None) -> list[Path]:
+    """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given) and
+    correspondence.png (of ``refined`` when given, else of the plan's correspondence)."""
     from wpot.plot import plot_correspondence
 
     out.mkdir(parents=True, exist_ok=True)
@@ -245,12 +252,15 @@ def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = Non
     }
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
-    np.savez(files[1], correspondence=c.correspondence, matched=c.matched, matched_weight=c.matched_weight, mass1=c.mass1, mass2=c.mass2)
+    arrays = {} if refined is None else {"correspondence_zoomout": refined}
+    np.savez(files[1], correspondence=c.correspondence, matched=c.matched, matched_weight=c.matched_weight,
+             mass1=c.mass1, mass2=c.mass2, **arrays)
     title_b = "B"
     if c.registration is not None:  # draw B in A's pose: undo the fitted similarity
         b = c.registration.inverse().apply(b)
         title_b = "B, moved onto A by the inverse of the fitted registration"
-    plot_correspondence(a, b, c.correspondence, titles=("A, coloured through the correspondence", title_b), path=files[2])
+    shown, what = (c.correspondence, "correspondence") if refined is None else (refined, "ZoomOut correspondence")
+    plot_correspondence(a, b, shown, titles=(f"A, coloured through the {what}", title_b), path=files[2])
     return files
 
 
@@ -284,13 +294,24 @@ def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import compare
 
     opts = _comparer_options(a)  # option errors before any file is read
+    if a.zoomout and a.transport == "partial":
+        raise CliError("--zoomout refines maps between whole, near-isometric shapes (their Laplace-Beltrami spectra "
+                       "must match); with --transport partial, for a part against a whole, it would spread the part "
+                       "over the whole. Drop --zoomout, or use --transport balanced for two whole shapes")
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
     c = compare(ma, mb, **opts)
     print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
+    refined = None
+    if a.zoomout:
+        from wpot.refine import zoomout
+
+        refined = zoomout(ma, mb, c.correspondence)
+        print(f"ZoomOut: {np.mean(refined != c.correspondence):.1%} of A's vertices changed their match")
     if a.out:
-        files = _save_comparison(c, ma, mb, Path(a.out), {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b)})
+        extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout)}
+        files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined)
         print("saved " + ", ".join(str(f) for f in files))
 
 
