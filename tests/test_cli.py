@@ -44,6 +44,13 @@ def test_demo_prints_a_distance_and_saves_a_picture(tmp_path):
     assert info["median_error_edge_lengths"] < 2.0  # the example pair's ground truth
     angle = float(re.search(r"rotation off by (\S+) degrees", r.stdout).group(1))
     assert angle < 5.0
+    # --zoomout refines the map: against the known truth it is no worse, and the picture and npz show it
+    rz = wpot("demo", "--out", str(tmp_path / "dz"), "--n", "200", "--zoomout")
+    assert rz.returncode == 0, rz.stderr
+    iz = json.loads((tmp_path / "dz" / "comparison.json").read_text())
+    assert iz["median_error_edge_lengths"] == pytest.approx(info["median_error_edge_lengths"])
+    assert iz["median_error_edge_lengths_zoomout"] <= iz["median_error_edge_lengths"]
+    assert np.load(tmp_path / "dz" / "correspondence.npz")["correspondence_zoomout"].shape == (200,)
 
 
 def test_compare_two_files(dataset, tmp_path):

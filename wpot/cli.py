@@ -95,6 +95,31 @@ def _add_match_ratio(p: argparse.ArgumentParser) -> None:
                         "(default 0.9, the paper's)")
 
 
+def _add_zoomout(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--zoomout", action="store_true",
+                   help="also refine the correspondence by ZoomOut (spectral upsampling, wpot.zoomout; whole, "
+                   "near-isometric shapes only, so not with --transport partial); saved as "
+                   "correspondence_zoomout and drawn in the picture")
+
+
+def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> np.ndarray | None:
+    """The ZoomOut refinement of ``c.correspondence`` when ``--zoomout`` was given (printing how much moved)."""
+    if not a.zoomout:
+        return None
+    from wpot.refine import zoomout
+
+    refined = zoomout(ma, mb, c.correspondence)
+    print(f"ZoomOut: {np.mean(refined != c.correspondence):.1%} of A's vertices changed their match")
+    return refined
+
+
+def _check_zoomout(a: argparse.Namespace) -> None:
+    if a.zoomout and a.transport == "partial":
+        raise CliError("--zoomout refines maps between whole, near-isometric shapes (their Laplace-Beltrami spectra "
+                       "must match); with --transport partial, for a part against a whole, it would spread the part "
+                       "over the whole. Drop --zoomout, or use --transport balanced for two whole shapes")
+
+
 def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
     if a.ot_method == "ipm" and a.transport != "balanced":
         raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
@@ -127,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=int, default=DEMO["n"], help=f"vertices of the example shape (default {DEMO['n']})")
     _add_method_options(p, n_eigen=DEMO["n_eigen"], n_energies=DEMO["n_energies"])
     _add_match_ratio(p)
+    _add_zoomout(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("compare", help="compare two mesh files")
@@ -135,10 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="folder for comparison.json, correspondence.npz and correspondence.png")
     _add_method_options(p)
     _add_match_ratio(p)
-    p.add_argument("--zoomout", action="store_true",
-                   help="also refine the correspondence by ZoomOut (spectral upsampling, wpot.zoomout; whole, "
-                   "near-isometric shapes only, so not with --transport partial); saved as "
-                   "correspondence_zoomout and drawn in the picture")
+    _add_zoomout(p)
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder")
@@ -273,16 +296,25 @@ def cmd_demo(a: argparse.Namespace) -> None:
     # registration can be fitted
     pair = example_pair(a.n, seed=0, n_target=a.n)
     src, tgt = pair.source, pair.target
-    c = compare(src, tgt, **_comparer_options(a))
+    opts = _comparer_options(a)
+    _check_zoomout(a)
+    c = compare(src, tgt, **opts)
     # ground truth: a source vertex i is well matched when the target vertex it maps to samples a
     # point of the surface near vertex i (measured in the source frame, in mean edge lengths)
     err = np.linalg.norm(pair.target_in_source_frame[c.correspondence] - src.vertices, axis=1) / src.mean_edge_length
-    files = _save_comparison(c, src, tgt, Path(a.out), {"median_error_edge_lengths": float(np.median(err))})
     print(f"example shapes: {src.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
+    extra = {"median_error_edge_lengths": float(np.median(err))}
     print(f"correspondence error vs ground truth: median {np.median(err):.2f} mean edge lengths, "
           f"{100 * np.mean(err <= 2):.0f}% of vertices within 2 edge lengths")
+    refined = _zoomout(a, src, tgt, c)
+    if refined is not None:
+        err_z = np.linalg.norm(pair.target_in_source_frame[refined] - src.vertices, axis=1) / src.mean_edge_length
+        extra["median_error_edge_lengths_zoomout"] = float(np.median(err_z))
+        print(f"after ZoomOut: median {np.median(err_z):.2f} mean edge lengths, "
+              f"{100 * np.mean(err_z <= 2):.0f}% of vertices within 2 edge lengths")
+    files = _save_comparison(c, src, tgt, Path(a.out), extra, refined=refined)
     if c.registration is not None:
         rel = c.registration.rotation @ pair.rotation.T
         angle = float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
@@ -294,21 +326,13 @@ def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import compare
 
     opts = _comparer_options(a)  # option errors before any file is read
-    if a.zoomout and a.transport == "partial":
-        raise CliError("--zoomout refines maps between whole, near-isometric shapes (their Laplace-Beltrami spectra "
-                       "must match); with --transport partial, for a part against a whole, it would spread the part "
-                       "over the whole. Drop --zoomout, or use --transport balanced for two whole shapes")
+    _check_zoomout(a)
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
     c = compare(ma, mb, **opts)
     print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
-    refined = None
-    if a.zoomout:
-        from wpot.refine import zoomout
-
-        refined = zoomout(ma, mb, c.correspondence)
-        print(f"ZoomOut: {np.mean(refined != c.correspondence):.1%} of A's vertices changed their match")
+    refined = _zoomout(a, ma, mb, c)
     if a.out:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined)
