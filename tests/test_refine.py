@@ -74,3 +74,44 @@ def test_bad_input():
         zoomout(a, a, ident, step=0)
     with pytest.raises(TypeError, match="mesh_b must be a wpot.Mesh"):
         zoomout(a, a.vertices, ident)
+
+
+def test_cached_eigenpairs_reads_without_computing(tmp_path):
+    from wpot.cache import Cache
+    from wpot.spectral import cached_eigenpairs, eigenpairs
+
+    m = wpot.example_mesh(150, seed=3)
+    c = Cache("refine-test", cache_dir=tmp_path)
+    assert cached_eigenpairs(m, 40, cache=c) is None
+    s = eigenpairs(m, 40, cache=c)
+    back = cached_eigenpairs(m, 40, cache=c)
+    assert back is not None and back.from_cache
+    np.testing.assert_array_equal(back.evecs, s.evecs)
+    assert cached_eigenpairs(m, 41, cache=c) is None  # another k is another entry
+    assert cached_eigenpairs(m, 40, cache=False) is None
+
+
+def test_zoomout_reuses_a_cached_larger_spectrum_else_computes_only_k_end(monkeypatch):
+    from wpot import spectral
+
+    a = wpot.example_mesh(300, seed=7)  # fewer vertices than 500: the spectrum looked up has 300 eigenpairs
+    b = wpot.example_mesh(320, seed=8)
+    asked: list[int] = []
+    real = spectral.LaplaceBeltrami.eigenpairs
+
+    def spy(self, k, **kw):
+        asked.append(k)
+        return real(self, k, **kw)
+
+    monkeypatch.setattr(spectral.LaplaceBeltrami, "eigenpairs", spy)
+    monkeypatch.delenv("WPOT_CACHE_DIR", raising=False)  # memory only, emptied
+    spectral.spectrum_cache.clear()
+    start = np.random.default_rng(0).integers(0, b.n_vertices, a.n_vertices)
+    zoomout(a, b, start, k_end=30)
+    assert asked == [30, 30]  # nothing cached: only the 30 eigenpairs needed, per mesh
+    asked.clear()
+    spectral.eigenpairs(a, 300)
+    spectral.eigenpairs(b, 320)
+    asked.clear()
+    zoomout(a, b, start, k_end=30)
+    assert asked == []  # the larger cached spectra serve

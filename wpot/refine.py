@@ -27,8 +27,8 @@ from wpot.mesh import Mesh
 
 __all__ = ["zoomout", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END"]
 
-#: eigenpairs asked of `wpot.eigenpairs` (fewer when a mesh has fewer vertices): the WKS default, so that
-#: the spectra a WKS comparison computed are found in the cache
+#: the spectrum size looked up in the cache first (fewer when a mesh has fewer vertices): the WKS default, so
+#: that the spectra a WKS comparison computed are reused
 ZOOMOUT_N_EIGEN = 500
 #: default largest spectral resolution (fewer when fewer eigenpairs are available); on 8 TOSCA test pairs,
 #: 10 -> 100 in steps of 5 lifts wpot's AUC from 0.50 to 0.72 (the README's "Measured so far")
@@ -88,8 +88,9 @@ def zoomout(
     correspondence : (N_A,) int, for each vertex of A a vertex of B, e.g. ``Comparison.correspondence``
     k_start, k_end, step : spectral resolutions k_start, k_start + step, ..., then k_end (defaults 10, 5, and
         k_end = `ZOOMOUT_K_END` = 100, or the eigenpairs available when fewer: 19 rounds)
-    n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (default: `ZOOMOUT_N_EIGEN` = 500, the WKS
-        default so its cached spectra are reused, or the mesh's vertex count when smaller); at least k_end
+    n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default: the cached
+        spectrum of `ZOOMOUT_N_EIGEN` = 500 eigenpairs (the WKS default; the vertex count when smaller) when a
+        WKS comparison has computed it, else k_end eigenpairs
 
     Returns
     -------
@@ -119,11 +120,15 @@ def zoomout(
         raise ValueError(f"k_end={k_end} exceeds the {k_max} eigenpairs available (n_eigen={n_eigen}; meshes of "
                          f"{mesh_a.n_vertices} and {mesh_b.n_vertices} vertices); lower k_end")
 
-    from wpot.spectral import eigenpairs, laplace_beltrami
+    from wpot.spectral import cached_eigenpairs, eigenpairs, laplace_beltrami
 
     def basis(mesh: Mesh) -> np.ndarray:
-        k = n_eigen if n_eigen is not None else min(ZOOMOUT_N_EIGEN, mesh.n_vertices)
-        return eigenpairs(mesh, k).evecs[:, :k_end]
+        if n_eigen is not None:
+            return eigenpairs(mesh, n_eigen).evecs[:, :k_end]
+        # a cached larger spectrum (WKS's) when there is one; else only the k_end needed (about 8x faster
+        # than 500 on a 5,000-vertex mesh: 2 s against 16 s)
+        spec = cached_eigenpairs(mesh, min(ZOOMOUT_N_EIGEN, mesh.n_vertices))
+        return (spec if spec is not None else eigenpairs(mesh, k_end)).evecs[:, :k_end]
 
     phi_a, phi_b = basis(mesh_a), basis(mesh_b)
     mass_a = laplace_beltrami(mesh_a)[1].diagonal()

@@ -33,7 +33,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import scipy.linalg as la
@@ -46,6 +46,7 @@ from .mesh import Mesh
 __all__ = [
     "laplace_beltrami",
     "eigenpairs",
+    "cached_eigenpairs",
     "LaplaceBeltrami",
     "Spectrum",
     "SpectralWarning",
@@ -381,6 +382,48 @@ def _check_zero_eigenvalues(evals: np.ndarray, n_components: int) -> int:
     return nz
 
 
+def _cache_slot(mesh: Mesh, k: int, cache: Cache | bool, solver: str, shift: float, tol: float
+                ) -> tuple[Cache, str, dict[str, Any]]:
+    """The cache, the solver that ``solver`` resolves to, and the cache parameters of `eigenpairs`."""
+    store = spectrum_cache if cache is True else cache
+    if not isinstance(store, Cache):
+        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
+    used = choose_solver(mesh.n_vertices, k) if solver == "auto" else solver
+    return store, used, {"k": k, "solver": used, "shift": float(shift), "tol": float(tol), "normalized": True}
+
+
+def _cached(store: Cache, mesh: Mesh, params: dict[str, Any]) -> Spectrum | None:
+    entry = store.get(mesh.fingerprint, params)
+    if entry is None:
+        return None
+    if mesh.n_components > 1:  # the same warning as a fresh computation would give
+        _check_zero_eigenvalues(entry["evals"], mesh.n_components)
+    return Spectrum(
+        evals=entry["evals"],
+        evecs=entry["evecs"],
+        area=float(entry["area"]),
+        n_zero=int(entry["n_zero"]),
+        solver=str(entry["solver"]),
+        fingerprint=mesh.fingerprint,
+        seconds=float(entry["seconds"]),
+        from_cache=True,
+    )
+
+
+def cached_eigenpairs(
+    mesh: Mesh, k: int = 500, *, solver: Solver = "auto", shift: float = DEFAULT_SHIFT, tol: float = 0.0,
+    cache: Cache | bool = True,
+) -> Spectrum | None:
+    """What `eigenpairs` with these arguments would read from the cache, or None when it would have to compute
+    (it computes nothing). Lets a caller reuse a larger spectrum computed earlier, e.g. WKS's 500 eigenpairs."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"cached_eigenpairs expects a wpot.Mesh, got {type(mesh).__name__}")
+    if cache is False:
+        return None
+    store, _, params = _cache_slot(mesh, _check_k(k, mesh.n_vertices), cache, solver, shift, tol)
+    return _cached(store, mesh, params)
+
+
 def eigenpairs(
     mesh: Mesh,
     k: int = 500,
@@ -416,25 +459,10 @@ def eigenpairs(
     k = _check_k(k, mesh.n_vertices)
     if cache is False:
         return LaplaceBeltrami(mesh).eigenpairs(k, solver=solver, shift=shift, tol=tol)
-    store = spectrum_cache if cache is True else cache
-    if not isinstance(store, Cache):
-        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
-    used = choose_solver(mesh.n_vertices, k) if solver == "auto" else solver
-    params = {"k": k, "solver": used, "shift": float(shift), "tol": float(tol), "normalized": True}
-    entry = store.get(mesh.fingerprint, params)
-    if entry is not None:
-        if mesh.n_components > 1:  # the same warning as a fresh computation would give
-            _check_zero_eigenvalues(entry["evals"], mesh.n_components)
-        return Spectrum(
-            evals=entry["evals"],
-            evecs=entry["evecs"],
-            area=float(entry["area"]),
-            n_zero=int(entry["n_zero"]),
-            solver=str(entry["solver"]),
-            fingerprint=mesh.fingerprint,
-            seconds=float(entry["seconds"]),
-            from_cache=True,
-        )
+    store, used, params = _cache_slot(mesh, k, cache, solver, shift, tol)
+    found = _cached(store, mesh, params)
+    if found is not None:
+        return found
     s = LaplaceBeltrami(mesh).eigenpairs(k, solver=used, shift=shift, tol=tol)
     store.put(
         mesh.fingerprint,
