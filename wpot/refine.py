@@ -15,8 +15,13 @@ for k = ``k_start``, ``k_start + step``, … up to ``k_end``. The eigenpairs are
 signatures has already computed them.
 
 Use it for whole shapes that are near-isometric (poses of one body): the method assumes that the two
-Laplace–Beltrami spectra match. It cannot repair a map that is wrong by a left/right symmetry (it keeps the
-flip), nor is it meant for a part against a whole, where the spectra differ.
+Laplace–Beltrami spectra match. It cannot tell left from right: WKS maps mix the two sides of a symmetric
+body, and ZoomOut makes them consistent with one side, sometimes the mirror one (17 of 40 TOSCA test pairs).
+Nor is it meant for a part against a whole, where the spectra differ.
+
+Measured on 40 TOSCA test pairs (`benchmarks/correspondence.py --methods wpot wpot-zoomout fmaps --limit 40`,
+WKS balanced at 500 samples): AUC (d/√area over [0, 0.25]) 0.497 → 0.595, flip-aware 0.763 → 0.901; pyfmaps
+(WKS + ZoomOut) 0.835, flip-aware 0.902. About 2.6 s per pair on top of wpot's 2.2 s.
 """
 from __future__ import annotations
 
@@ -30,8 +35,8 @@ __all__ = ["zoomout", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END"]
 #: the spectrum size looked up in the cache first (fewer when a mesh has fewer vertices): the WKS default, so
 #: that the spectra a WKS comparison computed are reused
 ZOOMOUT_N_EIGEN = 500
-#: default largest spectral resolution (fewer when fewer eigenpairs are available); on 8 TOSCA test pairs,
-#: 10 -> 100 in steps of 5 lifts wpot's AUC from 0.50 to 0.72 (the README's "Measured so far")
+#: default largest spectral resolution (fewer when fewer eigenpairs are available). On 8 TOSCA test pairs, AUC
+#: 0.716 for k = 10..100 by 5, 0.699 by 2, 0.722 to 150, 0.672 from 20, 0.621 from 4 by 4
 ZOOMOUT_K_END = 100
 #: rows of A per block of the brute-force nearest-neighbour search (a block holds rows x N_B distances)
 _BLOCK = 1024
