@@ -113,6 +113,8 @@ class WpotMatcher:
                                  n_eigen=n_eigen, n_energies=n_energies, scale_invariant=scale_invariant,
                                  device=device, pooling=pooling)
         self.setup_seconds: dict[str, float] = {}
+        #: ((x, y), match(x, y)) of the last pair matched, for `match_cached`
+        self.last: tuple[tuple[str, str], tuple[np.ndarray, float, dict]] | None = None
         if signature == "wks":
             t0 = time.perf_counter()
             self.comparer.fit_energies([meshes[n] for n in sorted(meshes)])
@@ -143,8 +145,7 @@ class WpotMatcher:
 
     def match_cached(self, x: str, y: str) -> tuple[np.ndarray, float, dict]:
         """`match`, or its result when the last pair matched was (x, y)."""
-        last = getattr(self, "last", None)
-        return last[1] if last is not None and last[0] == (x, y) else self.match(x, y)
+        return self.last[1] if self.last is not None and self.last[0] == (x, y) else self.match(x, y)
 
 
 class ZoomOutMatcher:

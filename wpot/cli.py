@@ -299,21 +299,22 @@ def cmd_demo(a: argparse.Namespace) -> None:
     opts = _comparer_options(a)
     _check_zoomout(a)
     c = compare(src, tgt, **opts)
-    # ground truth: a source vertex i is well matched when the target vertex it maps to samples a
-    # point of the surface near vertex i (measured in the source frame, in mean edge lengths)
-    err = np.linalg.norm(pair.target_in_source_frame[c.correspondence] - src.vertices, axis=1) / src.mean_edge_length
     print(f"example shapes: {src.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
-    extra = {"median_error_edge_lengths": float(np.median(err))}
-    print(f"correspondence error vs ground truth: median {np.median(err):.2f} mean edge lengths, "
-          f"{100 * np.mean(err <= 2):.0f}% of vertices within 2 edge lengths")
+
+    def median_error(corr: np.ndarray, label: str) -> float:
+        """Ground truth: source vertex i is well matched when the target vertex it maps to samples a point of
+        the surface near vertex i (in the source frame, in mean edge lengths). Prints and returns the median."""
+        err = np.linalg.norm(pair.target_in_source_frame[corr] - src.vertices, axis=1) / src.mean_edge_length
+        print(f"{label}: median {np.median(err):.2f} mean edge lengths, "
+              f"{100 * np.mean(err <= 2):.0f}% of vertices within 2 edge lengths")
+        return float(np.median(err))
+
+    extra = {"median_error_edge_lengths": median_error(c.correspondence, "correspondence error vs ground truth")}
     refined = _zoomout(a, src, tgt, c)
     if refined is not None:
-        err_z = np.linalg.norm(pair.target_in_source_frame[refined] - src.vertices, axis=1) / src.mean_edge_length
-        extra["median_error_edge_lengths_zoomout"] = float(np.median(err_z))
-        print(f"after ZoomOut: median {np.median(err_z):.2f} mean edge lengths, "
-              f"{100 * np.mean(err_z <= 2):.0f}% of vertices within 2 edge lengths")
+        extra["median_error_edge_lengths_zoomout"] = median_error(refined, "after ZoomOut")
     files = _save_comparison(c, src, tgt, Path(a.out), extra, refined=refined)
     if c.registration is not None:
         rel = c.registration.rotation @ pair.rotation.T
