@@ -10,7 +10,6 @@ import warp as wp
 
 import wpot.ot as wo
 from wpot.cost import cost_matrix
-from wpot.ot._common import make_options
 from wpot.ot.newton import Engine
 from wpot.ot.problem import orient, prepare_cost
 
@@ -126,9 +125,9 @@ def test_engine_allocates_nothing_quadratic():
     for lazy in (True, False):
         cost = prepare_cost(wo.FeatureCost(X, Y, "l2", device="cpu") if lazy else cost_matrix(X, Y, metric="l2"), "cpu")
         assert cost.lazy == lazy and cost.scale == pytest.approx(cost_matrix(X, Y, metric="l2").max(), rel=0, abs=0)
-        opts = make_options(n1=n1, n2=n2, scale=cost.scale, beta0=None, beta_max=None, step=10.0, tol=1e-6,
-                            atol=1e-10, max_iter=5, max_newton=20, newton_tol=1e-11, linear_solver="cg", cg_rtol=1e-3,
-                            cg_max_iter=100, topk=4, extrapolate=True, verbose=0)
+        opts = wo.SolverOptions(step=10.0, tol=1e-6, atol=1e-10, max_iter=5, max_newton=20, newton_tol=1e-11,
+                                linear_solver="cg", cg_rtol=1e-3, cg_max_iter=100, topk=4, extrapolate=True,
+                                verbose=0).normalized(n1, n2, cost.scale)
         prob = orient(cost, np.full(n1, 1 / n1), np.full(n2, 1 / n2), np.zeros(n1), np.zeros(n2), False, "cpu")
         eng = Engine(prob, opts)
         sizes = []

@@ -362,31 +362,28 @@ def test_debiased_eq27():
 
 
 @pytest.mark.parametrize("mode", ["balanced", "ipm", "partial", "matrix-free"])
-def test_strided_gpu_kernels_give_the_row_kernels_solution(monkeypatch, mode):
+def test_strided_gpu_kernels_give_the_row_kernels_solution(mode):
     # GPUs run the passes over W as strided lanes (eval_rows in lanes + eval_combine, schur_prep_cols, the Schur matvec
     # as schur_row_partial / schur_row_delta / schur_col_sweep, recover_finish), the CPU as one thread per
     # row. Forced on the CPU with a lane count that divides neither side, the strided kernels must give the
     # same solution up to rounding (stored W and recomputed W), with the same pivots.
-    from wpot.ot import newton
-
     rng = np.random.default_rng(2)
     X, Y = rng.random((41, 4)), rng.random((29, 4))
     a, b = rng.random(41) + 0.2, rng.random(29) + 0.2
     a, b = a / a.sum(), b / b.sum()
     if mode == "matrix-free":
-        def solve():
-            return wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2", device="cpu"), a, b, device="cpu")
+        def solve(**kw):
+            return wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2", device="cpu"), a, b, device="cpu", **kw)
     else:
         C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
         if mode in ("balanced", "ipm"):
-            def solve():
-                return wo.solve_balanced(C, a, b, device="cpu", method="anneal" if mode == "balanced" else "ipm")
+            def solve(**kw):
+                return wo.solve_balanced(C, a, b, device="cpu", method="anneal" if mode == "balanced" else "ipm", **kw)
         else:
-            def solve():
-                return wo.solve_partial(C, a, b, mass_penalty=0.05, device="cpu")
+            def solve(**kw):
+                return wo.solve_partial(C, a, b, mass_penalty=0.05, device="cpu", **kw)
     ref = solve()
-    monkeypatch.setattr(newton, "FORCE_LANES", 5)
-    got = solve()
+    got = solve(matvec_lanes=5)
     assert got.converged and ref.converged
     assert got.cost == pytest.approx(ref.cost, rel=1e-10)
     np.testing.assert_allclose(got.mass1, ref.mass1, rtol=0, atol=1e-12)
@@ -395,12 +392,11 @@ def test_strided_gpu_kernels_give_the_row_kernels_solution(monkeypatch, mode):
 
 
 @pytest.mark.parametrize("lanes", [1, 5, 64])
-def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(monkeypatch, lanes):
+def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(lanes):
     # eval_rows in 5 or 64 lanes (GPUs) against one lane (the CPU's row scan), each + eval_combine, at one
     # point, with tied weights in some rows: the same sums, and the same pivot (the largest weight, the first column on ties), tail and s there.
     from wpot.ot import newton
-    from wpot.ot._common import make_options
-    from wpot.ot.balanced import orient, prepare_cost
+    from wpot.ot.problem import orient, prepare_cost
 
     rng = np.random.default_rng(4)
     n1, n2 = 70, 23  # rows = the larger side: no transposition, so C's rows are the solver's
@@ -409,10 +405,10 @@ def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(monkeypatc
     C[7, :] = 0.5  # a constant row: every weight tied
     cost = prepare_cost(C, "cpu")
 
-    def engine():
-        opts = make_options(n1=n1, n2=n2, scale=cost.scale, beta0=None, beta_max=None, step=10.0, tol=1e-6,
-                            atol=0.0, max_iter=100, max_newton=100, newton_tol=1e-10, linear_solver="cg",
-                            cg_rtol=1e-10, cg_max_iter=1000, topk=4, extrapolate=True, verbose=0)
+    def engine(matvec_lanes=None):
+        opts = wo.SolverOptions(step=10.0, tol=1e-6, atol=0.0, max_iter=100, max_newton=100, newton_tol=1e-10,
+                                linear_solver="cg", cg_rtol=1e-10, cg_max_iter=1000, topk=4, extrapolate=True,
+                                matvec_lanes=matvec_lanes, verbose=0).normalized(n1, n2, cost.scale)
         prob = orient(cost, np.full(n1, 1 / n1), np.full(n2, 1 / n2), np.zeros(n1), np.zeros(n2), False, "cpu")
         e = newton.Engine(prob, opts)
         e.init_point(rng_duals.normal(size=prob.n_r) * 0.01, np.full(prob.n_c, 0.3))  # equal y: ties stay ties
@@ -422,9 +418,8 @@ def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(monkeypatc
     ref = engine()
     assert ref.lanes == 0 and not ref.p.trans
     pr = ref.evaluate(ref.lam, ref.y, 40.0)
-    monkeypatch.setattr(newton, "FORCE_LANES", lanes)
     rng_duals = np.random.default_rng(0)
-    got = engine()
+    got = engine(lanes)
     assert got.lanes == lanes
     pg = got.evaluate(got.lam, got.y, 40.0)
     for name in ("row_g", "col_g", "row_w", "tail", "row_u", "row_xphi", "s_piv"):

@@ -229,8 +229,8 @@ class _IPM:
         step now, the primal one in the next `eval`; both ETA of the way to the boundary at most."""
         rs, rg = self._ratio(mu_t, True)
         ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
-        self.e._trial(ad)
-        self.e._accept_trial()
+        self.e.trial(ad)
+        self.e.accept()
         self.upd = (mu_t, ap)
         return ad, ap
 
@@ -300,7 +300,8 @@ def handoff_beta(beta0: float, step: float, n_r: int, n_c: int, u: float, handof
 
 def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     """Run the interior-point iteration on a fresh balanced `Engine` and leave its duals at the barrier of
-    the hand-off beta. Returns (beta_h (normalized), iterations, linear iterations, seconds)."""
+    the hand-off beta, where the annealing goes on (`wpot.ot.anneal.anneal` with ``beta0=beta_h``).
+    Returns (beta_h (normalized), iterations, linear iterations, seconds)."""
     t0 = time.perf_counter()
     o, p = eng.o, eng.p
     ipm = _IPM(eng)
@@ -315,6 +316,6 @@ def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     if beta_h2 > beta_h:
         k2, l2 = ipm.run(beta_h2, o.verbose)
         n_it, n_lin, beta_h = n_it + k2, n_lin + l2, beta_h2
-    eng._M_stale = True  # the preconditioner was built from the interior-point weights
+    eng.invalidate_preconditioner()  # it was built from the interior-point weights
     del ipm  # frees G
     return beta_h, n_it, n_lin, time.perf_counter() - t0

@@ -1,4 +1,4 @@
-"""Newton's method at fixed beta and the annealing loop of Algorithm 1 (shared by balanced and partial).
+"""The solver state of one OT problem and Newton's method at fixed beta (shared by balanced and partial).
 
 State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (phi, phi', row and
 column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. Length-N vectors are handled on the host
@@ -12,14 +12,16 @@ Cost per Newton step: one pass over C (`kernels.eval_rows`, at the trial point),
 Schur right-hand side and diagonal, one per CG iteration (two sweeps of a row) and one for the
 back-substitution. The sparse preconditioner (top-k selection in Warp, SuperLU) is the expensive part at
 large N and is reused across Newton steps and betas while CG converges about as fast as with a fresh
-one (`REFRESH_EXTRA_CG`). Per beta: one pass for the predictor (two or more when it is rejected), one
-for F and the tangent's right-hand side (`kernels.free_rows`) and one tangent solve.
+one (`REFRESH_EXTRA_CG`).
+
+The `Engine`'s public step API (`evaluate`, `direction`, `trial`, `accept`, `newton`, `free_pass`,
+`snapshot`/`restore`, `invalidate_preconditioner`, `plan`, `plan_top`) is what the annealing loop
+(`wpot.ot.anneal`) and the interior-point start (`wpot.ot.ipm`) drive.
 """
 from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,17 +30,9 @@ import warp as wp
 from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
 from wpot.ot import linear
+from wpot.ot.options import EngineOptions
 from wpot.ot.problem import Internal
-from wpot.ot.result import BetaStep
-from wpot.ot.schedule import beta_schedule, relative_change
 
-
-#: lanes of the strided Schur matvec on every device (0: strided on GPUs only, see `Engine._record_matvec`);
-#: for tests of the strided kernels on the CPU
-FORCE_LANES = 0
-#: a beta step that fails (max_newton reached) is split at its geometric midpoint, down to this ratio
-#: (10 ** (1/16): four halvings of the default step in log beta)
-MIN_SPLIT_STEP = 10.0 ** (1.0 / 16.0)
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
 #: this many iterations beyond the count of its first solve (or a full Newton step with it gains less than
 #: 4x); it is then rebuilt at the next Newton point (at once, with a re-solve, when CG failed). Measured
@@ -50,24 +44,6 @@ REFRESH_EXTRA_CG = 2
 CG_LOOSE = 0.1
 #: the fraction-to-zero step rule applies to pivots with beta s above this (see `Engine.newton`)
 FTB_MIN_X = 1.0
-
-
-@dataclass
-class Options:
-    beta0: float  # normalized units
-    beta_max: float
-    step: float
-    tol: float
-    atol: float  # normalized units (fraction of the cost scale)
-    max_iter: int  # annealing steps
-    max_newton: int
-    newton_tol: float
-    linear_solver: str
-    cg_rtol: float
-    cg_max_iter: int
-    topk: int
-    extrapolate: bool
-    verbose: int
 
 
 @dataclass
@@ -101,10 +77,25 @@ class Point:
     x: float = 0.0
 
 
-class Engine:
-    """Preallocated solver state for one internal problem (see `wpot.ot.problem.Internal`)."""
+@dataclass(frozen=True)
+class DualSnapshot:
+    """A copy of the duals (lam, y), each a (hi, lo) pair of float64 device arrays (see `Engine.snapshot`)."""
 
-    def __init__(self, prob: Internal, opts: Options):
+    lam: tuple[wp.array, wp.array]
+    y: tuple[wp.array, wp.array]
+
+
+class Engine:
+    """Preallocated solver state for one internal problem (see `wpot.ot.problem.Internal`) and options
+    (`wpot.ot.options.EngineOptions`, never changed once the engine holds them).
+
+    The duals lam (n_r,), y (n_c,) are double-double pairs (``lam[0] + lam[1]``: hi, lo) on the device;
+    a trial point goes to a second pair of buffers (`trial`) and becomes the current one by a swap
+    (`accept`). Each evaluation (`evaluate`) leaves the device state (the weights W, the marginals, ...)
+    at the point it evaluated; `direction` solves the Newton system there.
+    """
+
+    def __init__(self, prob: Internal, opts: EngineOptions):
         self.p = prob
         self.o = opts
         d = prob.device
@@ -151,12 +142,14 @@ class Engine:
         self.dy_a, self.zero_c = z(n_c), z(n_c)
         self.b.assign(wp.array(prob.b_r, dtype=wp.float64, device=d))
         self.t = Timers()
-        self.beta = 0.0
-        self._n_tangent = 0
         self.a_sum = float(prob.a_c.sum())
         self._host = wp.get_device(d).is_cpu
-        # strided lanes on GPUs (see `_record_matvec`); one thread per row on the CPU
-        self.lanes = FORCE_LANES or (0 if self._host else K.MATVEC_LANES)
+        # strided lanes on GPUs (see `_record_matvec`); one thread per row on the CPU (unless the options
+        # say otherwise)
+        if opts.matvec_lanes is None:
+            self.lanes = 0 if self._host else K.MATVEC_LANES
+        else:
+            self.lanes = opts.matvec_lanes
         self.eval_lanes = self.lanes or 1  # `K.eval_rows` runs one lane per row on the CPU
         self.lane_f = wp.zeros((n_r, self.eval_lanes, 6), dtype=wp.float64, device=d)
         self.lane_p = wp.zeros((n_r, self.eval_lanes), dtype=wp.int32, device=d)
@@ -165,7 +158,7 @@ class Engine:
         self._matvec_cmd = None
         self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
         self._M_iters = 0
-        self._M_stale = False
+        self._M_fresh_needed = False
 
     # ------------------------------------------------------------------ evaluation
     def _x_of_y(self, y: np.ndarray) -> float:
@@ -175,6 +168,9 @@ class Engine:
         return (float(self.p.a_c @ y) - 1.0) / self.a_sum
 
     def evaluate(self, lam, y, beta: float, full: bool = True) -> Point:
+        """One pass over C at the duals (``lam``, ``y``: (hi, lo) pairs, e.g. ``self.lam`` or the trial
+        ``self.lam_t``) and ``beta``: stores W (stored mode) and the row and column sums on the device and
+        returns the marginal residuals (and, with ``full``, U and the gap sum)."""
         t0 = time.perf_counter()
         p = self.p
         self.col_g.zero_()
@@ -296,7 +292,7 @@ class Engine:
         self.diag_s.zero_()
         self.wtg.zero_()
         cg = self.o.linear_solver != "direct"
-        fresh = cg and (self._M is None or self._M_stale)
+        fresh = cg and (self._M is None or self._M_fresh_needed)
         # row top-k selection only when the preconditioner is rebuilt
         if self.lanes:
             wp.launch(K.variant(K.schur_prep_cols, self._wsrc), dim=(self.lanes, p.n_c),
@@ -331,7 +327,7 @@ class Engine:
                 self._M_iters = info.iterations
             elif not ok or info.iterations > self._M_iters + REFRESH_EXTRA_CG:
                 # a preconditioner from an earlier point has gone stale: rebuild it at the next point
-                self._M_stale = True
+                self._M_fresh_needed = True
                 if not ok:  # and re-solve now if this solve failed (with a fresh row top-k)
                     wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
                               outputs=[self.top_val, self.top_idx], device=p.device)
@@ -367,16 +363,27 @@ class Engine:
         P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
                                          self.ctop_val.numpy(), self.ctop_idx.numpy())
         self._M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
-        self._M_stale = False
+        self._M_fresh_needed = False
         self.t.precond += time.perf_counter() - t0
         self.t.n_factor += 1
 
-    def _trial(self, alpha: float):
+    def invalidate_preconditioner(self) -> None:
+        """Rebuild the preconditioner at the next Newton direction (the weights it was built from no longer
+        describe the problem, e.g. after the interior-point start)."""
+        self._M_fresh_needed = True
+
+    def trial(self, alpha: float) -> None:
+        """The trial duals (``lam_t``, ``y_t``) = current + ``alpha`` x the last `direction`."""
         p = self.p
         wp.launch(K.dd_axpy, dim=p.n_r, inputs=[self.lam[0], self.lam[1], alpha, self.d_a, self.d_b],
                   outputs=[self.lam_t[0], self.lam_t[1]], device=p.device)
         wp.launch(K.dd_axpy, dim=p.n_c, inputs=[self.y[0], self.y[1], alpha, self.dy_a, self.zero_c],
                   outputs=[self.y_t[0], self.y_t[1]], device=p.device)
+
+    def accept(self) -> None:
+        """The trial duals become the current ones (the buffers are swapped, nothing is copied)."""
+        self.lam, self.lam_t = self.lam_t, self.lam
+        self.y, self.y_t = self.y_t, self.y
 
     def newton(self, beta: float, pt: Point) -> tuple[Point, int, int, bool]:
         """Newton's method with backtracking on the residual norm ||g||_2 (accurate at any beta: the
@@ -386,7 +393,7 @@ class Engine:
         while pt.residual > self.o.newton_tol:
             if n_newton >= self.o.max_newton:
                 return pt, n_newton, n_lin, False
-            reused = self._M is not None and not self._M_stale
+            reused = self._M is not None and not self._M_fresh_needed
             k_lin, _ = self.direction(pt, rtol=min(CG_LOOSE, pt.residual))
             n_lin += k_lin
             n_newton += 1
@@ -402,7 +409,7 @@ class Engine:
                 alpha = min(1.0, 0.9 * float(np.min(spv[neg] / -db[neg])))
             accepted = False
             for _ in range(60):
-                self._trial(alpha)
+                self.trial(alpha)
                 tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
                 if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
                     accepted = True
@@ -412,198 +419,70 @@ class Engine:
                 # no decrease possible at working precision: keep the best point we have
                 pt = self.evaluate(self.lam, self.y, beta, full=True)
                 return pt, n_newton, n_lin, pt.residual <= self.o.newton_tol
-            self.lam, self.lam_t = self.lam_t, self.lam
-            self.y, self.y_t = self.y_t, self.y
+            self.accept()
             if self.o.verbose > 1:
                 print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
                       f"res {tp.residual:.2e} cg={k_lin}")
             if reused and alpha == 1.0 and tp.merit > 0.25 * pt.merit:
                 # a full step that gained little: the reused preconditioner may have steered CG (stopped at
                 # its relative tolerance) to a poor direction; rebuild it at the next step
-                self._M_stale = True
+                self._M_fresh_needed = True
             pt = tp
         return pt, n_newton, n_lin, True
 
-    # ------------------------------------------------------------------ annealing (Algorithm 1)
+    # ------------------------------------------------------------------ duals
     def init_point(self, lam0: np.ndarray, y0: np.ndarray):
+        """Set the duals to (lam0 (n_r,), y0 (n_c,)) (normalized units, the engine's orientation)."""
         d = self.p.device
         self.lam[0].assign(wp.array(lam0, dtype=wp.float64, device=d))
         self.lam[1].zero_()
         self.y[0].assign(wp.array(y0, dtype=wp.float64, device=d))
         self.y[1].zero_()
 
-    def _copy(self, src, dst):
-        for s, t in zip(src, dst):
+    def snapshot(self, into: DualSnapshot | None = None) -> DualSnapshot:
+        """A copy of the current duals, into ``into``'s arrays when given (no allocation)."""
+        if into is None:
+            return DualSnapshot(tuple(wp.clone(a) for a in self.lam), tuple(wp.clone(a) for a in self.y))
+        for s, t in zip((*self.lam, *self.y), (*into.lam, *into.y)):
+            wp.copy(t, s)
+        return into
+
+    def restore(self, snap: DualSnapshot) -> None:
+        """Copy the duals of ``snap`` back into the current ones."""
+        for s, t in zip((*snap.lam, *snap.y), (*self.lam, *self.y)):
             wp.copy(t, s)
 
-    def anneal(self, free_energy_fn) -> dict:
-        o = self.o
-        betas = beta_schedule(o.beta0, o.step, o.beta_max)
-        history: list[BetaStep] = []
-        raw: list[dict] = []
-        all_newton_ok = True
-        stopped = False
-        u_prev = None
-        n_newton_tot = n_lin_tot = 0
-        good = None  # (lam, y) copies at the last beta whose Newton solve converged
-        failed_beta = None
-        targets = list(betas)
-        while targets:
-            beta = targets.pop(0)
-            if len(raw) >= o.max_iter:
-                break
-            if raw and o.extrapolate:
-                pt = self._predict(beta, raw[-1]["beta"])
-                n_lin_tot += self._n_tangent
-            else:
-                pt = self.evaluate(self.lam, self.y, beta)
-            pt, nn, nl, ok = self.newton(beta, pt)
-            if not ok and good is not None:
-                # a failed solve after a solved beta (good holds that beta's duals, raw[-1] its record): its
-                # iterate can be far from feasible, so go back to the solved duals
-                n_newton_tot += nn
-                n_lin_tot += nl
-                self._copy(good[0], self.lam)
-                self._copy(good[1], self.y)
-                beta_prev = raw[-1]["beta"]
-                if beta / beta_prev > MIN_SPLIT_STEP:
-                    # the step was too long for max_newton damped steps (real 5k-vertex WKS pairs at the plan's
-                    # spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8, normalized): reach beta
-                    # through the geometric midpoint
-                    self._refresh_tangent(beta_prev)
-                    targets[:0] = [math.sqrt(beta_prev * beta), beta]
-                    continue
-                # no shorter step left (U was off by 12 % on a cell-pooled TOSCA pair at beta 2.5e14, while the
-                # previous beta was within 1e-7 of the optimum): end at the last solved beta
-                failed_beta = beta
-                all_newton_ok = False
-                beta = beta_prev
-                pt = self.evaluate(self.lam, self.y, beta)
-                self.free_pass(self.lam, self.y, beta, pt)
-                self.beta = beta
-                self.last = pt
-                break
-            # the device state (W, marginals, ...) is that of the current point: add F and W s
-            self.free_pass(self.lam, self.y, beta, pt)
-            self._tangent(pt)
-            all_newton_ok &= ok
-            n_newton_tot += nn
-            n_lin_tot += nl
-            obj = pt.u + self._penalty(pt)
-            fe = free_energy_fn(self, pt, beta)
-            rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
-            raw.append(rec)
-            if o.verbose:
-                print(f"  beta={beta:.3e} U={pt.u:.12g} res={pt.residual:.2e} newton={nn} cg={nl} "
-                      f"gap<={pt.xphi / beta:.2e} t_eval={self.t.eval:.2f}s")
-            self.beta = beta
-            self.last = pt
-            if ok:
-                if good is None:
-                    good = ([wp.clone(a) for a in self.lam], [wp.clone(a) for a in self.y])
-                else:
-                    self._copy(self.lam, good[0])
-                    self._copy(self.y, good[1])
-            if u_prev is not None and ok:
-                # Algorithm 1 on the transport cost U (for the partial problem the penalty would mask it)
-                if relative_change(u_prev, pt.u) < o.tol or abs(pt.u - u_prev) <= o.atol:
-                    stopped = True
-                    break
-            u_prev = pt.u
-        if o.verbose:
-            print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in self.t.as_dict().items()})
-        return dict(raw=raw, converged=stopped and all_newton_ok, stopped=stopped, newton_ok=all_newton_ok,
-                    n_newton=n_newton_tot, n_linear=n_lin_tot, history=history, failed_beta=failed_beta)
-
-    def _tangent(self, pt: Point) -> None:
-        """d(lam, y)/d(log beta) at the solved point ``pt`` (device state at it, after `free_pass`), kept on the
-        device for `_predict`; skipped when the extrapolation is off or the point is not accurate enough."""
-        if self.o.extrapolate and pt.residual <= self.o.newton_tol * 1e3:
-            # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
-            self._n_tangent, _ = self.direction(Point(self.row_ws.numpy().copy(), self.col_ws.numpy().copy(), 0.0, 0.0))
-        else:
-            self._n_tangent = 0
-
-    def _refresh_tangent(self, beta: float) -> None:
-        """Re-evaluate the (restored) duals at ``beta`` and recompute the tangent there (a failed Newton solve
-        overwrote the device state and the direction arrays)."""
-        pt = self.evaluate(self.lam, self.y, beta)
-        self.free_pass(self.lam, self.y, beta, pt)
-        self._tangent(pt)
-
-    def _predict(self, beta: float, beta_prev: float) -> Point:
-        """Tangent predictor: (lam, y) + alpha d(lam, y)/d(log beta) with alpha = 1 - 1/q, i.e. linear in
-        1/beta (exact when the duals behave like v* + a/beta). Without it the plan's entries (~ 1/(beta s))
-        all shrink by q and the residual is ~ 1 - 1/q; the prediction is kept at once when its residual is
-        below half of that, otherwise it is compared with the unmoved point and halved (3 times at most).
-        Returns the evaluated point; the device state is left at it."""
-        q = beta / beta_prev
-        alpha = 1.0 - 1.0 / q
-        self._trial(alpha)
-        tp = self.evaluate(self.lam_t, self.y_t, beta)
-        if tp.residual <= 0.5 * alpha:
-            self._accept_trial()
-            return tp
-        pt = self.evaluate(self.lam, self.y, beta)
-        for _ in range(3):
-            alpha *= 0.5
-            self._trial(alpha)
-            tp = self.evaluate(self.lam_t, self.y_t, beta)
-            if tp.merit < pt.merit:
-                self._accept_trial()
-                return tp
-        return self.evaluate(self.lam, self.y, beta)
-
-    def _accept_trial(self):
-        self.lam, self.lam_t = self.lam_t, self.lam
-        self.y, self.y_t = self.y_t, self.y
-
-    def _penalty(self, pt: Point) -> float:
-        """Partial: sum alpha1' m1^2 + sum alpha2' m2^2 (normalized units) with m = the plan's marginals."""
+    # ------------------------------------------------------------------ values and outputs
+    def penalty(self) -> float:
+        """Partial: sum alpha1' m1^2 + sum alpha2' m2^2 (normalized units) with m = the marginals of the last
+        evaluation; 0 for balanced transport."""
         if not self.p.partial:
             return 0.0
         m1 = self.row_g.numpy()
         m2 = self.col_g.numpy()
         return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))
 
-    def plan(self) -> np.ndarray:
-        """The dense plan (N1, N2) in the user's orientation, at the final beta and duals."""
+    def plan(self, beta: float) -> np.ndarray:
+        """The dense plan (N1, N2) in the user's orientation at ``beta`` and the current duals (normalized:
+        multiply by the total mass). On the CPU it is a view of the device array."""
         p = self.p
         shape = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
         G = wp.zeros(shape, dtype=wp.float64, device=p.device)
         wp.launch(K.variant(K.plan_kernel, self.csrc), dim=p.n_r,
-                  inputs=[self.csrc, p.trans, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
+                  inputs=[self.csrc, p.trans, p.n_c, beta, self.lam[0], self.lam[1], self.y[0],
                           self.y[1]], outputs=[G], device=p.device)
         return G.numpy()
 
-    def plan_top(self, topk: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each user row's ``topk`` largest plan entries ((N1, topk) float64, descending) and their column
-        indices ((N1, topk) int32), computed in one pass without forming the plan."""
+    def plan_top(self, beta: float, topk: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each user row's ``topk`` largest plan entries at ``beta`` and the current duals ((N1, topk)
+        float64, descending) and their column indices ((N1, topk) int32), computed in one pass without
+        forming the plan."""
         p = self.p
         n1, n2 = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
         kk = min(int(topk), n2)
         val = wp.zeros((n1, kk), dtype=wp.float64, device=p.device)
         idx = wp.zeros((n1, kk), dtype=wp.int32, device=p.device)
         wp.launch(K.variant(K.plan_topk, self.csrc), dim=n1,
-                  inputs=[self.csrc, p.trans, p.n_r, p.n_c, self.beta, self.lam[0], self.lam[1], self.y[0],
+                  inputs=[self.csrc, p.trans, p.n_r, p.n_c, beta, self.lam[0], self.lam[1], self.y[0],
                           self.y[1], kk], outputs=[val, idx], device=p.device)
         return val.numpy(), idx.numpy()
-
-
-def warn_not_converged(kind: str, info: dict, beta_max_user: float):
-    if info["converged"]:
-        return
-    if info.get("failed_beta") is not None:
-        last = info["raw"][-1]
-        msg = (f"{kind}: the Newton solve failed at beta={info['failed_beta']:.3g} (normalized); the result is that "
-               f"of the last solved beta={last['beta']:.3g}, whose U is optimal to within its gap bound "
-               f"{last['gap']:.2g} (normalized units) but which did not meet tol; increase max_newton or cg_max_iter, "
-               "or try linear_solver='direct'")
-    elif not info["newton_ok"]:
-        msg = (f"{kind}: a Newton solve did not reach its tolerance (see result.history residuals); "
-               "increase max_newton, use a smaller step, or try linear_solver='direct'")
-    else:
-        msg = (f"{kind}: annealing stopped before the relative change of U fell below tol "
-               f"(reached beta={info['raw'][-1]['beta'] if info['raw'] else float('nan'):.3g} normalized); "
-               "increase max_iter or beta_max, or loosen tol")
-    warnings.warn(msg, RuntimeWarning, stacklevel=3)

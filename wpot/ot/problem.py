@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
 
+from wpot._validate import positive_finite
 from wpot._warp import resolve_device as _resolve_device
 from wpot.cost import METRIC_CODES, cost_matrix, prepare_signatures
 from wpot.ot import kernels as K
@@ -62,6 +64,55 @@ class FeatureCost:
     def __repr__(self) -> str:
         n1, n2 = self.shape
         return f"FeatureCost(N1={n1}, N2={n2}, D={self.X.shape[1]}, metric={self.metric!r}, device={self.device!r})"
+
+
+@dataclass(frozen=True)
+class TransportProblem:
+    """One OT problem, as the caller states it (validated by the solver, except ``mass_penalty``).
+
+    cost : (N1, N2) cost matrix (array-like, finite, >= 0; or a 2-D float64 ``wp.array``, used without a
+        copy when on the solve device), or a `FeatureCost` (the matrix-free mode: C recomputed inside the
+        kernels, memory O((N1 + N2) D); the same results).
+    a, b : (N1,), (N2,) positive masses (None: uniform). Balanced: equal sums; the plan is computed for
+        masses normalized to sum 1 and multiplied back by the total. Partial: the reference measures
+        rho1, rho2 (normalized to sum 1).
+    mass_penalty : None for balanced transport (Eq. 6-7); a positive finite number for partial transport
+        with the Pearson chi^2 penalty alpha_i = mass_penalty / rho_i^2 (Eq. 17; 1 is the paper's).
+    device : Warp device of the solve (None: Warp's default).
+    """
+
+    cost: Any
+    a: Any = None
+    b: Any = None
+    _: KW_ONLY
+    mass_penalty: float | None = None
+    device: str | None = None
+
+    def __post_init__(self):
+        if self.mass_penalty is not None:
+            object.__setattr__(self, "mass_penalty", positive_finite("mass_penalty", self.mass_penalty))
+
+    @property
+    def partial(self) -> bool:
+        """True for partial transport (a mass penalty is given)."""
+        return self.mass_penalty is not None
+
+    @property
+    def matrix_free(self) -> bool:
+        """True when the cost is a `FeatureCost` (no N1 x N2 array is stored)."""
+        return isinstance(self.cost, FeatureCost)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(N1, N2), the cost's shape (as given: the solver checks that it is 2-D)."""
+        if isinstance(self.cost, (FeatureCost, wp.array)):
+            return tuple(int(n) for n in self.cost.shape)
+        return tuple(int(n) for n in np.shape(self.cost))
+
+    def __repr__(self) -> str:
+        kind = "balanced" if self.mass_penalty is None else f"partial, mass_penalty={self.mass_penalty!r}"
+        mode = "matrix-free" if self.matrix_free else "stored"
+        return f"TransportProblem({'x'.join(map(str, self.shape))}, {kind}, {mode} cost, device={self.device!r})"
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,14 @@
-"""Result types of the OT solvers (frozen dataclasses; the return type never depends on a flag)."""
+"""Result types of the OT solvers (frozen dataclasses; the return type never depends on a flag) and their
+assembly from a solved `wpot.ot.newton.Engine`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+
+from wpot.ot.anneal import AnnealOutcome, warn_not_converged
+from wpot.ot.newton import Engine
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,7 @@ class OTResult:
         entries, computed by the solver's last evaluation pass, in both modes)
     beta : final inverse temperature (user's units); converged : annealing stopped by `tol` with every
         Newton solve converged; n_newton, n_linear : totals; history : one `BetaStep` per beta
+    energy_history : (property) the (beta, objective) pairs of ``history`` as an (n_beta, 2) array
     """
 
     plan: np.ndarray | None
@@ -74,6 +79,12 @@ class OTResult:
     n_linear: int
     history: tuple[BetaStep, ...]
 
+    @property
+    def energy_history(self) -> np.ndarray:
+        """(n_beta, 2) float64: each annealing step's (beta, objective) from ``history`` (user's units; the
+        objective is the transport cost for balanced transport), e.g. to plot the annealing."""
+        return np.array([(h.beta, h.objective) for h in self.history], dtype=np.float64).reshape(-1, 2)
+
     def __repr__(self) -> str:
         # a summary: the dataclass default would print every array (the plan alone is N1 x N2)
         return (f"OTResult({len(self.mass1)}x{len(self.mass2)}, cost={self.cost:.6g}, objective={self.objective:.6g}, "
@@ -82,12 +93,75 @@ class OTResult:
                 f"mass={self.mass1.sum():.6g}->{self.mass2.sum():.6g}, plan={'stored' if self.plan is not None else 'top-k only'})")
 
 
-def debiased(u12: float, u11: float, u22: float) -> float:
-    """Debiased transport cost SU (paper Eq. 27): u12 - 0.5 (u11 + u22).
+def debiased(u12, u11, u22, *, strict: bool = True):
+    """Debiased transport cost SU (paper Eq. 27): ``u12 - 0.5 (u11 + u22)``.
 
-    Works the same for U and for the free energy F. Raises ValueError on non-finite input.
+    The one implementation of Eq. 27: `wpot.Comparer` (a pair's distance), `wpot.history.debias_history`
+    (SU at every β) and the run store's SQL (`wpot.pipeline.RunStore`) all call it. Works the same for U and
+    for the free energy F.
+
+    Scalars give a float and, with ``strict`` (default), non-finite input raises ValueError. Arrays (with
+    ``strict=False``) are combined element-wise, NaN where an input is NaN (a β at which a self-comparison
+    has no value yet).
     """
+    if not strict:
+        return np.asarray(u12, dtype=np.float64) - 0.5 * (np.asarray(u11, dtype=np.float64) + np.asarray(u22, dtype=np.float64))
     vals = (float(u12), float(u11), float(u22))
     if not all(np.isfinite(v) for v in vals):
         raise ValueError(f"debiased needs finite values, got u12={u12}, u11={u11}, u22={u22}")
     return vals[0] - 0.5 * (vals[1] + vals[2])
+
+
+def build_result(eng: Engine, out: AnnealOutcome, total: float, kind: str, *, partial: bool, dense: bool,
+                 plan_topk: int) -> OTResult:
+    """The `OTResult` of a finished annealing (``out``) on ``eng``, in the user's units and orientation:
+    costs x scale x ``total`` (the mass the problem was normalized by), betas / scale, the duals x scale.
+    ``dense``: also form the (N1, N2) plan. Warns (RuntimeWarning, `wpot.ot.anneal.warn_not_converged`)
+    when the annealing did not converge."""
+    p = eng.p
+    s = p.scale
+    warn_not_converged(kind, out)
+    hist = tuple(
+        BetaStep(beta=r["beta"] / s, cost=r["u"] * s * total, free_energy=r["f"] * s * total, n_newton=r["nn"],
+                 n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * s * total,
+                 objective=r["obj"] * s * total)
+        for r in out.records
+    )
+    plan = None
+    if dense:
+        plan = eng.plan(out.beta)
+        plan *= total  # in place: no second (N1, N2) array
+    top_val, top_idx = eng.plan_top(out.beta, plan_topk)
+    n1, n2 = (p.n_c, p.n_r) if p.trans else (p.n_r, p.n_c)
+    kk = top_val.shape[1]
+    plan_top = sp.csr_matrix((top_val.reshape(-1) * total, top_idx.reshape(-1).astype(np.int64),
+                              np.arange(0, n1 * kk + 1, kk, dtype=np.int64)), shape=(n1, n2))
+    argmax = plan.argmax(axis=1) if plan is not None else top_idx[:, 0].astype(np.int64)
+    # the exact marginals of the last evaluation (at the final duals and beta)
+    rg, cg = eng.row_g.numpy() * total, eng.col_g.numpy() * total
+    mass1, mass2 = (cg, rg) if p.trans else (rg, cg)
+    lam = (eng.lam[0].numpy() + eng.lam[1].numpy()) * s
+    y = (eng.y[0].numpy() + eng.y[1].numpy()) * s
+    x = out.point.x * s if partial else 0.0
+    mu = y - x
+    if p.trans:
+        lam, mu = mu, lam
+    last = out.records[-1]
+    return OTResult(
+        plan=plan,
+        plan_top=plan_top,
+        argmax=argmax.astype(np.int64),
+        cost=last["u"] * s * total,
+        objective=last["obj"] * s * total,
+        free_energy=last["f"] * s * total,
+        lam=lam,
+        mu=mu,
+        x=float(x),
+        mass1=mass1.copy(),
+        mass2=mass2.copy(),
+        beta=last["beta"] / s,
+        converged=bool(out.converged),
+        n_newton=int(out.n_newton),
+        n_linear=int(out.n_linear),
+        history=hist,
+    )

@@ -1,0 +1,325 @@
+"""The OT solvers behind one interface (`TransportSolver`), their registry (`SOLVERS`, `make_solver`) and
+the function forms `solve_balanced` / `solve_partial`.
+
+- "anneal": Algorithm 1 from beta0 (balanced or partial, stored or matrix-free cost).
+- "ipm": a primal-dual interior-point start up to the first grid beta whose gap bound is <= 1e-3 U, then
+  Algorithm 1 (balanced transport with a stored cost only; `wpot.ot.ipm`).
+- "auto": "ipm" for balanced transport with a stored cost and min(N1, N2) >= `AUTO_IPM_POINTS`,
+  "anneal" otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
+
+from wpot._validate import integer_at_least, positive_finite
+from wpot.ot import kernels as K
+from wpot.ot.balanced import solve_balanced_problem
+from wpot.ot.options import SolverOptions
+from wpot.ot.partial import solve_partial_problem
+from wpot.ot.problem import TransportProblem
+from wpot.ot.result import OTResult
+
+__all__ = ["AUTO_IPM_POINTS", "SOLVERS", "AnnealSolver", "AutoSolver", "InteriorPointSolver", "TransportSolver",
+           "make_solver", "solve_balanced", "solve_partial"]
+
+#: "auto" starts balanced transport between two point sets of at least this many points each with the
+#: interior-point method: the annealing's Newton solves at the betas where the plan turns from spread out to
+#: a near-permutation grow with N (TOSCA cat0-cat1 at full resolution: 1,529 Newton steps against 116 with
+#: the interior-point start); smaller problems keep plain annealing, whose history has every grid beta
+AUTO_IPM_POINTS = 2000
+
+_F64 = 8
+_I32 = 4
+#: host bytes per point and per ``topk`` weight of the sparse preconditioner's assembly (the top-k lists'
+#: host copies, the pair and column edges, the COO, CSR and CSC forms of the sparse Schur approximation)
+_HOST_BYTES_PER_POINT_TOPK = 128
+#: host bytes per point of the problem's own vectors and the Newton and CG work vectors (masses, oriented
+#: copies, residuals, the Schur data, the CG recurrences: about 40 float64 vectors)
+_HOST_BYTES_PER_POINT = 64 * _F64
+#: the preconditioner's LU factor (SuperLU, `wpot.ot.linear`) is the one term whose size depends on the
+#: cost's structure: its fill grows with the intrinsic dimension of the points. Measured nonzeros per column
+#: (the largest over a solve, topk = 4): 30-40 for points on a 2-D manifold (a sphere: surfaces' signatures
+#: are such) at N = 500-2000; 206, 365, 679 at N = 1000, 2000, 4000 for points filling a 6-D cube; 297 at
+#: N = 1000 in 20-D; 327, 585 at N = 1000, 2000 in 100-D. The count follows the largest, N^1.85 nonzeros,
+#: capped by the dense factor's N^2
+_FACTOR_EXPONENT = 1.85
+#: bytes per nonzero of the LU factor (its values and indices, and SuperLU's growing work space)
+_FACTOR_BYTES_PER_NONZERO = 16
+#: host bytes per entry of ``OTResult.plan_top`` (the device values and indices, their scaled / int64
+#: copies and the CSR arrays)
+_PLAN_TOP_BYTES_PER_ENTRY = 40
+
+
+@runtime_checkable
+class TransportSolver(Protocol):
+    """A way to solve a `TransportProblem` into an `OTResult` (see `SOLVERS`)."""
+
+    name: ClassVar[str]
+    options: SolverOptions
+
+    def solve(self, problem: TransportProblem) -> OTResult:
+        """The `OTResult` of ``problem`` (costs in its units; ``converged`` False with a RuntimeWarning when a
+        tolerance was not met)."""
+        ...
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes the solver allocates for an ``n1 x n2`` problem (``matrix_free``: a `FeatureCost` of
+        ``dim`` features per point)."""
+        ...
+
+
+def _dense_plan(options: SolverOptions, matrix_free: bool) -> bool:
+    return (not matrix_free) if options.dense_plan is None else options.dense_plan
+
+
+def _lanes(options: SolverOptions) -> int:
+    """Lanes per row of the evaluation pass: the options', else a GPU's (the larger of the devices')."""
+    return max(1, K.MATVEC_LANES if options.matvec_lanes is None else options.matvec_lanes)
+
+
+def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, dim: int) -> int:
+    """Bytes of the arrays of an annealing solve other than the (N1, N2) ones: `wpot.ot.newton.Engine`'s
+    device vectors (counted one by one), host allowances per point, the preconditioner's LU factor (~N^1.85,
+    see `_FACTOR_EXPONENT`) and, matrix-free, the (N, dim) features."""
+    n_r, n_c = max(n1, n2), min(n1, n2)
+    kk = max(2, min(options.topk, n_c))
+    kc = max(1, min(options.topk, n_r))
+    lanes = _lanes(options)
+    engine = (_F64 * (20 * n_r + 14 * n_c)  # duals, trial duals, snapshot, sums, Newton and CG vectors
+              + _I32 * n_r  # pivots
+              + (_F64 + _I32) * (n_r * kk + n_c * kc)  # top-k lists of W
+              + (6 * _F64 + _I32) * n_r * lanes)  # per-lane partial sums of the evaluation pass
+    host = _HOST_BYTES_PER_POINT * (n_r + n_c) + _HOST_BYTES_PER_POINT_TOPK * (n_r + n_c) * options.topk
+    if options.linear_solver == "cg":
+        host += _FACTOR_BYTES_PER_NONZERO * int(min(float(n_c) * n_c, float(n_c) ** _FACTOR_EXPONENT))
+    plan_top = _PLAN_TOP_BYTES_PER_ENTRY * n1 * min(options.plan_topk, n2)
+    features = _F64 * (n1 + n2) * int(dim) if matrix_free else 0
+    return engine + host + plan_top + features
+
+
+def _direct_bytes(n1: int, n2: int) -> int:
+    """Host bytes of one dense direct solve of the Schur complement (`wpot.ot.linear.direct_solve`) on top of
+    the stored W: the scaled copy of W and two (n_c, n_c) products, or S with the partial terms (four
+    (n_c, n_c) arrays); then S and its Cholesky factor."""
+    n_r, n_c = max(n1, n2), min(n1, n2)
+    return _F64 * max(n_r * n_c + 2 * n_c * n_c, 4 * n_c * n_c)
+
+
+def _check_size(n1: int, n2: int, dim: int) -> tuple[int, int, int]:
+    return integer_at_least("n1", n1, 1), integer_at_least("n2", n2, 1), integer_at_least("dim", dim, 0)
+
+
+def _check_problem(problem: Any) -> TransportProblem:
+    if not isinstance(problem, TransportProblem):
+        raise TypeError(f"solve needs a TransportProblem, got {type(problem).__name__}")
+    return problem
+
+
+@dataclass(frozen=True)
+class _Solver:
+    options: SolverOptions = field(default_factory=SolverOptions)
+
+    def __post_init__(self):
+        if not isinstance(self.options, SolverOptions):
+            raise TypeError(f"options must be a SolverOptions, got {type(self.options).__name__}")
+
+
+@dataclass(frozen=True)
+class AnnealSolver(_Solver):
+    """Algorithm 1 from beta0: every grid beta is solved (``history`` has them all). Balanced or partial
+    transport; stored cost or `FeatureCost`."""
+
+    name: ClassVar[str] = "anneal"
+
+    def solve(self, problem: TransportProblem) -> OTResult:
+        """Solve ``problem`` (see `TransportSolver.solve`)."""
+        problem = _check_problem(problem)
+        if problem.partial:
+            return solve_partial_problem(problem, self.options)
+        return solve_balanced_problem(problem, self.options)
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes of a solve of an ``n1 x n2`` problem (``matrix_free``: a `FeatureCost` of ``dim``
+        features per point), on the CPU, where the device's and the host's arrays share the memory.
+
+        Stored cost: the device copy of C (a cost passed as a float64 ``wp.array`` on the device is used in
+        place, one (N1, N2) array fewer), the Hessian weights W, and then the dense plan when it is formed
+        (``dense_plan``): three (N1, N2) float64 arrays; with ``linear_solver="direct"``, the dense Schur
+        solve's arrays instead of the plan when larger (`_direct_bytes`). Matrix-free: the features
+        (N1 + N2) x dim, the plan only with ``dense_plan=True``. Both: the engine's O(N1 + N2) device arrays
+        (counted one by one; the per-lane sums with `wpot.ot.kernels.MATVEC_LANES` lanes unless
+        ``matvec_lanes`` says otherwise: exact on a GPU, an upper bound on the CPU's one lane), host
+        allowances per point (work vectors) and per point and ``topk`` (the preconditioner's assembly), the
+        preconditioner's LU factor (grows like N^1.85 for high-dimensional points, the largest fill
+        measured; see `_FACTOR_EXPONENT`), and per ``plan_topk`` entry for ``plan_top``.
+
+        Measured: the growth of the peak RSS (VmHWM reset before the solve; glibc malloc with a fixed
+        mmap threshold, so that freed arrays leave the RSS) of CPU solves of random points in 6-D, NumPy
+        C, against this count, in MiB (one (N1, N2) array: 30.5 at 2000 x 2000): balanced 2000 x 2000 99.8
+        / 122.6, 1500 x 2500 92.4 / 110.3, ``dense_plan=False`` 78.3 / 92.1, partial 100.2 / 122.6,
+        ``linear_solver="direct"`` at 1000 x 1000 37.7 / 51.6; matrix-free 1000 x 1000 in 100-D 8.5 / 11.2
+        beyond the features. With glibc's default (adaptive) threshold the allocator may keep freed
+        blocks mapped: up to one more (N1, N2) array of RSS at 2000 x 2000. On a GPU the count bounds the
+        device's share; the returned plan's host copy comes on top, in host memory.
+        """
+        n1, n2, dim = _check_size(n1, n2, dim)
+        nn = _F64 * n1 * n2
+        if matrix_free:
+            quad = nn if _dense_plan(self.options, True) else 0
+        else:
+            plan = nn if _dense_plan(self.options, False) else 0
+            direct = _direct_bytes(n1, n2) if self.options.linear_solver == "direct" else 0
+            quad = 2 * nn + max(plan, direct)
+        return quad + _linear_bytes(n1, n2, self.options, matrix_free, dim)
+
+
+@dataclass(frozen=True)
+class InteriorPointSolver(_Solver):
+    """A primal-dual interior-point method (Mehrotra) follows the central path (for N >= ~50 the saddle point
+    at beta is the LP central point with G s = 1/beta) from the product plan to the first grid beta whose
+    gap bound N1 N2 / beta is <= 1e-3 U; Algorithm 1 goes on from there (``history`` starts at that beta;
+    ``n_newton`` / ``n_linear`` include the interior-point iterations). The same result at convergence, and
+    faster at N >= ~1000 (`benchmarks/ot_speed.py`). Balanced transport with a stored cost only: it keeps
+    the primal plan and the reduced costs, two more (N1, N2) arrays (`wpot.ot.ipm`)."""
+
+    name: ClassVar[str] = "ipm"
+
+    def solve(self, problem: TransportProblem) -> OTResult:
+        """Solve ``problem`` (see `TransportSolver.solve`); ValueError for partial or matrix-free problems."""
+        problem = _check_problem(problem)
+        if problem.partial:
+            raise ValueError("method='ipm' solves balanced transport only (mass_penalty=None); use "
+                             "method='anneal' for partial transport")
+        return solve_balanced_problem(problem, self.options, interior_point=True)
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes of a solve (see `AnnealSolver.memory_bytes`): during the interior-point start, C, W,
+        the primal plan G and the reduced costs S (four (N1, N2) float64 arrays; the product plan that
+        initializes G is built on the host before S exists), and the dense solve's arrays on top with
+        ``linear_solver="direct"``; the annealing after it needs no more. Measured like the annealing's
+        count: 141.9 MiB of RSS growth at 2000 x 2000 against a count of 153.4 MiB. ``matrix_free`` raises
+        ValueError, as `solve` does."""
+        n1, n2, dim = _check_size(n1, n2, dim)
+        if matrix_free:
+            raise ValueError("method='ipm' needs the stored cost matrix; it has no matrix-free mode")
+        nn = _F64 * n1 * n2
+        direct = _direct_bytes(n1, n2) if self.options.linear_solver == "direct" else 0
+        n_r, n_c = max(n1, n2), min(n1, n2)
+        ipm_vectors = _F64 * (14 * n_r + 4 * n_c)
+        return 4 * nn + direct + ipm_vectors + _linear_bytes(n1, n2, self.options, False, dim)
+
+
+@dataclass(frozen=True)
+class AutoSolver(_Solver):
+    """The interior-point start (`InteriorPointSolver`) for balanced transport with a stored cost between
+    point sets of at least ``ipm_points`` (default `AUTO_IPM_POINTS`) points each, annealing (`AnnealSolver`)
+    otherwise."""
+
+    name: ClassVar[str] = "auto"
+    #: the interior-point start for balanced stored problems with at least this many points a side
+    ipm_points: int = AUTO_IPM_POINTS
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "ipm_points", integer_at_least("ipm_points", self.ipm_points, 1))
+
+    def method_for(self, problem: TransportProblem) -> str:
+        """The registry name of the solver ``problem`` gets ("ipm" or "anneal")."""
+        problem = _check_problem(problem)
+        if problem.partial or problem.matrix_free or len(problem.shape) != 2:
+            return "anneal"
+        return "ipm" if min(problem.shape) >= self.ipm_points else "anneal"
+
+    def solve(self, problem: TransportProblem) -> OTResult:
+        """Solve ``problem`` with the solver `method_for` picks."""
+        return SOLVERS[self.method_for(problem)](self.options).solve(problem)
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes of the solver this size gets (see `AnnealSolver.memory_bytes`); for stored costs of
+        at least `AUTO_IPM_POINTS` points a side, the interior-point start's (the larger: partial transport
+        there is annealed)."""
+        n1, n2, dim = _check_size(n1, n2, dim)
+        anneal = AnnealSolver(self.options).memory_bytes(n1, n2, matrix_free=matrix_free, dim=dim)
+        if matrix_free or min(n1, n2) < self.ipm_points:
+            return anneal
+        return max(anneal, InteriorPointSolver(self.options).memory_bytes(n1, n2, dim=dim))
+
+
+#: the solvers by name (`make_solver`'s ``method``)
+SOLVERS: Mapping[str, type] = {"anneal": AnnealSolver, "ipm": InteriorPointSolver, "auto": AutoSolver}
+
+
+def _options(options: SolverOptions | None, option_keywords: Mapping[str, Any], caller: str) -> SolverOptions:
+    """``options`` (default `SolverOptions()`) with ``option_keywords`` applied; TypeError naming an unknown
+    keyword the way Python names an unexpected keyword argument."""
+    if options is None:
+        options = SolverOptions()
+    elif not isinstance(options, SolverOptions):
+        raise TypeError(f"{caller}() options must be a SolverOptions or None, got {type(options).__name__}")
+    unknown = sorted(set(option_keywords) - set(SolverOptions.names()))
+    if unknown:
+        raise TypeError(f"{caller}() got an unexpected keyword argument {unknown[0]!r} (the solver options are "
+                        f"{', '.join(SolverOptions.names())})")
+    return options.replace(**option_keywords) if option_keywords else options
+
+
+def make_solver(method: str = "anneal", options: SolverOptions | None = None, **option_keywords: Any
+                ) -> TransportSolver:
+    """The solver registered as ``method`` (`SOLVERS`: "anneal", "ipm", "auto") with ``options`` (default
+    `SolverOptions()`) updated by ``option_keywords`` (the fields of `SolverOptions`)."""
+    if not isinstance(method, str) or method not in SOLVERS:
+        raise ValueError(f"method must be one of {tuple(SOLVERS)}, got {method!r}")
+    return SOLVERS[method](_options(options, option_keywords, "make_solver"))
+
+
+def solve_balanced(C, a=None, b=None, *, method: str = "anneal", device: str | None = None,
+                   options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
+    """Balanced optimal transport min_G sum C G, G >= 0, G 1 = a, G^T 1 = b (Eq. 6-7), by annealing
+    (Algorithm 1; `wpot.ot.balanced`).
+
+    Parameters
+    ----------
+    C : (N1, N2) float64 numpy array or 2-D float64 ``wp.array`` (used without a copy when on ``device``);
+        finite, >= 0; or a `FeatureCost` (signatures and a metric: the matrix-free mode, C recomputed inside
+        the kernels, memory O((N1 + N2) D + N topk); same results). Results are in C's units.
+    a, b : (N1,), (N2,) positive masses with equal sums (default uniform, 1/N). The plan is computed for
+        masses normalized to sum 1 and multiplied back by the total.
+    method : a solver of `SOLVERS`: "anneal" (default: Algorithm 1 from beta0, every grid beta solved),
+        "ipm" (an interior-point start, then Algorithm 1; stored cost only; `InteriorPointSolver`) or
+        "auto" (`AutoSolver`).
+    device : Warp device (None: Warp's default).
+    options, **option_keywords : a `SolverOptions` (default: the defaults) and keyword overrides of its
+        fields (``tol=1e-8``, ``linear_solver="direct"``, ...), documented there. An unknown keyword is a
+        TypeError.
+
+    Returns
+    -------
+    OTResult (``x`` = 0, ``objective`` = ``cost``). ``converged`` is False, with a RuntimeWarning, when
+    the annealing or a Newton solve did not reach its tolerance.
+    """
+    solver = make_solver(method, _options(options, option_keywords, "solve_balanced"))
+    return solver.solve(TransportProblem(C, a, b, device=device))
+
+
+def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, device: str | None = None,
+                  options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
+    """Partial OT with a Pearson chi^2 mass penalty (Eq. 17-18), by annealing (`wpot.ot.partial`):
+
+        min_{G >= 0, m1, m2}  sum C G + sum_k alpha1(k) m1(k)^2 + sum_l alpha2(l) m2(l)^2
+        s.t. G 1 = m1, G^T 1 = m2, sum G = 1,       alpha_i = mass_penalty / rho_i^2.
+
+    ``mass_penalty = 1`` is exactly the paper's formulation. Note: as mass_penalty grows the masses tend to
+    rho^2 / sum rho^2 (the minimizer of the penalty under sum m = 1), not to rho: a huge mass_penalty
+    recovers the balanced problem with those masses (the same as rho when rho is uniform).
+
+    Parameters are those of `solve_balanced` (``C`` may be a `FeatureCost`; ``options`` and the keyword
+    overrides of `SolverOptions`), with rho1 (N1,), rho2 (N2,) positive reference measures (default
+    uniform; normalized to sum 1) instead of a, b, and no ``method`` (annealing).
+
+    Returns OTResult with ``mass1``, ``mass2`` the plan's marginals (sum 1 together), ``cost`` the
+    transport part sum C G, ``objective`` Eq. 17 (cost + penalty), ``free_energy`` Eq. 23, ``x``.
+    """
+    mass_penalty = positive_finite("mass_penalty", mass_penalty)
+    solver = AnnealSolver(_options(options, option_keywords, "solve_partial"))
+    return solver.solve(TransportProblem(C, rho1, rho2, mass_penalty=mass_penalty, device=device))
