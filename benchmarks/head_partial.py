@@ -136,14 +136,14 @@ def base_comparer(a, sig: str, ds, names: list[str], out: Path):
 
 def paper_kappa(base, ds, heads, fulls) -> float:
     """The relative κ that the paper's α = 1/ρ² amounts to, √(N1 N2)/mean(C), median over the parent pairs."""
-    from wpot.comparison import cost_scale, SIGNATURE_METRIC
+    from wpot.comparison import cost_scale
     from wpot.cost import cost_matrix
 
     ks = []
     for h in heads:
         sa = base.points(ds.mesh(h)).signatures
         sb = base.points(ds.mesh(ds.parent[h])).signatures
-        c = cost_matrix(sa, sb, metric=SIGNATURE_METRIC[base.signature], device=base.device)
+        c = cost_matrix(sa, sb, metric=base.stage.metric, device=base.device)
         ks.append(math.sqrt(len(sa) * len(sb)) / cost_scale(c))
     return float(np.median(ks))
 

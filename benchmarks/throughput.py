@@ -82,14 +82,14 @@ def emd_pair(args) -> tuple[float, float]:
     import numpy as np
     import ot
 
-    from wpot.comparison import SIGNATURE_METRIC, Comparer
+    from wpot.comparison import Comparer
     from wpot.cost import cost_matrix
     from wpot.io import load_mesh
 
     pa, pb, opts, energies, cache = args
     c = Comparer(**opts, energies=energies, cache_dir=cache, device="cpu")
     xa, xb = c.points(load_mesh(pa)), c.points(load_mesh(pb))
-    C = np.asarray(cost_matrix(xa.signatures, xb.signatures, metric=SIGNATURE_METRIC[c.signature], device="cpu"))
+    C = np.asarray(cost_matrix(xa.signatures, xb.signatures, metric=c.stage.metric, device="cpu"))
     t0 = time.perf_counter()
     a = xa.masses if xa.masses is not None else np.full(C.shape[0], 1.0 / C.shape[0])
     b = xb.masses if xb.masses is not None else np.full(C.shape[1], 1.0 / C.shape[1])

@@ -59,3 +59,28 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     if np.linalg.det(q) < 0:
         q[:, 0] *= -1
     return q
+
+
+def deform_sphere(p: np.ndarray) -> np.ndarray:
+    """A smooth, asymmetric star-shaped surface over the unit sphere (no eigenvalue degeneracies)."""
+    p = p / np.linalg.norm(p, axis=1, keepdims=True)
+    r = 1 + 0.25 * np.exp(-8 * ((p - [0.6, 0.6, 0.5]) ** 2).sum(1)) + 0.1 * p[:, 0] * p[:, 1]
+    return p * r[:, None] * [1.6, 1.0, 0.7]
+
+
+@pytest.fixture(scope="module")
+def blob():
+    """A 642-vertex smooth blob (`deform_sphere` of an icosphere): spectral tests' generic surface."""
+    import trimesh
+
+    from wpot.mesh import Mesh
+
+    t = trimesh.creation.icosphere(3)
+    return Mesh(deform_sphere(t.vertices), t.faces)
+
+
+@pytest.fixture(scope="module")
+def blob_spectrum(blob):
+    from wpot.spectral import eigenpairs
+
+    return eigenpairs(blob, k=60)

@@ -221,21 +221,21 @@ def test_labels_csv_missing_and_unparsable_mesh(dataset, tmp_path):
 
 
 def test_method_options_reach_the_comparer():
-    from wpot.cli import _comparer_options, build_parser
+    from wpot.cli import build_parser, config_from_args
     from wpot.comparison import Comparer
 
     a = build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50", "--pooling", "cell",
                                    "--scale-invariant", "--device", "cpu"])
-    p = Comparer(**_comparer_options(a)).params()
+    p = Comparer(config_from_args(a), device="cpu").params()
     assert p["pooling"] == "cell" and p["scale_invariant"] is True and p["max_vertices"] == 50
-    d = Comparer(**_comparer_options(build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50",
-                                                                "--device", "cpu"]))).params()
+    d = Comparer(config_from_args(build_parser().parse_args(["compare", "a.off", "b.off", "--max-vertices", "50",
+                                                                "--device", "cpu"])), device="cpu").params()
     assert d["pooling"] == "none" and d["scale_invariant"] is False  # the library's defaults
     # --ot-method: auto (default) leaves the choice to the Comparer (and the run key as before auto existed);
     # anneal and ipm are passed on for balanced transport; partial transport always anneals
     def solver(*extra):
         args = build_parser().parse_args(["compare", "a.off", "b.off", "--device", "cpu", *extra])
-        return Comparer(**_comparer_options(args)).params()["solver_options"]
+        return Comparer(config_from_args(args), device="cpu").params()["solver_options"]
 
     assert solver() == {} and solver("--ot-method", "auto") == {}
     assert solver("--ot-method", "anneal") == {"method": "anneal"} and solver("--ot-method", "ipm") == {"method": "ipm"}
@@ -243,12 +243,12 @@ def test_method_options_reach_the_comparer():
 
 
 def test_ldsift_slab_reaches_the_comparer_and_runs_stored_before_it_resume():
-    from wpot.cli import _comparer_options, build_parser
+    from wpot.cli import build_parser, config_from_args
     from wpot.comparison import Comparer
 
     def params(*extra):
         args = build_parser().parse_args(["compare", "a.off", "b.off", "--signature", "ldsift", "--device", "cpu", *extra])
-        return Comparer(**_comparer_options(args)).params()
+        return Comparer(config_from_args(args), device="cpu").params()
 
     assert params("--ldsift-slab", "0.25")["ldsift_slab"] == 0.25
     # the default, 1, was the only slab before the option existed: the run key is the one of then

@@ -9,16 +9,10 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from wpot.comparison import (
-    ProblemTooLargeError,
-    Registration,
-    _edge_graph,
-    check_problem_size,
-    debias_history,
-    farthest_point_sampling,
-    fit_similarity,
-    history_at,
-)
+from wpot.comparison import ProblemTooLargeError, choose_cost_mode
+from wpot.history import debias_history, history_at
+from wpot.registration import Registration, fit_similarity
+from wpot.sampling import _edge_graph, farthest_point_sampling
 from wpot.mesh import Mesh
 
 
@@ -210,10 +204,16 @@ def test_fps_rejects_bad_k(k):
 
 
 # --------------------------------------------------------------------------------- memory and history
-def test_problem_too_large_names_max_vertices():
+def test_a_problem_runs_dense_when_it_fits_else_matrix_free_else_names_max_vertices():
+    from wpot.ot import make_solver
+
+    solver = make_solver("auto")
+    assert choose_cost_mode(solver, 1_000, 1_000, 100, 24 * 2**30) is False  # a few dense 8 MB arrays: dense
+    # 50,000 x 50,000: each dense float64 array is 20 GB, but the signatures are 40 MB: matrix-free
+    assert choose_cost_mode(solver, 50_000, 50_000, 100, 24 * 2**30) is True
+    assert solver.memory_bytes(50_000, 50_000) > 24 * 2**30 >= solver.memory_bytes(50_000, 50_000, matrix_free=True, dim=100)
     with pytest.raises(ProblemTooLargeError, match="max_vertices"):
-        check_problem_size(50_000, 50_000, "cpu", free_bytes=24 * 2**30)
-    check_problem_size(1_000, 1_000, "cpu", free_bytes=24 * 2**30)  # 32 MB: fine
+        choose_cost_mode(solver, 50_000, 50_000, 100, 2**20)
 
 
 def test_history_at_reads_the_last_value_at_or_below_each_beta():
@@ -343,14 +343,16 @@ def test_size_counts_unless_scale_invariant(comparer, pair):
 def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch):
     from wpot.comparison import Comparer
 
+    from wpot.signatures._wks import WKS
+
     calls = []
-    orig = Comparer._compute_signatures
+    orig = WKS.__call__
 
     def counting(self, mesh):
         calls.append(mesh.fingerprint)
         return orig(self, mesh)
 
-    monkeypatch.setattr(Comparer, "_compute_signatures", counting)
+    monkeypatch.setattr(WKS, "__call__", counting)
     c1 = Comparer(cache_dir=tmp_path, **FAST)
     c1.fit_energies([pair.source, pair.target])
     s1 = c1.signatures(pair.source)
@@ -363,9 +365,7 @@ def test_signatures_are_cached_in_memory_and_on_disk(tmp_path, pair, monkeypatch
     c3.signatures(pair.source)
     assert len(calls) == 2
     # a new version of the signature code invalidates the cached entries (on disk too)
-    from wpot.signatures import _wks
-
-    monkeypatch.setattr(_wks, "VERSION", _wks.VERSION + 1)
+    monkeypatch.setattr(WKS, "version", WKS.version + 1)
     c4 = Comparer(cache_dir=tmp_path, energies=c1.energies, **FAST)
     c4.signatures(pair.source)
     assert len(calls) == 3
@@ -478,14 +478,25 @@ def test_an_explicit_cache_dir_also_keeps_the_spectra(pair, tmp_path, monkeypatc
     assert len(calls) == 2
 
 
-def test_too_large_for_memory_raises_unless_subsampled(comparer, pair, monkeypatch):
+def test_a_problem_too_large_for_dense_memory_runs_matrix_free_with_the_same_answer(comparer, pair):
     import wpot.comparison as wc
 
-    monkeypatch.setattr(wc, "_free_memory", lambda device: 4 * 8 * 200 * 200)  # room for 200 x 200 only
-    c = wc.Comparer(energies=comparer.energies, **FAST)
-    with pytest.raises(ProblemTooLargeError, match="max_vertices"):
-        c.compare(pair.source, pair.target)
-    c = wc.Comparer(energies=comparer.energies, max_vertices=120, **FAST)
+    dense = wc.Comparer(energies=comparer.energies, **FAST).compare(pair.source, pair.target)
+    n1, n2 = pair.source.n_vertices, pair.target.n_vertices
+    solver, dim = comparer.solver, comparer.signatures(pair.source).shape[1]
+    dense_need, lazy_need = solver.memory_bytes(n1, n2), solver.memory_bytes(n1, n2, matrix_free=True, dim=dim)
+    assert lazy_need < dense_need
+    # room for the matrix-free problem but not the dense one
+    tight = wc.Comparer(energies=comparer.energies, memory_limit=(dense_need + lazy_need) // 2, **FAST)
+    lazy = tight.compare(pair.source, pair.target)
+    assert dense.result.plan is not None and lazy.result.plan is None  # the matrix-free mode forms no N1 x N2 array
+    assert lazy.distance == pytest.approx(dense.distance, rel=1e-9)
+    np.testing.assert_array_equal(lazy.correspondence, dense.correspondence)
+    np.testing.assert_array_equal(lazy.matched, dense.matched)
+    np.testing.assert_allclose(lazy.matched_weight, dense.matched_weight, rtol=1e-9)
+    with pytest.raises(ProblemTooLargeError, match="max_vertices"):  # not even the signatures fit
+        wc.Comparer(energies=comparer.energies, memory_limit=1000, **FAST).compare(pair.source, pair.target)
+    c = wc.Comparer(energies=comparer.energies, max_vertices=120, memory_limit=solver.memory_bytes(120, 120), **FAST)
     assert c.compare(pair.source, pair.target).correspondence.shape == (pair.source.n_vertices,)
 
 
@@ -508,25 +519,24 @@ def transport_energy_of(c):
     return float(c.result.objective)
 
 
-def test_large_balanced_pairs_start_with_the_interior_point_method(comparer, pair, monkeypatch):
+def test_large_balanced_pairs_start_with_the_interior_point_method(comparer, pair):
     # Full-resolution pairs anneal an order of magnitude slower than the interior-point start (TOSCA cat0-cat1:
-    # 1,529 Newton steps against 116), so balanced pairs of >= AUTO_IPM_POINTS points each use method="ipm"
-    # unless solver_options names a method; the distance is the same optimum either way.
-    from wpot import comparison, ot
+    # 1,529 Newton steps against 116), so the default solver ("auto") starts balanced pairs of >= ipm_points
+    # (AUTO_IPM_POINTS) points each with the interior-point method unless a method is named; the distance is
+    # the same optimum either way.
+    from wpot.ot import AUTO_IPM_POINTS
+    from wpot.ot.solvers import AutoSolver
 
-    calls = []
-    real = ot.solve_balanced
-
-    def spy(*args, **kw):
-        calls.append(kw.get("method"))
-        return real(*args, **kw)
-
-    monkeypatch.setattr(ot, "solve_balanced", spy)
-    small = comparer.transport_plan(pair.source, pair.target)  # 300 points each < 2000
-    monkeypatch.setattr(comparison, "AUTO_IPM_POINTS", 300)
-    big = comparer.transport_plan(pair.source, pair.target)
-    forced = comparer.with_options(solver_options={"method": "anneal"}).transport_plan(pair.source, pair.target)
-    assert calls == [None, "ipm", "anneal"]
+    problem = comparer.transport_problem(comparer.points(pair.source), comparer.points(pair.target))
+    assert comparer.solver.name == "auto" and comparer.solver.ipm_points == AUTO_IPM_POINTS
+    assert comparer.solver.method_for(problem) == "anneal"  # 300 points each < 2000
+    small = comparer.transport_plan(pair.source, pair.target)
+    low = AutoSolver(comparer.solver.options, ipm_points=300)
+    assert low.method_for(problem) == "ipm"
+    big = low.solve(problem)
+    forced = comparer.with_options(solver_options={"method": "anneal"})
+    assert forced.solver.name == "anneal"
+    forced = forced.transport_plan(pair.source, pair.target)
     assert big.converged and small.converged
     assert abs(big.cost - small.cost) <= small.history[-1].gap_bound + big.history[-1].gap_bound
     assert forced.cost == small.cost and big.history[0].beta > small.history[0].beta  # ipm's history starts later
@@ -540,8 +550,8 @@ def test_ldsift_slab_is_part_of_the_run_key_and_the_signature_cache_key():
     assert old.ldsift_slab == 1.0 and thin.params()["ldsift_slab"] == 0.25
     # slab 1.0 (the default), the only one before the option existed: same run key and signature cache key
     # as then, so stored runs resume and cached signatures are reused
-    assert "ldsift_slab" not in old.params() and "slab" not in old._signature_params()
-    assert thin._signature_key() != old._signature_key()
+    assert "ldsift_slab" not in old.params() and "slab" not in old.stage.params()
+    assert thin.stage.params() != old.stage.params()
     assert Comparer(**thin.options()).params() == thin.params()
     assert "ldsift_slab" not in Comparer(signature="wks", ldsift_slab=0.5).params()  # WKS ignores it
     for bad in (0, -1.0, float("nan"), float("inf"), True, "thin"):

@@ -171,6 +171,16 @@ def test_true_match_ranks_high_on_tosca(tosca5k):
     assert np.median(pct) < 0.3
 
 
+def test_registered_signature_is_ldsift(bumpy):
+    from wpot.signatures import get_signature, signature_options
+
+    sig = get_signature("ldsift")(signature_options("ldsift", ldsift_K=2.5, ldsift_slab=0.5), device="cpu")
+    assert isinstance(sig, L.LDSIFT) and sig.metric == "l2" and sig.fitted
+    got = sig(bumpy)
+    assert got.dtype == np.float64 and got.shape == (bumpy.n_vertices, 128)
+    np.testing.assert_array_equal(got, L.ldsift(bumpy, K=2.5, slab=0.5, device="cpu"))
+
+
 def test_bad_input_errors(bumpy):
     with pytest.raises(TypeError, match=r"wpot.Mesh, got tuple"):
         L.ldsift((bumpy.vertices, bumpy.faces))

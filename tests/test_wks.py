@@ -10,10 +10,14 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from conftest import deform_sphere
 from wpot.cost import cost_matrix
 from wpot.mesh import Mesh, MeshWarning
+from wpot.cache import Cache
 from wpot.signatures._wks import (
+    WKS,
     EnergyGrid,
+    WKSOptions,
     WKSWarning,
     sigma_of_grid,
     wks,
@@ -21,24 +25,6 @@ from wpot.signatures._wks import (
     wks_from_eigenpairs,
 )
 from wpot.spectral import SpectralWarning, Spectrum, eigenpairs
-
-
-def _deform(p: np.ndarray) -> np.ndarray:
-    """A smooth, asymmetric star-shaped surface over the unit sphere (no eigenvalue degeneracies)."""
-    p = p / np.linalg.norm(p, axis=1, keepdims=True)
-    r = 1 + 0.25 * np.exp(-8 * ((p - [0.6, 0.6, 0.5]) ** 2).sum(1)) + 0.1 * p[:, 0] * p[:, 1]
-    return p * r[:, None] * [1.6, 1.0, 0.7]
-
-
-@pytest.fixture(scope="module")
-def blob() -> Mesh:
-    t = trimesh.creation.icosphere(3)  # 642 vertices
-    return Mesh(_deform(t.vertices), t.faces)
-
-
-@pytest.fixture(scope="module")
-def blob_spectrum(blob) -> Spectrum:
-    return eigenpairs(blob, k=60)
 
 
 # ------------------------------------------------------------------------------ grid and Eq. 5
@@ -170,8 +156,8 @@ def test_relabelling_invariance(blob):
 def test_two_triangulations_of_one_surface():
     ico = trimesh.creation.icosphere(3)  # 642 vertices
     uv = trimesh.creation.uv_sphere(count=[32, 32])  # 1,922 vertices, a different (latitude-longitude) mesh
-    a = Mesh(_deform(ico.vertices), ico.faces)
-    b = Mesh(_deform(uv.vertices), uv.faces)
+    a = Mesh(deform_sphere(ico.vertices), ico.faces)
+    b = Mesh(deform_sphere(uv.vertices), uv.faces)
     sa, sb = eigenpairs(a, k=100), eigenpairs(b, k=100)
     e, sigma = wks_energies([sa, sb], n_energies=100)
     wa, wb = wks(sa, energies=e, sigma=sigma), wks(sb, energies=e, sigma=sigma)
@@ -188,10 +174,38 @@ def test_two_triangulations_of_one_surface():
     assert np.median(rank) < 0.02  # measured: 0.005
 
 
+# ------------------------------------------------------------------------------ the registered signature
+def test_signature_fits_the_shared_grid_and_evaluates_wks(blob):
+    bigger = blob.transformed(scale=1.13)
+    cache = Cache("spectrum")  # memory only
+    sig = WKS(WKSOptions(n_eigen=60, n_energies=40), spectrum_cache=cache)
+    with pytest.raises(ValueError, match="WKS is not fitted: call fit"):
+        sig(blob)
+    summaries = [sig.fit_input(m) for m in (blob, bigger)]
+    assert [s.evecs.shape for s in summaries] == [(1, 60), (1, 60)]  # the eigenvalues travel, not the vectors
+    sig.fit_from(summaries)
+    spectra = [eigenpairs(m, k=60, cache=cache) for m in (blob, bigger)]
+    assert cache.misses == 2  # the summaries' eigenpairs wait in the cache for the signature itself
+    grid = wks_energies(spectra, n_energies=40)
+    np.testing.assert_array_equal(sig.energies, grid.energies)
+    assert sig.state() == {"energies": grid.energies.tolist()}
+    np.testing.assert_array_equal(sig(bigger), wks(bigger, n_eigen=60, energies=grid.energies, cache=cache))
+    assert cache.misses == 2
+    again = WKS(sig.options, state=sig.state())
+    again.fit([blob, bigger])  # fit = fit_from of the fit_input of every mesh
+    np.testing.assert_array_equal(again.energies, sig.energies)
+    # scale invariant: the grid of the area-normalized spectra
+    inv = WKS(sig.options.replace(scale_invariant=True), spectrum_cache=cache)
+    inv.fit([blob, bigger])
+    np.testing.assert_array_equal(inv.energies, wks_energies(spectra, n_energies=40, scale_invariant=True).energies)
+    with pytest.raises(ValueError, match="energies must be a finite increasing grid of at least 2 values, got 1 values"):
+        sig.with_state({"energies": [1.0]})
+
+
 # ------------------------------------------------------------------------------ bad meshes
 def test_fewer_vertices_than_n_eigen_warns_and_uses_all():
     t = trimesh.creation.icosphere(1)  # 42 vertices
-    m = Mesh(_deform(t.vertices), t.faces)
+    m = Mesh(deform_sphere(t.vertices), t.faces)
     with pytest.warns(WKSWarning, match="only 42 vertices"):
         w = wks(m, n_eigen=500, n_energies=50)
     assert w.shape == (42, 50) and np.all(np.isfinite(w)) and np.all(w >= 0)

@@ -46,6 +46,12 @@ _EXPORTS: dict[str, str] = {
     "EnergyGrid": "wpot.signatures",
     "ldsift": "wpot.signatures",
     "local_frames": "wpot.signatures",
+    "hks": "wpot.signatures.hks",
+    "hks_times": "wpot.signatures.hks",
+    "Signature": "wpot.signatures",
+    "register_signature": "wpot.signatures",
+    "signature_names": "wpot.signatures",
+    "get_signature": "wpot.signatures",
     "cost_matrix": "wpot.cost",
     # evaluation and datasets
     "one_shot_1nn": "wpot.evaluate",
@@ -74,15 +80,21 @@ _EXPORTS: dict[str, str] = {
     "BetaStep": "wpot.ot",
     "debiased": "wpot.ot",
     "FeatureCost": "wpot.ot",
+    "SolverOptions": "wpot.ot",
+    "TransportProblem": "wpot.ot",
+    "make_solver": "wpot.ot",
     # comparison
     "compare": "wpot.comparison",
     "Comparison": "wpot.comparison",
     "Comparer": "wpot.comparison",
-    "Registration": "wpot.comparison",
-    "Subsample": "wpot.comparison",
-    "Points": "wpot.comparison",
-    "fit_similarity": "wpot.comparison",
-    "farthest_point_sampling": "wpot.comparison",
+    "ComparisonConfig": "wpot.config",
+    "Registration": "wpot.registration",
+    "fit_similarity": "wpot.registration",
+    "Subsample": "wpot.sampling",
+    "Points": "wpot.sampling",
+    "SamplerOptions": "wpot.sampling",
+    "FarthestPointSampler": "wpot.sampling",
+    "farthest_point_sampling": "wpot.sampling",
     "ProblemTooLargeError": "wpot.comparison",
     "solver_mass_penalty": "wpot.comparison",
     "cost_scale": "wpot.comparison",
@@ -97,8 +109,10 @@ _EXPORTS: dict[str, str] = {
     "DaskExecutor": "wpot.pipeline",
     "dask_executor": "wpot.pipeline",
     "choose_worker_device": "wpot.pipeline",
+    "classify_run": "wpot.report",
+    "build_report": "wpot.report",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling", "registration", "history", "report", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 

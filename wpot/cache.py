@@ -40,7 +40,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-__all__ = ["Cache", "CacheWarning", "cache_key", "canonical_json", "default_cache_dir", "FORMAT_VERSION"]
+__all__ = ["Cache", "CacheWarning", "cache_key", "canonical_json", "digest", "default_cache_dir", "FORMAT_VERSION"]
 
 #: bumped when the stored layout changes; part of every key, so old entries are simply not found
 FORMAT_VERSION = 1
@@ -80,6 +80,12 @@ def _canon(obj: Any) -> Any:
 def canonical_json(params: Mapping[str, Any]) -> str:
     """Deterministic JSON of ``params``: sorted keys, no spaces, floats written exactly (hex)."""
     return json.dumps(_canon(params), sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+
+
+def digest(obj: Any, length: int = 16) -> str:
+    """A short SHA-1 hex digest of ``obj``'s `canonical_json`: equal for equal parameters, whatever their key
+    order or NumPy types (the one hasher of wpot's keys: caches, self-comparisons, worker set-ups)."""
+    return hashlib.sha1(canonical_json(obj).encode()).hexdigest()[:length]
 
 
 def cache_key(namespace: str, fingerprint: str, params: Mapping[str, Any]) -> str:

@@ -22,16 +22,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["main", "PAPER_TABLE1"]
+from wpot.report import signature_title
 
-#: paper Table 1: 1-NN success rates (%) on TOSCA8, one random training shape per class, 10,000 trials
-PAPER_TABLE1 = {
-    ("wks", "balanced"): 100.0,
-    ("wks", "partial"): 98.6,
-    ("ldsift", "balanced"): 83.3,
-    ("ldsift", "partial"): 97.3,
-}
-SIGNATURE_NAMES = {"wks": "WKS", "ldsift": "LD-SIFT"}
+__all__ = ["main", "build_parser", "config_from_args"]
 #: small settings for `wpot demo`: a few hundred vertices and a short spectrum (runs in seconds on a CPU)
 DEMO = {"n": 400, "n_eigen": 100, "n_energies": 100}
 
@@ -41,12 +34,18 @@ class CliError(Exception):
 
 
 # ---------------------------------------------------------------------------------------------- parser
-def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_energies: int = 200) -> None:
-    p.add_argument("--signature", choices=("wks", "ldsift"), default="wks", help="vertex signature (default: wks)")
-    p.add_argument("--transport", choices=("balanced", "partial"), default="balanced", help="transport (default: balanced)")
+def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, Any] | None = None) -> None:
+    """The comparison's options; the choices and the signatures' flags come from the registered stages."""
+    from wpot.config import DEFAULT_MASS_PENALTY, TRANSPORTS
+    from wpot.ot import SOLVERS
+    from wpot.sampling import POOLINGS
+    from wpot.signatures import add_signature_arguments, signature_names
+
+    p.add_argument("--signature", choices=signature_names(), default="wks", help="vertex signature (default: wks)")
+    p.add_argument("--transport", choices=TRANSPORTS, default="balanced", help="transport (default: balanced)")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
     p.add_argument(
-        "--pooling", choices=("none", "cell"), default="none",
+        "--pooling", choices=POOLINGS, default="none",
         help="with --max-vertices or --vertices-per-sample: each sample keeps its own signature, uniform masses (none, default), or carries "
              "its cell's mean signature and size as mass (cell: better for whole shapes meshed alike, e.g. LD-SIFT "
              "classification; not for parts against wholes)",
@@ -56,36 +55,20 @@ def _add_method_options(p: argparse.ArgumentParser, *, n_eigen: int = 500, n_ene
         help="subsample every mesh at a common density instead: round(N / this) samples per mesh of N vertices "
              "(at most --max-vertices), so cells match in size; with --pooling cell, for parts against wholes",
     )
-    from wpot.comparison import DEFAULT_MASS_PENALTY
-
     p.add_argument(
         "--mass-penalty", type=float, default=DEFAULT_MASS_PENALTY,
         help=("partial transport: relative chi^2 mass penalty kappa, alpha = kappa*mean(C)/(sqrt(N1*N2)*rho^2): "
               "spreading a side's mass on a fraction f of its points costs kappa*(1/f-1) mean costs "
               f"(default {DEFAULT_MASS_PENALTY:g}, chosen on HEAD: benchmarks/head_partial.py; smaller = more partial)"),
     )
-    p.add_argument("--n-eigen", type=int, default=n_eigen, help=f"WKS: Laplace-Beltrami eigenpairs (default {n_eigen})")
-    p.add_argument("--n-energies", type=int, default=n_energies, help=f"WKS: energies (default {n_energies})")
-    p.add_argument(
-        "--scale-invariant", action="store_true",
-        help="WKS: scale every mesh to area 1 first, so size does not count (default: meshes at their own size, "
-             "as in the paper; then all meshes must share one unit of length)",
-    )
-    from wpot.signatures._ldsift import SLAB
-
-    p.add_argument(
-        "--ldsift-slab", type=float, default=SLAB,
-        help=(f"LD-SIFT: half-thickness of the depth slab, in units of the image's half width S(v) (default {SLAB:g}; "
-              "0.25 classifies articulated shapes such as TOSCA better: one-shot 82.7 %% against 79.5 %% with "
-              "partial transport; 1 keeps the broad features of smooth shapes)"),
-    )
+    add_signature_arguments(p, defaults=dict(defaults or {}))
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     p.add_argument(
-        "--ot-method", choices=("auto", "anneal", "ipm"), default="auto",
+        "--ot-method", choices=tuple(SOLVERS), default="auto",
         help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta), 'ipm' "
-              "(interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: same D(inf), about "
-              "2x faster for N >= 2000 and 12x on full-resolution 5,000-vertex TOSCA pairs) or 'auto' (default: "
-              "'ipm' when both shapes have >= 2000 points, else 'anneal')"),
+              "(interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: the same D(inf), "
+              "faster for large problems; see the README) or 'auto' (default: 'ipm' when both shapes have "
+              "at least 2000 points, else 'anneal'); partial transport always anneals"),
     )
 
 
@@ -120,24 +103,24 @@ def _check_zoomout(a: argparse.Namespace) -> None:
                        "over the whole. Drop --zoomout, or use --transport balanced for two whole shapes")
 
 
-def _comparer_options(a: argparse.Namespace) -> dict[str, Any]:
+def config_from_args(a: argparse.Namespace) -> Any:
+    """The `wpot.config.ComparisonConfig` the parsed options describe (the device is not part of it)."""
+    from wpot.config import ComparisonConfig
+    from wpot.sampling import SamplerOptions
+    from wpot.signatures import signature_options_from_args
+
     if a.ot_method == "ipm" and a.transport != "balanced":
         raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
-    return {
-        "signature": a.signature,
-        "transport": a.transport,
-        "max_vertices": a.max_vertices,
-        "pooling": a.pooling,
-        "vertices_per_sample": a.vertices_per_sample,
-        "mass_penalty": a.mass_penalty,
-        "n_eigen": a.n_eigen,
-        "n_energies": a.n_energies,
-        "scale_invariant": a.scale_invariant,
-        "ldsift_slab": a.ldsift_slab,
-        "device": a.device,
-        **({"match_ratio": a.match_ratio} if "match_ratio" in a else {}),
-        **({"solver_options": {"method": a.ot_method}} if a.ot_method != "auto" and a.transport == "balanced" else {}),
-    }
+    return ComparisonConfig(
+        signature=a.signature,
+        signature_options=signature_options_from_args(a.signature, a),
+        transport=a.transport,
+        sampler=SamplerOptions(max_vertices=a.max_vertices, vertices_per_sample=a.vertices_per_sample,
+                               pooling=a.pooling),
+        mass_penalty=a.mass_penalty,
+        method=a.ot_method if a.transport == "balanced" else "auto",  # partial transport always anneals
+        match_ratio=a.match_ratio if "match_ratio" in a else 0.9,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -150,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="compare the two generated example shapes and save a picture")
     p.add_argument("--out", default="wpot-demo", help="folder for the picture (default: ./wpot-demo)")
     p.add_argument("--n", type=int, default=DEMO["n"], help=f"vertices of the example shape (default {DEMO['n']})")
-    _add_method_options(p, n_eigen=DEMO["n_eigen"], n_energies=DEMO["n_energies"])
+    _add_method_options(p, defaults={"n_eigen": DEMO["n_eigen"], "n_energies": DEMO["n_energies"]})
     _add_match_ratio(p)
     _add_zoomout(p)
     p.set_defaults(func=cmd_demo)
@@ -229,7 +212,7 @@ def _load(path: str):
 def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     lines = [
         f"distance: {c.distance:.6g}  ({'U, Eq. 6' if c.transport == 'balanced' else 'SU, Eq. 27'}; "
-        f"{SIGNATURE_NAMES[c.signature]}, {c.transport} transport)",
+        f"{signature_title(c.signature)}, {c.transport} transport)",
         f"converged: {bool(c.result.converged)} at beta {float(c.result.beta):.3g}"
         f" ({int(c.result.n_newton)} Newton steps, {int(c.result.n_linear)} linear iterations)",
         f"matched pairs (G > {match_ratio:g} m1): {len(c.matched)} of {len(c.correspondence)} vertices",
@@ -296,9 +279,9 @@ def cmd_demo(a: argparse.Namespace) -> None:
     # registration can be fitted
     pair = example_pair(a.n, seed=0, n_target=a.n)
     src, tgt = pair.source, pair.target
-    opts = _comparer_options(a)
+    config = config_from_args(a)
     _check_zoomout(a)
-    c = compare(src, tgt, **opts)
+    c = compare(src, tgt, config=config, device=a.device)
     print(f"example shapes: {src.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
@@ -326,10 +309,10 @@ def cmd_demo(a: argparse.Namespace) -> None:
 def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import compare
 
-    opts = _comparer_options(a)  # option errors before any file is read
+    config = config_from_args(a)  # option errors before any file is read
     _check_zoomout(a)
     ma, mb = _load(a.mesh_a), _load(a.mesh_b)
-    c = compare(ma, mb, **opts)
+    c = compare(ma, mb, config=config, device=a.device)
     print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
@@ -356,11 +339,11 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
     if not Path(a.source).exists():
         raise CliError(f"no such folder or list file: {a.source}")
     t0 = time.perf_counter()
-    opts = _comparer_options(a)
+    config = config_from_args(a)
     try:
         store = run_all_vs_all(
             a.source, a.out, jobs=(jobs or None), scheduler=a.scheduler, labels=a.labels,
-            progress=not a.no_progress, **opts,
+            progress=not a.no_progress, config=config, device=a.device,
         )
     except ImportError as exc:
         if a.scheduler is None:
@@ -375,80 +358,10 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {fails[0][2]}); rerun to retry them")
 
 
-def _confusions(one: Any, *, top: int = 3) -> list[str]:
-    """One entry per class whose one-shot accuracy is below 100 %: its accuracy, then the (at most ``top``)
-    classes it was taken for most often."""
-    from wpot.evaluate import format_percent
-
-    out = []
-    for a, cls in enumerate(one.classes):
-        row = one.confusion[a]
-        if not np.isfinite(row).all() or row[a] >= 1.0:
-            continue
-        wrong = sorted(((row[b], one.classes[b]) for b in range(len(row)) if b != a and row[b] > 0), reverse=True)[:top]
-        out.append(f"{cls} {format_percent(row[a])}" + (" (taken for " + ", ".join(f"{c} {format_percent(v)}" for v, c in wrong) + ")" if wrong else ""))
-    return out
-
-
-def _loo_misses(names: Sequence[str], res: Any, labels: np.ndarray) -> list[dict[str, Any]]:
-    """The shapes that leave-one-out 1-NN gets wrong (score < 1; a tie may give part credit), each with its
-    nearest other shape."""
-    return [{"shape": names[i], "label": str(labels[i]), "nearest": names[res.nearest[i]],
-             "nearest_label": str(labels[res.nearest[i]]), "score": float(res.score[i])}
-            for i in np.nonzero(res.score < 1)[0]]
-
-
-def _misses_text(misses: Sequence[Mapping[str, Any]], *, limit: int = 12) -> str:
-    """"shape (label) -> nearest (label)" for the first ``limit`` misses, then how many more."""
-    text = "; ".join(f"{m['shape']} ({m['label']}) -> {m['nearest']} ({m['nearest_label']})" for m in misses[:limit])
-    return text + (f"; and {len(misses) - limit} more" if len(misses) > limit else "")
-
-
-def _levels(store) -> dict[str, np.ndarray]:
-    out = {}
-    for lv in store.label_levels():
-        lab = store.labels(lv)
-        if all(x is not None for x in lab):
-            out[lv] = np.asarray(lab, dtype=str)
-    return out
-
-
-def _pair_counts(store) -> tuple[np.ndarray, int, int]:
-    """D(∞), and how many of its pairs i < j are missing and how many stored ones did not converge."""
-    d, conv = store.distance_matrix(), store.converged_matrix()
-    upper = np.triu(np.ones(d.shape, dtype=bool), k=1)
-    missing = np.isnan(d) & upper
-    return d, int(missing.sum()), int((~conv & ~missing & upper).sum())
-
-
-def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any]:
-    """Table 1's one-shot 1-NN (level "class") and leave-one-out 1-NN at every label level, from D(∞),
-    plus the one-shot accuracy from D(β) at every power of ten of β where every pair has a value."""
-    from wpot.evaluate import leave_one_out_levels, one_shot_1nn
-
-    d, missing, not_converged = _pair_counts(store)
-    off = ~np.eye(len(d), dtype=bool)
-    if missing:
-        raise CliError(f"the run in {store.folder} is incomplete ({missing} pairs missing); finish it with the same all-vs-all command")
-    levels = _levels(store)
-    if "class" not in levels:
-        raise CliError(f"the run in {store.folder} has no class labels; give --labels CSV to all-vs-all")
-    one = one_shot_1nn(d, levels["class"], n_trials=trials, seed=seed)
-    loo = leave_one_out_levels(d, levels)
-    betas, dbeta = store.distance_matrices("decades")
-    per_beta = []
-    for b, db in zip(betas, dbeta):
-        if np.isnan(db[off]).any():
-            continue
-        per_beta.append((float(b), one_shot_1nn(db, levels["class"], n_trials=min(trials, 1000), seed=seed).mean))
-    misses = {lv: _loo_misses(store.names, res, levels[lv]) for lv, res in loo.items()}
-    return {"one_shot": one, "loo": loo, "loo_misses": misses, "per_beta": per_beta, "levels": levels,
-            "not_converged": not_converged}
-
-
 def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.evaluate import format_percent
     from wpot.pipeline import RunStore
+    from wpot.report import PAPER_TABLE1, classify_run, confusions, misses_text
 
     with RunStore(a.run) as store:
         r = classify_run(store, trials=a.trials, seed=a.seed)
@@ -456,16 +369,16 @@ def cmd_classify(a: argparse.Namespace) -> None:
     one = r["one_shot"]
     key = (p.get("signature"), p.get("transport"))
     paper = PAPER_TABLE1.get(key)
-    print(f"run: {a.run}  ({SIGNATURE_NAMES.get(key[0], key[0])}, {key[1]} transport; {len(r['levels']['class'])} shapes, {len(one.classes)} classes)")
+    print(f"run: {a.run}  ({signature_title(key[0])}, {key[1]} transport; {len(r['levels']['class'])} shapes, {len(one.classes)} classes)")
     print(f"1-NN, one random training shape per class, {one.n_trials} trials: {format_percent(one.mean)} "
           f"(std {100 * one.std:.1f})" + (f"   paper Table 1 (TOSCA8): {paper:.1f}%" if paper is not None else ""))
-    conf = _confusions(one)
+    conf = confusions(one)
     if conf:
         print("  classes below 100%: " + "; ".join(conf))
     for lv, res in r["loo"].items():
         print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {format_percent(res.accuracy)}")
         if r["loo_misses"][lv]:
-            print("  wrong: " + _misses_text(r["loo_misses"][lv]))
+            print("  wrong: " + misses_text(r["loo_misses"][lv]))
     if r["per_beta"]:
         print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {format_percent(acc)}" for b, acc in r["per_beta"]))
     if r["not_converged"]:
@@ -487,10 +400,11 @@ def cmd_classify(a: argparse.Namespace) -> None:
 
 def cmd_export(a: argparse.Namespace) -> None:
     from wpot.pipeline import RunStore
+    from wpot.report import pair_counts
 
     with RunStore(a.run) as store:
         out = store.export(Path(a.out) if a.out else Path(a.run) / "distances.csv")
-        d, missing, not_conv = _pair_counts(store)
+        d, missing, not_conv = pair_counts(store)
         n = len(d)
     print(f"saved {out} ({n} shapes, {n * (n - 1) // 2 - missing} of {n * (n - 1) // 2} pairs)")
     if missing:
@@ -502,77 +416,10 @@ def cmd_export(a: argparse.Namespace) -> None:
 
 
 def cmd_report(a: argparse.Namespace) -> None:
-    from wpot.pipeline import RunStore
-    from wpot.evaluate import format_percent
-    from wpot.plot import plot_confusion, plot_distance_matrix
+    from wpot.report import build_report
 
-    sections: list[str] = []
-    table1: dict[tuple[str, str], float] = {}
-    out = Path(a.out) if a.out else Path(a.runs[0]) / "report.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    for run in a.runs:
-        with RunStore(run) as store:
-            p = store.params
-            rows = store.pair_rows()
-            total = len(store.tasks())
-            key = (p.get("signature"), p.get("transport"))
-            lines = [f"## Run `{run}`", ""]
-            lines.append(f"- method: {SIGNATURE_NAMES.get(key[0], key[0])}, {key[1]} transport")
-            lines.append(f"- parameters: `{json.dumps(p, sort_keys=True)}`")
-            lines.append(f"- shapes: {store.n_shapes}; pairs done: {len(rows)} of {total}; "
-                         f"converged: {sum(r['converged'] for r in rows)}; failures: {len(store.failures())}")
-            names = store.names
-            bad = [f"{names[r['i']]}–{names[r['j']]}" for r in rows if not r["converged"]]
-            if bad:
-                lines.append(f"- not converged ({len(bad)}; their distances may be wrong): " + ", ".join(bad[:30])
-                             + (f", and {len(bad) - 30} more" if len(bad) > 30 else ""))
-            secs = [r["seconds"] for r in rows if r["seconds"] is not None]
-            if secs:
-                lines.append(f"- solve time per pair: mean {np.mean(secs):.2f} s, median {np.median(secs):.2f} s, "
-                             f"max {np.max(secs):.2f} s (wall clock in the workers)")
-            try:
-                r = classify_run(store, trials=a.trials, seed=a.seed)
-            except CliError as exc:
-                lines += ["", f"Classification not available: {exc}", ""]
-                sections.append("\n".join(lines))
-                continue
-            one = r["one_shot"]
-            table1[key] = one.mean
-            paper = PAPER_TABLE1.get(key)
-            lines += ["", "| measure | ours | paper |", "|---|---|---|"]
-            lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {format_percent(one.mean)} "
-                         f"| {f'{paper:.1f}% (Table 1, TOSCA8)' if paper is not None else 'n/a'} |")
-            for lv, res in r["loo"].items():
-                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {format_percent(res.accuracy)} | "
-                             "Tables 2-4 (anatomical data) |")
-            conf = _confusions(one)
-            lines += ["", "One-shot classes below 100 % (and what they were taken for): "
-                      + ("; ".join(conf) if conf else "none.")]
-            for lv, misses in r["loo_misses"].items():
-                if misses:
-                    lines += ["", f"Leave-one-out at level `{lv}` gets wrong: " + _misses_text(misses)]
-            if r["per_beta"]:
-                lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
-                lines += [f"| {b:.3g} | {format_percent(acc)} |" for b, acc in r["per_beta"]]
-            fig_path = Path(run) / "distance_matrix.png"
-            plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)
-            conf_path = Path(run) / "confusion.png"
-            plot_confusion(one, title=f"one-shot 1-NN (%): {key[0]}, {key[1]}", path=conf_path)
-            lines += ["", f"![distance matrix]({os.path.relpath(fig_path.resolve(), out.parent.resolve())}) "
-                      f"![one-shot confusion]({os.path.relpath(conf_path.resolve(), out.parent.resolve())})", ""]
-            sections.append("\n".join(lines))
-    head = ["# wpot report", "", "## Table 1: 1-NN success rate (%), one random training shape per class", "",
-            "| | LD-SIFT (ours) | LD-SIFT (paper) | WKS (ours) | WKS (paper) |", "|---|---|---|---|---|"]
-    for tr, name in (("balanced", "OT (balanced)"), ("partial", "OT (partial)")):
-        cells = []
-        for sig in ("ldsift", "wks"):
-            ours = table1.get((sig, tr))
-            cells += ["—" if ours is None else format_percent(ours)[:-1], f"{PAPER_TABLE1[(sig, tr)]:.1f}"]
-        head.append(f"| {name} | " + " | ".join(cells) + " |")
-    head += ["", "The paper's numbers are on TOSCA8 (48 shapes at ~3,400 vertices); ours are on the runs below.", ""]
-    text = "\n".join(head + sections) + "\n"
-    out.write_text(text)
-    print(text)
+    out = build_report(a.runs, a.out, trials=a.trials, seed=a.seed)
+    print(out.read_text())
     print(f"saved {out}")
 
 

@@ -19,7 +19,7 @@ import warp as wp
 
 from wpot._warp import resolve_device
 
-__all__ = ["cost_matrix", "METRICS"]
+__all__ = ["cost_matrix", "cost_mean", "METRICS"]
 
 # no fused multiply-add: costs identical bit for bit on the CPU and CUDA (and symmetric on both)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -221,3 +221,26 @@ def cost_matrix(
     if out == "warp":
         return c
     return c.numpy()
+
+
+@wp.kernel
+def _cost_row_sums(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), metric: int,
+                   out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    s = wp.float64(0.0)
+    for j in range(b.shape[0]):
+        s += pair_cost(metric, a, i, b, j)
+    out[i] = s
+
+
+def cost_mean(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device: str | None = None) -> float:
+    """The mean of `cost_matrix` ``(S1, S2)`` over all N1 x N2 pairs, without forming the matrix.
+
+    One Warp pass over the pairs, memory O((N1 + N2) D); the matrix-free transport uses it for the cost
+    scale of the relative mass penalty (`wpot.comparison.cost_scale`). Inputs and errors as `cost_matrix`.
+    """
+    dev = resolve_device(device)
+    a, b = prepare_signatures(S1, S2, metric, dev)
+    rows = wp.empty(a.shape[0], dtype=wp.float64, device=dev)
+    wp.launch(_cost_row_sums, dim=a.shape[0], inputs=[a, b, METRIC_CODES[metric], rows], device=dev)
+    return float(rows.numpy().sum()) / (float(a.shape[0]) * float(b.shape[0]))

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import hashlib
+import functools
 import json
 import os
 import socket
@@ -148,10 +148,6 @@ def discover_shapes(
 
 
 # ----------------------------------------------------------------------------------------------- store
-def _canonical(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
-
-
 class RunStore:
     """The SQLite store of one all-vs-all run (``folder/wpot.sqlite``). See the module docstring for tables."""
 
@@ -162,6 +158,10 @@ class RunStore:
             raise FileNotFoundError(f"no wpot run in {str(self.folder)!r} (missing {STORE_NAME}); run `wpot all-vs-all ... --out {self.folder}` first")
         self.folder.mkdir(parents=True, exist_ok=True)
         self.con = sqlite3.connect(self.path, timeout=60.0, isolation_level=None)
+        from wpot.ot import debiased
+
+        # Eq. 27 in SQL is wpot.ot.debiased itself, so the stored distance is the one the Python API computes
+        self.con.create_function("debiased", 3, debiased, deterministic=True)
         self.con.execute("PRAGMA journal_mode=WAL")
         self.con.execute("PRAGMA synchronous=NORMAL")
         self.con.executescript(
@@ -215,17 +215,36 @@ class RunStore:
     def transport(self) -> str:
         return self.params.get("transport", "balanced")
 
+    def signature_state(self) -> dict[str, Any] | None:
+        """The signature's fitted state (`wpot.signatures.Signature.state`) stored with the run, or None.
+
+        Each entry is stored under its own key (WKS's grid under "energies", as every run has stored it)."""
+        keys = self.get("signature_state_keys")
+        if keys is None:
+            keys = ["energies"] if self.get("energies") is not None else []
+        state = {k: self.get(k) for k in keys}
+        return state or None
+
+    def set_signature_state(self, state: Mapping[str, Any] | None) -> None:
+        if not state:
+            return
+        with self.con:
+            self.con.execute("BEGIN")
+            for k, v in state.items():
+                self.set(k, v)
+            self.set("signature_state_keys", sorted(state))
+
     def initialize(self, params: Mapping[str, Any], shapes: Sequence[tuple[str, str | None, str, int]], labels: Mapping[int, Mapping[str, str]]) -> None:
         """Record a new run, or check that the stored one has the same parameters and shapes.
 
         ``shapes`` holds (name, path, fingerprint, n_vertices) per shape, in order.
         """
-        params = json.loads(_canonical(params))
-        phash = hashlib.sha1(_canonical(params).encode()).hexdigest()
+        from wpot.cache import digest
+
+        params = json.loads(json.dumps(params))  # as stored: plain JSON types
         fps = [s[2] for s in shapes]
-        stored = self.get("params_hash")
-        if stored is not None:
-            if stored != phash:
+        if self.get("params_hash") is not None:
+            if self.params != params:
                 old = self.params
                 diff = {k: (old.get(k), params.get(k)) for k in sorted(set(old) | set(params)) if old.get(k) != params.get(k)}
                 raise RunMismatchError(
@@ -251,7 +270,7 @@ class RunStore:
             self.con.execute("BEGIN")
             self.set("schema_version", SCHEMA_VERSION)
             self.set("params", params)
-            self.set("params_hash", phash)
+            self.set("params_hash", digest(params, length=40))
             self.set("created_at", time.time())
             from wpot import __version__
 
@@ -324,10 +343,12 @@ class RunStore:
                 return False
             if self.transport == "partial":  # SU (Eq. 27) for every pair whose two self-comparisons are now in
                 self.con.execute(
-                    "UPDATE pairs SET distance = energy - 0.5 * ("
-                    " (SELECT s.energy FROM pairs s WHERE s.i = pairs.i AND s.j = pairs.i) +"
+                    "UPDATE pairs SET distance = debiased(energy,"
+                    " (SELECT s.energy FROM pairs s WHERE s.i = pairs.i AND s.j = pairs.i),"
                     " (SELECT s.energy FROM pairs s WHERE s.i = pairs.j AND s.j = pairs.j))"
                     " WHERE distance IS NULL AND i <> j"
+                    " AND EXISTS (SELECT 1 FROM pairs s WHERE s.i = pairs.i AND s.j = pairs.i)"
+                    " AND EXISTS (SELECT 1 FROM pairs s WHERE s.i = pairs.j AND s.j = pairs.j)"
                 )
             self.con.execute("DELETE FROM failures WHERE i=? AND j=?", (i, j))
         return True
@@ -388,7 +409,7 @@ class RunStore:
             monotone in β and settle); NaN where missing, including below a pair's first β. Partial:
             SU_β of Eq. 27, with the self energies read at the same β. Diagonal 0.
         """
-        from wpot.comparison import debias_history, history_at
+        from wpot.history import debias_history, history_at
 
         rows = self.con.execute("SELECT i, j, history FROM pairs").fetchall()
         hist = {(i, j): np.asarray(json.loads(h), dtype=np.float64).reshape(-1, 2) for i, j, h in rows}
@@ -474,17 +495,6 @@ def _unique_logs(b: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- workers
-_WORKER_COMPARERS: dict[str, Any] = {}
-_WORKER_MESHES: dict[str, Mesh] = {}
-
-
-def _worker_setup(config: Mapping[str, Any]) -> None:
-    """In a worker process (not the coordinator), share spectra through the run's disk cache."""
-    coordinator = os.getpid() == config.get("main_pid") and socket.gethostname() == config.get("main_host", socket.gethostname())
-    if not coordinator and config.get("cache_dir"):
-        os.environ.setdefault("WPOT_CACHE_DIR", str(config["cache_dir"]))
-
-
 def _worker_rank(name: Any) -> int | None:
     """A worker's index from its Dask name: 3, "3" or "host-3" give 3; anything else None."""
     if isinstance(name, bool):
@@ -560,32 +570,30 @@ def _task_device(config: Mapping[str, Any]) -> str | None:
     return choose_worker_device(worker_name=name, cuda_count=wp.get_cuda_device_count(), env=os.environ)
 
 
-def _worker_comparer(config: Mapping[str, Any]):
-    _worker_setup(config)
-    key = _canonical(config)
-    c = _WORKER_COMPARERS.get(key)
-    if c is None:
-        from wpot.comparison import Comparer
+@functools.lru_cache(maxsize=1)
+def _comparer_for(config_json: str):
+    """The `Comparer` a worker rebuilds from a task's configuration (memoized: one per run and process)."""
+    from wpot.comparison import Comparer
+    from wpot.config import ComparisonConfig
 
-        opts = dict(config["comparer"])
-        c = Comparer(**opts, energies=config.get("energies"), cache_dir=config.get("cache_dir"), device=_task_device(config))
-        _WORKER_COMPARERS.clear()
-        _WORKER_COMPARERS[key] = c
-    return c
+    config = json.loads(config_json)
+    return Comparer(ComparisonConfig.from_dict(config["config"]), signature_state=config.get("state"),
+                    cache_dir=config.get("cache_dir"), device=_task_device(config))
+
+
+def _worker_comparer(config: Mapping[str, Any]):
+    return _comparer_for(json.dumps(config, sort_keys=True))
+
+
+@functools.lru_cache(maxsize=64)
+def _mesh_at(path: str) -> Mesh:
+    from wpot.io import load_mesh
+
+    return load_mesh(path)
 
 
 def _worker_mesh(spec: Any) -> Mesh:
-    if isinstance(spec, Mesh):
-        return spec
-    m = _WORKER_MESHES.get(spec)
-    if m is None:
-        from wpot.io import load_mesh
-
-        m = load_mesh(spec)
-        if len(_WORKER_MESHES) > 64:
-            _WORKER_MESHES.clear()
-        _WORKER_MESHES[spec] = m
-    return m
+    return spec if isinstance(spec, Mesh) else _mesh_at(spec)
 
 
 def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
@@ -595,21 +603,14 @@ def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
     return mesh.n_vertices
 
 
-def _spectrum_task(spec: Any, config: Mapping[str, Any]) -> Any:
-    """One shape's spectrum, for the shared energy grid. Only the eigenvalues travel back (the
-    eigenvectors stay in the worker's spectrum cache, on disk under the run folder)."""
-    from wpot.spectral import Spectrum, eigenpairs
-
-    _worker_setup(config)
-    mesh = _worker_mesh(spec)
-    s = eigenpairs(mesh, min(int(config["comparer"]["n_eigen"]), mesh.n_vertices))
-    return Spectrum(evals=s.evals, evecs=np.zeros((1, s.k)), area=s.area, n_zero=s.n_zero, solver=s.solver, fingerprint=s.fingerprint)
+def _fit_input_task(spec: Any, config: Mapping[str, Any]) -> Any:
+    """One shape's contribution to fitting the signature to the dataset (`Signature.fit_input`: for WKS, its
+    eigenvalues; the eigenvectors stay in the run's spectrum cache, on disk)."""
+    return _worker_comparer(config).stage.fit_input(_worker_mesh(spec))
 
 
 def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
     """Solve one pair (raw energy U and its per-β history), self-contained so any executor can run it."""
-    from wpot.comparison import energy_history, transport_energy
-
     t0 = time.perf_counter()
     comp = _worker_comparer(config)
     a = _worker_mesh(spec_i)
@@ -622,11 +623,11 @@ def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, An
     return {
         "i": i,
         "j": j,
-        "energy": transport_energy(res, comp.transport),
-        "history": energy_history(res, comp.transport).tolist(),
+        "energy": float(res.objective),
+        "history": res.energy_history.tolist(),
         "converged": bool(res.converged),
-        "n_newton": int(getattr(res, "n_newton", 0) or 0),
-        "n_linear": int(getattr(res, "n_linear", 0) or 0),
+        "n_newton": int(res.n_newton),
+        "n_linear": int(res.n_linear),
         "seconds": time.perf_counter() - t0,
         "worker": f"{socket.gethostname()}:{os.getpid()}@{comp.device}",
     }
@@ -646,6 +647,7 @@ def run_all_vs_all(
     device: str | None = None,
     progress: bool = True,
     max_pairs: int | None = None,
+    config: Any = None,
     **comparer_options: Any,
 ) -> RunStore:
     """Compare every pair of ``shapes`` and store the results in the run folder ``out`` (resumable).
@@ -657,6 +659,7 @@ def run_all_vs_all(
     signature, transport, **comparer_options : as `wpot.comparison.Comparer` (max_vertices, mass_penalty,
         n_eigen, n_energies, ldsift_K, solver_options, ...). ``cache_dir`` (the signature and spectrum
         cache, shared by runs over the same shapes) defaults to ``$WPOT_CACHE_DIR``, else ``out/cache``.
+    config : a `wpot.config.ComparisonConfig` instead of those keywords
     jobs : worker processes when ``executor`` is None (1: inline in this process; None: all CPU cores);
         with ``scheduler="local"``, the number of Dask workers. The workers are spawned, so a script that
         calls this with ``jobs != 1`` must do so under ``if __name__ == "__main__":`` (notebooks need nothing)
@@ -674,7 +677,7 @@ def run_all_vs_all(
     -------
     RunStore : the open store; ``distance_matrix()`` and ``distance_matrices()`` read the results back.
     """
-    from wpot.comparison import Comparer
+    from wpot.config import ComparisonConfig
 
     if scheduler is not None:
         if executor is not None:
@@ -682,15 +685,18 @@ def run_all_vs_all(
         with dask_executor(scheduler, n_workers=jobs) as ex:
             return run_all_vs_all(
                 shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, labels=labels,
-                device=device, progress=progress, max_pairs=max_pairs, **comparer_options,
+                device=device, progress=progress, max_pairs=max_pairs, config=config, **comparer_options,
             )
     if labels is not None and not isinstance(labels, (str, Path)):
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
     specs = discover_shapes(shapes, labels=labels)
     out = Path(out)
-    cache_dir = str(Path(comparer_options.get("cache_dir") or os.environ.get("WPOT_CACHE_DIR") or out / "cache").resolve())
-    comparer = Comparer(signature=signature, transport=transport, device=device, **{k: v for k, v in comparer_options.items() if k != "cache_dir"})
-    params = comparer.params()
+    cache_dir = str(Path(comparer_options.pop("cache_dir", None) or os.environ.get("WPOT_CACHE_DIR") or out / "cache").resolve())
+    if config is None:
+        config = ComparisonConfig.from_keywords(signature=signature, transport=transport, **comparer_options)
+    elif comparer_options or signature != "wks" or transport != "balanced":
+        raise TypeError("give either config or the comparison keywords (signature, transport, ...), not both")
+    params = config.run_key()
 
     meshes = [s.load() for s in specs]  # validates every file up front: fail before any work
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
@@ -710,26 +716,21 @@ def run_all_vs_all(
         executor = own_pool
     task_specs = [s.path if s.path is not None else m for s, m in zip(specs, meshes)]
     try:
-        # the shared WKS energy grid (paper §3.2): one grid for the whole dataset, stored with the run
-        config = {
-            "comparer": _comparer_kwargs(comparer),
-            "energies": store.get("energies"),
-            "cache_dir": cache_dir,
-            "device": device,
-            "main_pid": os.getpid(),
-            "main_host": socket.gethostname(),
-        }
-        if signature == "wks" and config["energies"] is None:
-            spectra = _map(executor, _spectrum_task, [(sp, config) for sp in task_specs], "spectra", progress)
-            from wpot.comparison import _energy_grid
-            from wpot.signatures._wks import wks_energies
+        # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
+        # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
+        task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
+                       "device": device}
+        from wpot.signatures import get_signature
 
-            grid = wks_energies(spectra, n_energies=comparer.n_energies, scale_invariant=comparer.scale_invariant)
-            config["energies"] = _energy_grid(grid).tolist()
-            store.set("energies", config["energies"])
+        stage = get_signature(config.signature)(config.signature_options)
+        if stage.needs_fit and task_config["state"] is None:
+            inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs], "spectra", progress)
+            stage.fit_from(inputs)
+            task_config["state"] = stage.state()
+            store.set_signature_state(task_config["state"])
         needed = sorted({i for t in todo for i in t})
-        _map(executor, _signature_task, [(task_specs[i], config) for i in needed], "signatures", progress)
-        _run_pairs(store, executor, todo, task_specs, config, progress, max_pairs)
+        _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", progress)
+        _run_pairs(store, executor, todo, task_specs, task_config, progress, max_pairs)
     finally:
         if own_pool is not None:
             own_pool.shutdown(wait=True, cancel_futures=True)
@@ -811,11 +812,6 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
             yield executor
         finally:
             executor.shutdown(wait=False, cancel_futures=True)
-
-
-def _comparer_kwargs(c: Any) -> dict[str, Any]:
-    """The `Comparer` settings a worker rebuilds it from; device, grid and cache travel separately in the config."""
-    return {k: v for k, v in c.options().items() if k not in ("device", "energies", "cache_dir")}
 
 
 def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -> Iterator[tuple[Any, cf.Future]]:

@@ -32,27 +32,33 @@ Eq. 29 compares WKS values energy by energy, so both shapes must use the same en
 (paper §3.2). `wks_energies` builds one grid for a set of spectra from the common part of their
 spectra: ``log E_1 = max_s log E_1(s)`` and ``log E_K = min_s log E_K(s)``, so every energy lies inside
 every shape's computed spectrum. For one spectrum it is exactly the grid above.
+
+`WKS` is the registered signature (`wpot.signatures.base`): options n_eigen, n_energies, scale_invariant, and
+the shared grid as its fitted state.
 """
 from __future__ import annotations
 
 import warnings
-from typing import Iterable, NamedTuple
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from ..mesh import Mesh
 from ..cache import Cache
-from ..spectral import Spectrum, eigenpairs
+from ..spectral import Spectrum
+from .._validate import integer_at_least
+from .base import option, register_signature
+from ._spectral import SpectralOptions, SpectralSignature, check_eigenpairs, mesh_spectrum, positive_evals, spectrum_summary
 
-__all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA", "WKSWarning"]
+__all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA",
+           "WKSWarning", "WKS", "WKSOptions", "spectrum_summary"]
 
-#: σ = 7δ (paper §3.2)
-#: bumped whenever this module's output changes; part of the signature cache keys (`wpot.comparison`)
+#: bumped whenever this module's output changes; part of the signature cache keys (`WKS.params`)
 VERSION = 2
+#: σ = 7δ (paper §3.2)
 SIGMA_PER_DELTA = 7.0
-#: an eigenvalue below this fraction of the largest one is numerically zero (a null-space pair)
-ZERO_EVAL_RTOL = 1e-9
 #: e_min = log E_1 + 2σ, e_max = log E_K − 2σ (paper §3.2)
 MARGIN_SIGMAS = 2.0
 
@@ -87,20 +93,6 @@ def _wks_spectrum(spectrum: Spectrum, scale_invariant: bool) -> Spectrum:
     return spectrum.rescaled(normalized=check_scale_invariant(scale_invariant))
 
 
-def _positive_evals(spectrum: Spectrum) -> np.ndarray:
-    ev = spectrum.nonzero_evals
-    if ev.size < 2:
-        raise ValueError(
-            f"a WKS needs at least 2 nonzero eigenvalues, got {ev.size} (k={spectrum.k}, n_zero={spectrum.n_zero})"
-        )
-    if ev[0] <= ZERO_EVAL_RTOL * abs(ev[-1]):
-        raise ValueError(
-            f"the first nonzero eigenvalue is {ev[0]:.3g}, numerically zero (n_zero={spectrum.n_zero}); the mesh probably has "
-            "more connected components than recorded, or degenerate triangles"
-        )
-    return ev
-
-
 def wks_energies(spectra: Spectrum | Iterable[Spectrum], *, n_energies: int = 200, scale_invariant: bool = False) -> EnergyGrid:
     """One WKS energy grid shared by a set of shapes (paper §3.2; see the module docstring).
 
@@ -132,15 +124,15 @@ def wks_energies(spectra: Spectrum | Iterable[Spectrum], *, n_energies: int = 20
             f"n_energies must be an integer > {min_m} (with σ = 7δ and 2σ margins the §3.2 grid is empty "
             f"otherwise; paper: 200), got {n_energies!r}"
         )
-    lo = max(float(np.log(_positive_evals(s)[0])) for s in spectra)
-    hi = min(float(np.log(_positive_evals(s)[-1])) for s in spectra)
+    lo = max(float(np.log(positive_evals(s, "a WKS")[0])) for s in spectra)
+    hi = min(float(np.log(positive_evals(s, "a WKS")[-1])) for s in spectra)
     if not hi > lo:
         raise ValueError(
             f"the spectra do not overlap: the largest first eigenvalue exp({lo:.3g}) is above the smallest "
             f"last eigenvalue exp({hi:.3g}); compute more eigenpairs"
             + ("" if scale_invariant else ", or check that the meshes share one unit of length (or use scale_invariant=True)")
         )
-    narrowest = min(float(np.log(_positive_evals(s)[-1] / _positive_evals(s)[0])) for s in spectra)
+    narrowest = min(float(np.log(positive_evals(s, "a WKS")[-1] / positive_evals(s, "a WKS")[0])) for s in spectra)
     if (hi - lo) < MIN_SHARED_BAND * narrowest:
         areas = [s.area for s in spectra]
         warnings.warn(
@@ -196,22 +188,7 @@ def wks_from_eigenpairs(evals: ArrayLike, evecs: ArrayLike, energies: ArrayLike,
     weights of each energy rescaled by their largest value (which C_m cancels exactly), so an energy far
     from every eigenvalue gives finite values (the nearest eigenvalue's φ²), never NaN.
     """
-    ev = np.asarray(evals, dtype=np.float64)
-    vec = np.asarray(evecs, dtype=np.float64)
-    e = np.asarray(energies, dtype=np.float64)
-    if ev.ndim != 1 or ev.size < 1:
-        raise ValueError(f"evals must be a non-empty (K,) array, got shape {ev.shape}")
-    if vec.ndim != 2 or vec.shape[1] != ev.size:
-        raise ValueError(f"evecs must have shape (N, {ev.size}) to match evals, got {vec.shape}")
-    if e.ndim != 1 or e.size < 1:
-        raise ValueError(f"energies must be a non-empty (M,) array, got shape {e.shape}")
-    if not np.all(np.isfinite(ev)) or not np.all(np.isfinite(vec)) or not np.all(np.isfinite(e)):
-        raise ValueError("evals, evecs and energies must be finite (got NaN or inf)")
-    if np.any(ev <= ZERO_EVAL_RTOL * np.abs(ev).max()):
-        raise ValueError(
-            "evals must be strictly positive, not numerically zero (exclude the zero eigenvalue(s) first, e.g. "
-            f"Spectrum.nonzero_evals); got min {ev.min():.3g} with max {ev.max():.3g}"
-        )
+    ev, vec, e = check_eigenpairs(evals, evecs, energies, "energies")
     sigma = float(sigma)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a positive finite number, got {sigma}")
@@ -264,21 +241,7 @@ def wks(
     -------
     (N, M) float64, nonnegative; the zero eigenvalue(s) (one per connected component) are excluded.
     """
-    if isinstance(mesh_or_spectrum, Mesh):
-        mesh = mesh_or_spectrum
-        k = int(n_eigen)
-        if k > mesh.n_vertices:
-            warnings.warn(
-                f"n_eigen={k} but the mesh has only {mesh.n_vertices} vertices: using all {mesh.n_vertices} eigenpairs",
-                WKSWarning,
-                stacklevel=2,
-            )
-            k = mesh.n_vertices
-        spectrum = eigenpairs(mesh, k=k, cache=cache)
-    elif isinstance(mesh_or_spectrum, Spectrum):
-        spectrum = mesh_or_spectrum
-    else:
-        raise TypeError(f"wks expects a wpot.Mesh or a wpot.spectral.Spectrum, got {type(mesh_or_spectrum).__name__}")
+    spectrum = mesh_spectrum(mesh_or_spectrum, n_eigen, cache, "wks", WKSWarning)
     spectrum = _wks_spectrum(spectrum, scale_invariant)
     if energies is None:
         if sigma is not None:
@@ -286,5 +249,78 @@ def wks(
         energies, sigma = wks_energies(spectrum, n_energies=n_energies, scale_invariant=scale_invariant)
     elif sigma is None:
         sigma = sigma_of_grid(energies)
-    ev = _positive_evals(spectrum)
+    ev = positive_evals(spectrum, "a WKS")
     return wks_from_eigenpairs(ev, spectrum.nonzero_evecs, energies, sigma)
+
+
+# ---------------------------------------------------------------------------------------------- the registered signature
+#: the smallest number of energies with a non-empty §3.2 grid (σ = 7δ and 2σ margins)
+MIN_ENERGIES = int(2 * MARGIN_SIGMAS * SIGMA_PER_DELTA) + 1
+
+
+@dataclass(frozen=True)
+class WKSOptions(SpectralOptions):
+    """Settings of `WKS` (paper §3.2): ``n_eigen`` and ``scale_invariant`` (`SpectralOptions`), and
+
+    Attributes
+    ----------
+    n_energies : M, the energies of the grid (paper: 200); more than 28 (`wks_energies`).
+    """
+
+    n_energies: int = option(200, keyword="n_energies", flag="--n-energies", help="energies (default {default})")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        try:
+            n_energies = integer_at_least("n_energies", self.n_energies, MIN_ENERGIES)
+        except ValueError:
+            raise ValueError(
+                f"n_energies must be an integer > {MIN_ENERGIES - 1} (with σ = 7δ and 2σ margins the §3.2 grid is empty "
+                f"otherwise; paper: 200), got {self.n_energies!r}"
+            ) from None
+        object.__setattr__(self, "n_energies", n_energies)
+
+
+@register_signature
+class WKS(SpectralSignature):
+    """The wave kernel signature (paper §2.3, Eq. 5) as a registered `Signature`: (N, n_energies) per mesh,
+    compared by Eq. 29 (``metric="wks"``).
+
+    Its state is the energy grid shared by every shape of a comparison or dataset (§3.2): ``{"energies": (M,)}``,
+    given as ``state`` or fitted by `fit` / `fit_from` (`wks_energies` over the shapes' spectra). `fit_input` is
+    a shape's `Spectrum` without eigenvectors, computed with ``min(n_eigen, N)`` eigenpairs through
+    `wpot.spectral.eigenpairs` and the instance's ``spectrum_cache``, so the eigenvectors wait in that cache for
+    the signature itself. σ is recovered from the grid (`sigma_of_grid`).
+    """
+
+    name = "wks"
+    title = "WKS"
+    metric = "wks"
+    version = VERSION
+    Options = WKSOptions
+    state_keys = ("energies",)
+
+    @classmethod
+    def check_state(cls, state: Mapping[str, Any]) -> dict[str, np.ndarray]:
+        out = super().check_state(state)
+        e = out["energies"]
+        if e.size < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"energies must be a finite increasing grid of at least 2 values, got {e.size} values")
+        return out
+
+    @property
+    def energies(self) -> np.ndarray | None:
+        """The shared energy grid (M,) float64, read-only, or None until fitted."""
+        return self.state_array("energies")
+
+    def fit_from(self, inputs: Sequence[Spectrum]) -> None:
+        """Fit the grid to these spectra (`wks_energies` with this instance's ``n_energies`` and ``scale_invariant``)."""
+        o = self.options
+        self.set_state({"energies": wks_energies(list(inputs), n_energies=o.n_energies, scale_invariant=o.scale_invariant).energies})
+
+    def __call__(self, mesh: Mesh) -> np.ndarray:
+        """(N, n_energies) float64, `wks` of ``mesh`` on the fitted grid."""
+        self.check_fitted()
+        o = self.options
+        return np.asarray(wks(mesh, n_eigen=o.n_eigen, n_energies=o.n_energies, energies=self.energies,
+                              scale_invariant=o.scale_invariant, cache=self.spectrum_cache), dtype=np.float64)

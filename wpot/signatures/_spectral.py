@@ -1,0 +1,136 @@
+"""What the spectral signatures (WKS, HKS) share: the checks of their eigenpairs, and fitting a grid
+(WKS's energies, HKS's times) to a dataset from the shapes' eigenvalues.
+
+`SpectralSignature` is the base of a registered signature computed from Laplace–Beltrami eigenpairs
+(`wpot.spectral.eigenpairs`, through the instance's spectrum cache, so every spectral signature of an
+all-vs-all reads the same cached spectra): its `fit_input` is a shape's eigenvalues, and a subclass says in
+`fit_from` how a grid follows from them.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from wpot._validate import boolean, integer_at_least
+from wpot.mesh import Mesh
+from wpot.signatures.base import Signature, SignatureOptions, option
+from wpot.spectral import Spectrum, eigenpairs
+
+__all__ = ["ZERO_EVAL_RTOL", "SpectralOptions", "SpectralSignature", "check_eigenpairs", "mesh_spectrum",
+           "positive_evals", "spectrum_summary"]
+
+#: an eigenvalue below this fraction of the largest one is numerically zero (a null-space pair)
+ZERO_EVAL_RTOL = 1e-9
+
+
+def positive_evals(spectrum: Spectrum, what: str) -> np.ndarray:
+    """The nonzero eigenvalues of ``spectrum`` (at least 2, the first clearly nonzero); ``what`` names the
+    signature in the message ("a WKS")."""
+    ev = spectrum.nonzero_evals
+    if ev.size < 2:
+        raise ValueError(
+            f"{what} needs at least 2 nonzero eigenvalues, got {ev.size} (k={spectrum.k}, n_zero={spectrum.n_zero})"
+        )
+    if ev[0] <= ZERO_EVAL_RTOL * abs(ev[-1]):
+        raise ValueError(
+            f"the first nonzero eigenvalue is {ev[0]:.3g}, numerically zero (n_zero={spectrum.n_zero}); the mesh probably has "
+            "more connected components than recorded, or degenerate triangles"
+        )
+    return ev
+
+
+def check_eigenpairs(evals: ArrayLike, evecs: ArrayLike, grid: ArrayLike, grid_name: str
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``evals`` (K,) strictly positive, ``evecs`` (N, K) and a signature's ``grid`` (M,) (its energies or
+    times), all finite, as float64 arrays; ValueError naming what is wrong otherwise."""
+    ev = np.asarray(evals, dtype=np.float64)
+    vec = np.asarray(evecs, dtype=np.float64)
+    g = np.asarray(grid, dtype=np.float64)
+    if ev.ndim != 1 or ev.size < 1:
+        raise ValueError(f"evals must be a non-empty (K,) array, got shape {ev.shape}")
+    if vec.ndim != 2 or vec.shape[1] != ev.size:
+        raise ValueError(f"evecs must have shape (N, {ev.size}) to match evals, got {vec.shape}")
+    if g.ndim != 1 or g.size < 1:
+        raise ValueError(f"{grid_name} must be a non-empty (M,) array, got shape {g.shape}")
+    if not np.all(np.isfinite(ev)) or not np.all(np.isfinite(vec)) or not np.all(np.isfinite(g)):
+        raise ValueError(f"evals, evecs and {grid_name} must be finite (got NaN or inf)")
+    if np.any(ev <= ZERO_EVAL_RTOL * np.abs(ev).max()):
+        raise ValueError(
+            "evals must be strictly positive, not numerically zero (exclude the zero eigenvalue(s) first, e.g. "
+            f"Spectrum.nonzero_evals); got min {ev.min():.3g} with max {ev.max():.3g}"
+        )
+    return ev, vec, g
+
+
+def mesh_spectrum(mesh_or_spectrum: Mesh | Spectrum, n_eigen: int, cache: Any, what: str,
+                  warning: type[Warning]) -> Spectrum:
+    """The spectrum a signature function (`wpot.wks`, `wpot.hks`) works on: a given `Spectrum` as it is, or
+    ``n_eigen`` eigenpairs of a `Mesh` (all N, with a ``warning``, when it has fewer vertices) through
+    `wpot.spectral.eigenpairs` and ``cache``. ``what`` names the function in the TypeError."""
+    if isinstance(mesh_or_spectrum, Spectrum):
+        return mesh_or_spectrum
+    if not isinstance(mesh_or_spectrum, Mesh):
+        raise TypeError(f"{what} expects a wpot.Mesh or a wpot.spectral.Spectrum, got {type(mesh_or_spectrum).__name__}")
+    mesh = mesh_or_spectrum
+    k = integer_at_least("n_eigen", n_eigen, 1)
+    if k > mesh.n_vertices:
+        warnings.warn(
+            f"n_eigen={k} but the mesh has only {mesh.n_vertices} vertices: using all {mesh.n_vertices} eigenpairs",
+            warning,
+            stacklevel=3,
+        )
+        k = mesh.n_vertices
+    return eigenpairs(mesh, k=k, cache=cache)
+
+
+def spectrum_summary(spectrum: Spectrum) -> Spectrum:
+    """``spectrum`` without its eigenvectors (a (1, k) zero placeholder): what a grid over a dataset needs
+    (`wks_energies`, `wpot.signatures.hks.hks_times`), small enough to send back from a worker process."""
+    s = spectrum
+    return Spectrum(evals=s.evals, evecs=np.zeros((1, s.k)), area=s.area, n_zero=s.n_zero, solver=s.solver,
+                    fingerprint=s.fingerprint, normalized=s.normalized)
+
+
+@dataclass(frozen=True)
+class SpectralOptions(SignatureOptions):
+    """The options every spectral signature has (a subclass adds its grid's size).
+
+    Attributes
+    ----------
+    n_eigen : Laplace–Beltrami eigenpairs, the zero one(s) included (paper: 500); at least 3, since a grid needs
+        two nonzero eigenvalues. A mesh with fewer vertices uses all of them. One value serves every spectral
+        signature, so they share one cached spectrum.
+    scale_invariant : False: the meshes at their own size (the paper; size counts); True: scaled to area 1.
+    """
+
+    n_eigen: int = option(500, keyword="n_eigen", flag="--n-eigen", help="Laplace-Beltrami eigenpairs (default {default})")
+    scale_invariant: bool = option(
+        False, keyword="scale_invariant", flag="--scale-invariant",
+        help="scale every mesh to area 1 first, so size does not count (default: meshes at their own size, as in the "
+             "paper; then all meshes must share one unit of length)",
+    )
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "n_eigen", integer_at_least("n_eigen", self.n_eigen, 3))
+        object.__setattr__(self, "scale_invariant", boolean("scale_invariant", self.scale_invariant))
+
+
+class SpectralSignature(Signature):
+    """A signature computed from ``options.n_eigen`` Laplace–Beltrami eigenpairs and fitted to a dataset
+    from the shapes' eigenvalues (`fit_input`; the subclass's `fit_from` builds its grid from them)."""
+
+    needs_fit = True
+
+    def fit_input(self, mesh: Any) -> Spectrum:
+        """The eigenvalues of ``mesh`` (a `Spectrum` with a placeholder for the eigenvectors, `spectrum_summary`),
+        from ``min(n_eigen, N)`` eigenpairs through the instance's spectrum cache, where the eigenvectors wait
+        for the signature itself."""
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"fit_input expects a wpot.Mesh, got {type(mesh).__name__}")
+        # a mesh with fewer vertices than n_eigen uses all its eigenpairs, as the signature itself does
+        s = eigenpairs(mesh, min(self.options.n_eigen, mesh.n_vertices), cache=self.spectrum_cache)
+        return spectrum_summary(s)
