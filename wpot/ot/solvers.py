@@ -154,14 +154,10 @@ class AnnealSolver(_Solver):
         preconditioner's LU factor (grows like N^1.85 for high-dimensional points, the largest fill
         measured; see `_FACTOR_EXPONENT`), and per ``plan_topk`` entry for ``plan_top``.
 
-        Measured: the growth of the peak RSS (VmHWM reset before the solve; glibc malloc with a fixed
-        mmap threshold, so that freed arrays leave the RSS) of CPU solves of random points in 6-D, NumPy
-        C, against this count, in MiB (one (N1, N2) array: 30.5 at 2000 x 2000): balanced 2000 x 2000 99.8
-        / 122.6, 1500 x 2500 92.4 / 110.3, ``dense_plan=False`` 78.3 / 92.1, partial 100.2 / 122.6,
-        ``linear_solver="direct"`` at 1000 x 1000 37.7 / 51.6; matrix-free 1000 x 1000 in 100-D 8.5 / 11.2
-        beyond the features. With glibc's default (adaptive) threshold the allocator may keep freed
-        blocks mapped: up to one more (N1, N2) array of RSS at 2000 x 2000. On a GPU the count bounds the
-        device's share; the returned plan's host copy comes on top, in host memory.
+        The count bounds the peak RSS growth of CPU solves from above (the README's table gives both, measured
+        with glibc's mmap threshold fixed; with its default adaptive threshold the allocator may keep up to
+        one more freed (N1, N2) array mapped). On a GPU it bounds the device's share; the returned plan's host
+        copy comes on top, in host memory.
         """
         n1, n2, dim = _check_size(n1, n2, dim)
         nn = _F64 * n1 * n2
@@ -197,9 +193,8 @@ class InteriorPointSolver(_Solver):
         """Peak bytes of a solve (see `AnnealSolver.memory_bytes`): during the interior-point start, C, W,
         the primal plan G and the reduced costs S (four (N1, N2) float64 arrays; the product plan that
         initializes G is built on the host before S exists), and the dense solve's arrays on top with
-        ``linear_solver="direct"``; the annealing after it needs no more. Measured like the annealing's
-        count: 141.9 MiB of RSS growth at 2000 x 2000 against a count of 153.4 MiB. ``matrix_free`` raises
-        ValueError, as `solve` does."""
+        ``linear_solver="direct"``; the annealing after it needs no more. ``matrix_free`` raises ValueError, as
+        `solve` does."""
         n1, n2, dim = _check_size(n1, n2, dim)
         if matrix_free:
             raise ValueError("method='ipm' needs the stored cost matrix; it has no matrix-free mode")
