@@ -142,9 +142,17 @@ class DepthRenderer:
         *,
         background: float = np.nan,
         ceiling: float = np.inf,
+        ray_offset: tuple[float, float] = RAY_OFFSET,
     ) -> np.ndarray:
-        """Depth images, one per view: see `depth_images`. Returns (n, R, R) float32."""
+        """Depth images, one per view: see `depth_images`. Returns (n, R, R) float32.
+
+        ``ray_offset`` : (along e1, along -e2) in pixels, where each ray passes from its pixel centre (default
+        `RAY_OFFSET`: off the exact centres, so that a ray never meets a mesh edge or vertex head-on).
+        """
         c, fr, s, res = _check_views(centers, frames, half_sizes, resolution)
+        off = tuple(float(x) for x in ray_offset)
+        if len(off) != 2 or not all(np.isfinite(off)) or max(abs(x) for x in off) >= 0.5:
+            raise ValueError(f"ray_offset must be two finite numbers of magnitude < 0.5 pixel, got {ray_offset!r}")
         ceiling = float(ceiling)
         if not ceiling > 0:
             raise ValueError(f"ceiling must be positive (a multiple of half_sizes) or inf, got {ceiling!r}")
@@ -167,7 +175,7 @@ class DepthRenderer:
             dim=(n, res, res),
             inputs=[
                 self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]),
-                flt(s), flt(top), flt(depth), int(res), float(RAY_OFFSET[0]), float(RAY_OFFSET[1]),
+                flt(s), flt(top), flt(depth), int(res), off[0], off[1],
                 float(background),
             ],
             outputs=[res_wp],

@@ -36,16 +36,18 @@ class CliError(Exception):
 # ---------------------------------------------------------------------------------------------- parser
 def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, Any] | None = None) -> None:
     """The comparison's options; the choices and the signatures' flags come from the registered stages."""
-    from wpot.config import DEFAULT_MASS_PENALTY, TRANSPORTS
+    from wpot.config import TRANSPORTS, ComparisonConfig
     from wpot.ot import SOLVERS
     from wpot.sampling import POOLINGS
     from wpot.signatures import add_signature_arguments, signature_names
 
-    p.add_argument("--signature", choices=signature_names(), default="wks", help="vertex signature (default: wks)")
-    p.add_argument("--transport", choices=TRANSPORTS, default="balanced", help="transport (default: balanced)")
+    d = ComparisonConfig()  # the defaults, as in Python
+    p.add_argument("--signature", choices=signature_names(), default=d.signature,
+                   help=f"vertex signature (default: {d.signature})")
+    p.add_argument("--transport", choices=TRANSPORTS, default=d.transport, help=f"transport (default: {d.transport})")
     p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
     p.add_argument(
-        "--pooling", choices=POOLINGS, default="none",
+        "--pooling", choices=POOLINGS, default=d.sampler.pooling,
         help="with --max-vertices or --vertices-per-sample: each sample keeps its own signature, uniform masses (none, default), or carries "
              "its cell's mean signature and size as mass (cell: better for whole shapes meshed alike, e.g. LD-SIFT "
              "classification; not for parts against wholes)",
@@ -56,15 +58,15 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
              "(at most --max-vertices), so cells match in size; with --pooling cell, for parts against wholes",
     )
     p.add_argument(
-        "--mass-penalty", type=float, default=DEFAULT_MASS_PENALTY,
+        "--mass-penalty", type=float, default=d.mass_penalty,
         help=("partial transport: relative chi^2 mass penalty kappa, alpha = kappa*mean(C)/(sqrt(N1*N2)*rho^2): "
               "spreading a side's mass on a fraction f of its points costs kappa*(1/f-1) mean costs "
-              f"(default {DEFAULT_MASS_PENALTY:g}, chosen on HEAD: benchmarks/head_partial.py; smaller = more partial)"),
+              f"(default {d.mass_penalty:g}, chosen on HEAD: benchmarks/head_partial.py; smaller = more partial)"),
     )
     add_signature_arguments(p, defaults=dict(defaults or {}))
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     p.add_argument(
-        "--ot-method", choices=tuple(SOLVERS), default="auto",
+        "--ot-method", choices=tuple(SOLVERS), default=d.method,
         help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta), 'ipm' "
               "(interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: the same D(inf), "
               "faster for large problems; see the README) or 'auto' (default: 'ipm' when both shapes have "
