@@ -20,8 +20,9 @@ def _cuda_available() -> bool:
     try:
         import warp as wp
 
-        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no start-up banner
-        wp.init()
+        from wpot._warp import init
+
+        init()  # as wpot starts Warp: no banner, no "no CUDA driver" line on a CPU machine
         return wp.is_cuda_available()
     except Exception:  # pragma: no cover - no usable warp at all
         return False

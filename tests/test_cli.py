@@ -78,7 +78,7 @@ def test_compare_two_files(dataset, tmp_path):
     for out in (r.stdout, r3.stdout):
         assert re.search(r"^registration: (scale \S+, rms residual|none, fewer than 3 non-collinear pairs matched \()", out, re.M), out
     _one_line_error(wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), "--match-ratio", "1.5"),
-                    "match_ratio must be in (0, 1], got 1.5")
+                    "--match-ratio must be in (0, 1], got 1.5")
 
 
 def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path):
@@ -173,7 +173,7 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     assert info["one_shot"]["mean"] < 1 and "classes below 100%: " in r.stdout
     # the same folder with other parameters is refused, in one line
     r = wpot("all-vs-all", str(dataset), "--transport", "partial", "--out", str(run), "--no-progress", *FAST_CLI)
-    _one_line_error(r, "other parameters", "transport")
+    _one_line_error(r, "other settings", "--transport: stored balanced, requested partial")
     # an incomplete run exports with the gap marked (an empty cell), and says so
     con = sqlite3.connect(run / "wpot.sqlite")
     con.execute("DELETE FROM pairs WHERE i = 0 AND j = 1")

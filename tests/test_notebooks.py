@@ -1,85 +1,156 @@
-"""Execute every notebook in ``notebooks/`` top to bottom with its small settings, and check its results.
+"""The notebooks: stored as executed tutorials, and re-executed here with small settings, their results checked.
 
-Each notebook ends with a cell that asserts loose bounds on its own results (a broken solver, signature or
-pipeline fails them) and prints one ``WPOT_SUMMARY {json}`` line; the tests here read that line back and
-check the numbers again, so a notebook whose checks were edited away still fails.
+A notebook holds no checks of its own. Each test executes a notebook top to bottom in a fresh kernel, then runs
+one more cell in that kernel (`PROBES`) that prints the variables the checks need as JSON, and asserts bounds on
+them (a broken solver, signature or pipeline fails them).
 
 The kernel is the interpreter running the tests: a temporary ``python3`` kernel spec pointing at
 ``sys.executable`` is put first on ``JUPYTER_PATH`` (the installed spec runs whatever ``python`` is on PATH).
 Notebooks that need ``../shared/data`` are skipped with a reason when it is absent (the ``tosca5k`` fixture).
+
+The stored outputs come from the same small settings: ``python tests/test_notebooks.py`` re-executes every
+notebook and writes it back with its outputs (run it after editing a notebook).
 """
 from __future__ import annotations
 
+import ast
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 
-NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = ROOT / "notebooks"
 #: per-cell limit; small settings run in about a minute per notebook on a 2-core CPU
 CELL_TIMEOUT = 900
+#: the stored notebooks together stay below this many bytes (small settings, PNG figures at modest dpi)
+MAX_STORED_BYTES = 1_500_000
+#: per notebook, a Python expression evaluated in its kernel after the last cell; the test reads its value
+PROBES = {
+    "quickstart.ipynb": """{
+        "full": FULL,
+        "converged": [bool(res.result.converged), bool(pres.result.converged)],
+        "balanced_auc": float(err.auc),
+        "zoomout_auc": float(err_zo.auc),
+        "partial_mass_in_part": float(mass_in_part),
+        "partial_rotation_error_deg": float(rot_err_deg),
+        "partial_scale": float(reg.scale),
+    }""",
+    "tosca_classification.ipynb": """{
+        "full": FULL,
+        "n_shapes": len(names),
+        "distances": {f"{s}-{t}": stores[s, t].distance_matrix().tolist() for s, t in COMBOS},
+        "accuracy": {f"{s}-{t}": {"one_shot": results[s, t][0].mean, "loo": results[s, t][1].accuracy}
+                     for s, t in COMBOS},
+    }""",
+    "partial_heads.ipynb": """{
+        "full": FULL,
+        "n_heads": len(heads),
+        "distances": D.tolist(),
+        "mass_in_head": mass_in_head,
+        "mass_in_head_density": mass_in_head_density,
+        "class_accuracy": retrieval.class_accuracy,
+    }""",
+}
+_PROBE_TAG = "WPOT_PROBE "
+
+
+def _kernel_environment(tmp: Path) -> dict[str, str]:
+    """Environment variables for a kernel running this interpreter with the notebooks' small settings."""
+    spec = tmp / "jupyter" / "kernels" / "python3"
+    spec.mkdir(parents=True, exist_ok=True)
+    (spec / "kernel.json").write_text(json.dumps({
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "Python 3 (ipykernel)",
+        "language": "python",
+    }))
+    return {
+        "JUPYTER_PATH": str(tmp / "jupyter"),
+        "WPOT_NOTEBOOK_FULL": "0",
+        "MPLBACKEND": "module://matplotlib_inline.backend_inline",
+        # the small runs write into tempfile.mkdtemp() folders: keep them under tmp
+        "TMPDIR": str(tmp),
+    }
 
 
 @pytest.fixture
 def kernel_env(tmp_path, monkeypatch):
     """Small settings, and a ``python3`` kernel that runs this interpreter."""
-    spec = tmp_path / "jupyter" / "kernels" / "python3"
-    spec.mkdir(parents=True)
-    (spec / "kernel.json").write_text(json.dumps({
-        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-        "display_name": "Python 3 (wpot tests)",
-        "language": "python",
-    }))
-    monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
-    monkeypatch.setenv("WPOT_NOTEBOOK_FULL", "0")
-    monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
+    for key, value in _kernel_environment(tmp_path).items():
+        monkeypatch.setenv(key, value)
     # keep the user's signature cache out of it: notebooks choose their own (temporary) caches
     monkeypatch.delenv("WPOT_CACHE_DIR", raising=False)
-    # the small runs write into tempfile.mkdtemp() folders: put them under pytest's (self-pruning) tmp_path
-    monkeypatch.setenv("TMPDIR", str(tmp_path))
     return tmp_path
 
 
-def execute(name: str) -> nbformat.NotebookNode:
+def execute(name: str, probe: str | None = None) -> tuple[nbformat.NotebookNode, dict | None]:
+    """Execute notebook ``name`` in a fresh kernel; with ``probe``, also evaluate that expression in the kernel
+    afterwards. Returns the executed notebook (without the probe cell) and the probe's value."""
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
-    client = nbclient.NotebookClient(
-        nb, timeout=CELL_TIMEOUT, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
-    )
+    n = len(nb.cells)
+    if probe is not None:
+        nb.cells.append(nbformat.v4.new_code_cell(f"import json as _json\nprint({_PROBE_TAG!r} + _json.dumps({probe}))"))
+    client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT, kernel_name="python3", record_timing=False,
+                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
     client.execute()
-    return nb
+    value = None
+    if probe is not None:
+        text = "".join(o.get("text", "") for o in nb.cells[-1].outputs if o.get("output_type") == "stream")
+        lines = [line for line in text.splitlines() if line.startswith(_PROBE_TAG)]
+        assert lines, f"the probe printed nothing; its outputs: {nb.cells[-1].outputs}"
+        value = json.loads(lines[0][len(_PROBE_TAG):])
+        del nb.cells[n:]
+    return nb, value
 
 
-def summary(nb: nbformat.NotebookNode) -> dict:
-    """The ``WPOT_SUMMARY`` JSON printed by the notebook's last code cell."""
-    last = [c for c in nb.cells if c.cell_type == "code"][-1]
-    for out in last.get("outputs", []):
-        if out.get("output_type") == "stream":
-            for line in out.get("text", "").splitlines():
-                if line.startswith("WPOT_SUMMARY "):
-                    return json.loads(line[len("WPOT_SUMMARY "):])
-    raise AssertionError(f"the last cell printed no WPOT_SUMMARY line; its outputs: {last.get('outputs')}")
+# ------------------------------------------------------------------------------------------- stored files
+def _notebooks() -> list[Path]:
+    return sorted(NOTEBOOKS.glob("*.ipynb"))
 
 
-def test_notebooks_are_stored_without_outputs():
-    """Committed notebooks carry no outputs or execution counts (clean diffs), and each has a FULL flag."""
-    names = sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
-    assert {"quickstart.ipynb", "tosca_classification.ipynb", "partial_heads.ipynb"} <= set(names)
-    for name in names:
-        nb = nbformat.read(NOTEBOOKS / name, as_version=4)
+def test_notebooks_are_stored_as_executed_tutorials():
+    """Each notebook is stored run top to bottom with the small settings (figures included, no errors, no
+    stderr), holds no test checks, uses the README's API, reads the WPOT_NOTEBOOK_FULL flag, and they are small."""
+    names = [p.name for p in _notebooks()]
+    assert set(PROBES) <= set(names)
+    total = 0
+    for path in _notebooks():
+        name, total = path.name, total + path.stat().st_size
+        nb = nbformat.read(path, as_version=4)
         nbformat.validate(nb)
         code = [c for c in nb.cells if c.cell_type == "code"]
-        assert all(not c.outputs and c.execution_count is None for c in code), f"{name} has stored outputs"
+        assert [c.execution_count for c in code] == list(range(1, len(code) + 1)), f"{name} is not stored executed in order"
+        outputs = [o for c in code for o in c.outputs]
+        assert not [o for o in outputs if o.output_type == "error"], f"{name} stores an error"
+        assert not [o for o in outputs if o.get("name") == "stderr"], f"{name} stores warnings or other stderr output"
+        assert any("image/png" in o.get("data", {}) for o in outputs), f"{name} stores no figure"
+        assert "small settings" in "".join(o.get("text", "") for o in code[0].outputs), f"{name}: not the small settings"
         assert any("WPOT_NOTEBOOK_FULL" in c.source for c in code[:2]), f"{name} reads no WPOT_NOTEBOOK_FULL flag"
+        for c in code:
+            tree = ast.parse("\n".join(line for line in c.source.splitlines() if not line.lstrip().startswith(("%", "!"))))
+            assert not any(isinstance(node, ast.Assert) for node in ast.walk(tree)), f"{name} keeps an assert: {c.source}"
+            assert "WPOT_SUMMARY" not in c.source and "wpot.comparison" not in c.source, f"{name}: {c.source}"
+    assert total < MAX_STORED_BYTES, f"the stored notebooks take {total} bytes"
 
 
+def test_quickstart_uses_the_readme_api():
+    source = "\n".join(c.source for c in nbformat.read(NOTEBOOKS / "quickstart.ipynb", as_version=4).cells)
+    assert "wpot.compare(" in source and "wpot.Comparer(" in source
+
+
+# ------------------------------------------------------------------------------------------- executed
 def test_quickstart(kernel_env):
-    s = summary(execute("quickstart.ipynb"))
+    _, s = execute("quickstart.ipynb", PROBES["quickstart.ipynb"])
     assert s["full"] is False
+    assert all(s["converged"]), "a transport did not converge"
     # the generated pair is the same surface: a working WKS + OT map is mostly right
     assert s["balanced_auc"] > 0.5
     assert s["zoomout_auc"] >= s["balanced_auc"]  # wpot.zoomout refines the map, never worse here
@@ -92,8 +163,12 @@ def test_quickstart(kernel_env):
 @pytest.mark.data
 def test_tosca_classification(kernel_env, tosca5k, monkeypatch):
     monkeypatch.setenv("WPOT_DATA", str(tosca5k))
-    s = summary(execute("tosca_classification.ipynb"))
+    _, s = execute("tosca_classification.ipynb", PROBES["tosca_classification.ipynb"])
     assert s["full"] is False and s["n_shapes"] >= 6
+    for key, d in s["distances"].items():
+        d = np.array(d, dtype=float)
+        assert d.shape == (s["n_shapes"],) * 2 and np.isfinite(d).all(), f"{key}: missing pairs"
+        np.testing.assert_allclose(d, d.T, err_msg=f"{key}: not symmetric")
     acc = s["accuracy"]["wks-balanced"]
     assert acc["loo"] >= 0.75 and acc["one_shot"] >= 0.6
 
@@ -101,11 +176,39 @@ def test_tosca_classification(kernel_env, tosca5k, monkeypatch):
 @pytest.mark.data
 def test_partial_heads(kernel_env, tosca5k, monkeypatch):
     monkeypatch.setenv("WPOT_DATA", str(tosca5k))
-    s = summary(execute("partial_heads.ipynb"))
+    _, s = execute("partial_heads.ipynb", PROBES["partial_heads.ipynb"])
     assert s["full"] is False and s["n_heads"] >= 2
+    assert np.isfinite(np.array(s["distances"], dtype=float)).all(), "some comparisons gave no distance"
     assert min(s["mass_in_head"].values()) > 0.5
     # cells of one size on head and parent put more of the head's mass on the true head (HEAD: 0.80 vs 0.57)
     dens = s["mass_in_head_density"]
     assert set(dens) == set(s["mass_in_head"]) and min(dens.values()) > 0.5
     assert sum(dens.values()) > sum(s["mass_in_head"].values())
     assert s["class_accuracy"] >= 0.5
+
+
+# ------------------------------------------------------------------------------------------- storing
+def store_outputs(names: list[str] | None = None) -> None:
+    """Execute the notebooks with the small settings and write them back with their outputs."""
+    with tempfile.TemporaryDirectory() as tmp:
+        env = _kernel_environment(Path(tmp))
+        saved = {k: os.environ.get(k) for k in [*env, "WPOT_CACHE_DIR"]}
+        os.environ.update(env)
+        os.environ.pop("WPOT_CACHE_DIR", None)
+        try:
+            for path in _notebooks():
+                if names and path.name not in names:
+                    continue
+                nb, _ = execute(path.name)
+                nbformat.write(nb, path)
+                print(f"{path.relative_to(ROOT)}: {path.stat().st_size / 1e3:.0f} kB")
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
+
+if __name__ == "__main__":
+    store_outputs(sys.argv[1:])

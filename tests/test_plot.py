@@ -101,8 +101,62 @@ def test_mesh_figures_png(tmp_path, sphere):
     assert ink(tmp_path / "r1.png") > 0.1 and (a.shape != b.shape or not np.allclose(a, b))
     with pytest.raises(ValueError, match="not both"):
         plot.plot_registration(part, sphere, reg, scale=2.0)
+    # a part the transform puts inside the full shape is still drawn (over it), in its colour
+    fig = plot.plot_registration(sphere, sphere, scale=0.5, part_color=(1.0, 0.0, 0.0))
+    pix = _rgb_in(fig, fig.axes[0])
+    assert np.mean((pix[..., 0] > 0.3) & (pix[..., 1] < 0.1) & (pix[..., 2] < 0.1)) > 0.05
     corr = np.arange(sphere.n_vertices)[::-1].copy()
     plot.plot_correspondence(sphere, sphere, corr, path=tmp_path / "k.png")
     assert ink(tmp_path / "k.png") > 0.1
     with pytest.raises(ValueError, match="outside"):
         plot.plot_correspondence(sphere, sphere, corr + 1)
+    with pytest.raises(ValueError, match="layout"):
+        plot.plot_correspondence(sphere, sphere, corr, layout="stacked")
+
+
+def _rgb_in(fig, ax) -> np.ndarray:
+    """(H, W, 3) pixels of the rendered figure inside ``ax``'s box."""
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(float) / 255
+    x0, y0, x1, y1 = ax.get_window_extent().extents
+    h = img.shape[0]
+    return img[int(h - y1) : int(h - y0), int(x0) : int(x1)]
+
+
+def test_correspondence_overlay_draws_b_under_a_with_a_key(sphere):
+    """Default layout: one axes with A coloured through the map over B's silhouette (B moved 3 radii to the
+    right, so that both show), a key axes with B in its own colours, the legend naming both, the caption."""
+    b = sphere.transformed(translation=[0.0, 3.0, 0.0])  # azim 0: +y is screen right
+    red = np.tile([0.9, 0.1, 0.1], (b.n_vertices, 1))
+    fig = plot.plot_correspondence(sphere, b, np.arange(sphere.n_vertices), target_colors=red, titles=("A!", "B!"))
+    main, key = fig.axes
+    # both shapes fit in the main axes: A around y = 0, B around y = 3
+    assert main.get_xlim()[0] < -1.0 and main.get_xlim()[1] > 4.0
+    # B's silhouette: a grey image, covering the disc of radius 1 around (3, 0) and not A's centre
+    shadow = main.images[0].get_array()
+    x0, x1, y0, y1 = main.images[0].get_extent()
+    covered = shadow[..., 3] > 0
+    ys, xs = np.nonzero(covered)
+    px = x0 + xs * (x1 - x0) / (shadow.shape[1] - 1)
+    assert px.min() == pytest.approx(2.0, abs=0.1) and px.max() == pytest.approx(4.0, abs=0.1)
+    area = covered.sum() * ((x1 - x0) / (shadow.shape[1] - 1)) ** 2
+    assert area == pytest.approx(np.pi, rel=0.05)  # an icosphere's outline: a disc of radius ~1
+    # A takes B's colour (red) through the identity map: the main axes' pixels are red, not blue or green
+    pix = _rgb_in(fig, main)
+    coloured = pix[(pix.max(-1) - pix.min(-1)) > 0.2]
+    assert len(coloured) > 1000 and np.all(coloured[:, 0] > coloured[:, 1]) and np.all(coloured[:, 0] > coloured[:, 2])
+    assert "key" in key.get_title()
+    labels = [t.get_text().replace("\n", " ") for t in key.get_legend().get_texts()]
+    assert labels[0] == "A!" and labels[1].startswith("B!")
+    assert fig.get_supxlabel().replace("\n", " ") == plot.CORRESPONDENCE_KEY
+
+
+def test_correspondence_side_by_side(sphere):
+    corr = np.arange(sphere.n_vertices)
+    corr[:5] = -1
+    fig = plot.plot_correspondence(sphere, sphere, corr, layout="side-by-side", titles=("A!", "B!"), caption=False)
+    assert [ax.get_title() for ax in fig.axes] == ["A!", "B!"]
+    assert not any(ax.images for ax in fig.axes)  # no silhouette overlay
+    assert fig.get_supxlabel() == ""
+    fig = plot.plot_correspondence(sphere, sphere, corr)  # unmatched vertices get a legend entry
+    assert "unmatched vertices of A" in [t.get_text() for t in fig.axes[1].get_legend().get_texts()]

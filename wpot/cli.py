@@ -8,23 +8,31 @@
     wpot report RUN [RUN ...]                  Markdown summary beside the paper's tables
 
 Errors in the input (missing files, bad options, a run folder holding other parameters) end with exit
-code 2 and a one-line message; set ``WPOT_DEBUG=1`` for the traceback.
+code 2 and a one-line message; set ``WPOT_DEBUG=1`` for the traceback. Messages and warnings raised by the
+library name its keywords (``max_vertices``, ``scale_invariant=True``, ``Mesh.cleaned()``); the command
+words them with its own flags (``--max-vertices``, ``--scale-invariant``, ``--repair``) through `cli_words`,
+whose table is read from the parser's flags and the registered signatures' option metadata.
+
+Progress (a line per step with its time, bars for all-vs-all's phases) goes to standard error when it is a
+terminal; ``--progress`` asks for it anyway, ``--no-progress`` turns it off.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence, TextIO
 
 import numpy as np
 
 from wpot.report import signature_title
 
-__all__ = ["main", "build_parser", "config_from_args"]
+__all__ = ["main", "build_parser", "config_from_args", "cli_words", "flag_table", "progress_enabled"]
 #: small settings for `wpot demo`: a few hundred vertices and a short spectrum (runs in seconds on a CPU)
 DEMO = {"n": 400, "n_eigen": 100, "n_energies": 100}
 
@@ -45,7 +53,9 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
     p.add_argument("--signature", choices=signature_names(), default=d.signature,
                    help=f"vertex signature (default: {d.signature})")
     p.add_argument("--transport", choices=TRANSPORTS, default=d.transport, help=f"transport (default: {d.transport})")
-    p.add_argument("--max-vertices", type=int, default=None, help="subsample larger meshes by farthest-point sampling")
+    p.add_argument("--max-vertices", type=int, default=None,
+                   help="subsample a mesh with more vertices than this to this many farthest-point samples "
+                        "(default: none, every vertex is used)")
     p.add_argument(
         "--pooling", choices=POOLINGS, default=d.sampler.pooling,
         help="with --max-vertices or --vertices-per-sample: each sample keeps its own signature, uniform masses (none, default), or carries "
@@ -65,6 +75,10 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
     )
     add_signature_arguments(p, defaults=dict(defaults or {}))
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
+    p.add_argument("--repair", action="store_true",
+                   help="repair each mesh first: remove zero-area and duplicate triangles and unreferenced vertices "
+                        "(wpot.Mesh.cleaned), and say what was removed; saved correspondences keep the input's "
+                        "vertex numbering")
     p.add_argument(
         "--ot-method", choices=tuple(SOLVERS), default=d.method,
         help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta), 'ipm' "
@@ -125,33 +139,75 @@ def config_from_args(a: argparse.Namespace) -> Any:
     )
 
 
+def _add_progress(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--progress", dest="progress", action="store_true", default=None,
+                   help="report each step with its time (bars for long loops) on stderr even when it is not a terminal")
+    g.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress report (default: one on stderr when it is a terminal)")
+
+
+def _formats() -> str:
+    from wpot.io import MESH_FORMATS
+
+    return ", ".join(MESH_FORMATS)
+
+
+#: why `wpot compare` and `wpot all-vs-all` give the same pair different WKS distances (the compare epilog)
+GRID_EPILOG = (
+    "WKS compares two shapes energy by energy, on one energy grid (paper section 3.2); HKS likewise on one set of "
+    "times. `wpot compare` fits that grid to the two shapes it compares; `wpot all-vs-all` fits one grid to its "
+    "whole dataset, so that every pair is compared on the same energies. The same pair therefore gets a different "
+    "distance inside a run than alone. The output and comparison.json say which grid was used; "
+    "--energies-from RUN compares on a run's grid, and with the run's other settings gives the run's distance."
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from wpot import __version__
 
-    parser = argparse.ArgumentParser(prog="wpot", description="Compare 3D shapes by statistical-physics optimal transport.")
+    parser = argparse.ArgumentParser(
+        prog="wpot", description="Compare 3D shapes by statistical-physics optimal transport.",
+        epilog=f"Mesh files: {_formats()} (by extension).")
     parser.add_argument("--version", action="version", version=f"wpot {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="compare the two generated example shapes and save a picture")
+    p = sub.add_parser("demo", help="compare the two generated example shapes and save a picture",
+                       description="Compare two generated example shapes (one surface, triangulated twice, the second "
+                                   "moved rigidly), score the correspondence against the known truth, save a picture.")
     p.add_argument("--out", default="wpot-demo", help="folder for the picture (default: ./wpot-demo)")
     p.add_argument("--n", type=int, default=DEMO["n"], help=f"vertices of the example shape (default {DEMO['n']})")
     _add_method_options(p, defaults={"n_eigen": DEMO["n_eigen"], "n_energies": DEMO["n_energies"]})
     _add_match_ratio(p)
     _add_zoomout(p)
+    _add_progress(p)
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("compare", help="compare two mesh files")
-    p.add_argument("mesh_a")
-    p.add_argument("mesh_b")
-    p.add_argument("--out", default=None, help="folder for comparison.json, correspondence.npz and correspondence.png")
+    formats = _formats()
+    p = sub.add_parser("compare", help="compare two mesh files", description="Compare two mesh files: distance, "
+                       "correspondence, matched pairs and a fitted registration.", epilog=GRID_EPILOG)
+    p.add_argument("mesh_a", help=f"the first shape, A: a mesh file ({formats})")
+    p.add_argument("mesh_b", help="the second shape, B, in any of the same formats; the correspondence maps A's "
+                                  "vertices to B's")
+    p.add_argument("--out", default=None,
+                   help="folder for comparison.json, correspondence.npz and correspondence.png (default: none, "
+                        "nothing is saved)")
+    p.add_argument("--energies-from", default=None, metavar="RUN",
+                   help="compare on the WKS energy grid (HKS: times) stored in the all-vs-all run folder RUN instead "
+                        "of one fitted to these two shapes; with the run's settings, the distance is the run's for "
+                        "this pair (see below)")
     _add_method_options(p)
     _add_match_ratio(p)
     _add_zoomout(p)
+    _add_progress(p)
     p.set_defaults(func=cmd_compare)
 
-    p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder")
-    p.add_argument("source", help="a folder of meshes, or a text file listing one mesh path per line")
-    p.add_argument("--out", required=True, help="run folder (resumed if it holds the same run)")
+    p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder",
+                       description="Compare every pair of shapes of a dataset and store each pair as it finishes in a "
+                                   "run folder (a SQLite store); rerunning the same command resumes.")
+    p.add_argument("source", help=f"a folder of mesh files ({formats}), or a text file listing one mesh path per line")
+    p.add_argument_group("required").add_argument(
+        "--out", required=True, help="run folder (required; resumed if it holds the same run)")
     p.add_argument("--jobs", type=int, default=None,
                    help="worker processes (default 1; 0 = all cores); with --scheduler local, Dask workers (default: all cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -159,42 +215,184 @@ def build_parser() -> argparse.ArgumentParser:
                    "scheduler tcp://HOST:PORT; each worker uses its own GPU when it has one "
                    "(needs pip install 'wpot[cluster]')")
     p.add_argument("--labels", default=None, help="label CSV: a 'name' column and one column per label level")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_progress(p)
     _add_method_options(p)
     p.set_defaults(func=cmd_all_vs_all)
 
+    run_help = "an all-vs-all run folder (the --out of `wpot all-vs-all`)"
     p = sub.add_parser("classify", help="1-NN classification from a run's distance matrix")
-    p.add_argument("run")
+    p.add_argument("run", help=run_help)
     p.add_argument("--trials", type=int, default=10_000, help="one-shot trials (default 10,000, as Table 1)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the one-shot trials' random training shapes (default 0; the same seed gives the "
+                        "same accuracy)")
     p.set_defaults(func=cmd_classify)
 
     p = sub.add_parser("export", help="write a run's distance matrix as CSV (names as header) or NPZ (with D(beta))")
-    p.add_argument("run")
+    p.add_argument("run", help=run_help)
     p.add_argument("--out", default=None, help="a .csv or .npz file (default: RUN/distances.csv)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("report", help="Markdown summary of one or more runs beside the paper's tables")
-    p.add_argument("runs", nargs="+")
+    p.add_argument("runs", nargs="+", metavar="run", help="one or more all-vs-all run folders, summarized side by side")
     p.add_argument("--out", default=None, help="Markdown file (default: RUN/report.md of the first run)")
-    p.add_argument("--trials", type=int, default=10_000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trials", type=int, default=10_000,
+                   help="one-shot 1-NN trials per run, as `wpot classify --trials` (default 10,000, as Table 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the one-shot trials, as `wpot classify --seed` (default 0)")
     p.set_defaults(func=cmd_report)
     return parser
 
 
+# ------------------------------------------------------------------------------------------- messages
+def flag_table() -> dict[str, str]:
+    """The CLI flag of each library name: the comparison options' keywords (read from the flags
+    `_add_method_options` adds, by their ``dest``), the signatures' keywords and field names (from their
+    `option` metadata: ``hks_n_times`` and ``n_times`` both give ``--hks-n-times``), ``method`` for
+    ``--ot-method`` and ``repair``. Names with no flag (``fps_metric``, ``ldsift_K``) are not in it."""
+    import dataclasses
+
+    from wpot.signatures import SIGNATURES
+
+    p = argparse.ArgumentParser(add_help=False)
+    _add_method_options(p)
+    _add_match_ratio(p)
+    table = {a.dest: a.option_strings[0] for a in p._actions if a.option_strings}
+    table["method"] = table["ot_method"]
+    for cls in SIGNATURES.values():
+        for f in dataclasses.fields(cls.Options):
+            flag = f.metadata.get("flag")
+            if flag is not None:
+                table.setdefault(f.metadata.get("keyword", f.name), flag)
+                table.setdefault(f.name, flag)
+    return table
+
+
+def _switches() -> set[str]:
+    """The flags that take no value (``--scale-invariant``, ``--repair``)."""
+    p = argparse.ArgumentParser(add_help=False)
+    _add_method_options(p)
+    return {a.option_strings[0] for a in p._actions if a.option_strings and a.nargs == 0}
+
+
+#: library advice with no keyword in it, and what the command offers instead
+_PHRASES = (
+    (r"\s*\(CLI --[\w-]+\)", ""),  # "pass scale_invariant=True (CLI --scale-invariant)": the flag is said already
+    (r"Mesh\.cleaned\(keep_largest_component=True\)",
+     "wpot.Mesh.cleaned(keep_largest_component=True) in Python (--repair keeps every component)"),
+    (r"\s*\(keep_largest_component=True drops the smaller components\)", ""),
+    (r"(?<!wpot\.)Mesh\.cleaned\(\)", "--repair"),
+    (r"`?(?<!wpot\.)Mesh\.cleaned`?(?!\()", "--repair"),
+    (r" and returns the index map", ""),
+    (r"another run folder", "another --out folder"),
+    (r" or None, got", ", got"),
+    (r"^unknown Warp device", "--device: unknown Warp device"),
+)
+
+
+def cli_words(message: str, table: Mapping[str, str] | None = None) -> str:
+    """``message`` with the library's keywords replaced by the command's flags (`flag_table`).
+
+    ``name=True`` of a switch becomes the flag, ``name=value`` becomes ``--flag value``; a keyword with an
+    underscore (``max_vertices``) is replaced wherever it stands as a word; a one-word name (``transport``,
+    ``slab``) only where it starts a sentence as the subject of a rule (``slab must be ...``), since elsewhere it
+    is English (``balanced transport``).
+    Advice to call ``Mesh.cleaned()`` becomes advice to pass ``--repair``."""
+    table = flag_table() if table is None else table
+    switches = _switches()
+    for pattern, repl in _PHRASES:
+        message = re.sub(pattern, repl, message)
+    names = sorted(table, key=len, reverse=True)
+    word = r"(?<![\w.\-'\"])({})(?![\w'\"])"
+
+    def assigned(m: re.Match) -> str:
+        flag, value = table[m.group(1)], m.group(2)
+        if flag in switches:
+            return flag if value == "True" else f"no {flag}"
+        return f"{flag} {value.strip(chr(39))}"
+
+    alternatives = "|".join(map(re.escape, names))
+    message = re.sub(word.format(alternatives) + r"=('[^']*'|[^\s,;)]+)", assigned, message)
+    message = re.sub(word.format("|".join(re.escape(n) for n in names if "_" in n)),
+                     lambda m: table[m.group(1)], message)
+    subject = r"(?:(?<=^)|(?<=[;.:] ))({})(?= must\b)"
+    message = re.sub(subject.format(alternatives), lambda m: table[m.group(1)], message)
+    return message
+
+
+def _value_words(value: Any, flag: str | None, switches: set[str]) -> str:
+    if flag in switches or isinstance(value, bool):
+        return "on" if value else "off"
+    if value is None:
+        return "none"
+    return str(value)
+
+
+def _mismatch_words(exc: Any) -> str:
+    """A `RunMismatchError` with settings that differ, worded with flags: only what differs, a setting with no
+    flag by its Python keyword (it can only have been set from Python)."""
+    table, switches = flag_table(), _switches()
+    parts = []
+    for key, stored, requested in exc.differences:
+        flag = table.get(key)
+        name = flag if flag is not None else f"{key} (Python only, no flag)"
+        parts.append(f"{name}: stored {_value_words(stored, flag, switches)}, "
+                     f"requested {_value_words(requested, flag, switches)}")
+    return (f"{exc.folder} holds a run with other settings: " + "; ".join(parts)
+            + ". Use another --out folder, or rerun with the stored settings to resume.")
+
+
+def progress_enabled(choice: bool | None, stream: TextIO) -> bool:
+    """Whether the command reports progress: ``--progress``/``--no-progress`` when given (``choice``),
+    else when ``stream`` is a terminal."""
+    if choice is not None:
+        return bool(choice)
+    isatty = getattr(stream, "isatty", None)
+    try:
+        return bool(isatty()) if isatty is not None else False
+    except (ValueError, OSError):  # a closed stream
+        return False
+
+
+def _progress(a: argparse.Namespace) -> Any:
+    """The command's progress reporter (made once by `main`, which also prints warnings through it)."""
+    return a.reporter
+
+
+def _warning_printer(reporter: Any) -> Any:
+    """A `warnings.showwarning` that prints each warning as one line in the command's words, on a line of its
+    own even while a progress line is being written."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        reporter.break_line()
+        out = sys.stderr if file is None else file
+        out.write(f"wpot: warning: {' '.join(cli_words(str(message)).split())}\n")
+
+    return show
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``wpot`` command; returns the exit code (0 success, 2 bad input, 130 interrupted)."""
+    from wpot.progress import Progress
+
     args = build_parser().parse_args(argv)
+    args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
     try:
-        args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_printer(args.reporter)
+            args.func(args)
     except KeyboardInterrupt:
         print("wpot: interrupted (a run resumes where it stopped when rerun with the same command)", file=sys.stderr)
         return 130
     except (CliError, OSError, ValueError) as exc:
         if os.environ.get("WPOT_DEBUG"):
             raise
-        msg = " ".join(str(exc).split()) or type(exc).__name__
+        if getattr(exc, "differences", None) and getattr(exc, "folder", None):  # a RunMismatchError
+            msg = _mismatch_words(exc)
+        elif isinstance(exc, CliError):
+            msg = str(exc)
+        else:
+            msg = cli_words(str(exc))
+        msg = " ".join(msg.split()) or type(exc).__name__
         if isinstance(exc, FileNotFoundError) and exc.filename and str(exc.filename) not in msg:
             msg = f"{msg}: {exc.filename}"
         print(f"wpot: error: {msg}", file=sys.stderr)
@@ -203,27 +401,63 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 # ------------------------------------------------------------------------------------------- commands
-def _load(path: str):
+class _Loaded:
+    """A mesh as the command uses it: read from ``path`` (and repaired with ``--repair``), with the map from its
+    vertices to the file's (None when nothing was removed)."""
+
+    def __init__(self, mesh: Any, path: str, index_map: np.ndarray | None = None, n_input: int | None = None) -> None:
+        self.mesh, self.path, self.index_map = mesh, path, index_map
+        self.n_input = mesh.n_vertices if n_input is None else n_input
+
+    def to_input(self, vertices: np.ndarray) -> np.ndarray:
+        """Vertex indices of the used mesh as indices of the file's vertices."""
+        return np.asarray(vertices) if self.index_map is None else self.index_map[np.asarray(vertices)]
+
+
+def _repaired(mesh: Any, path: str, label: str, repair: bool) -> _Loaded:
+    """The mesh, repaired when ``repair`` (printing what was removed from it)."""
+    if not repair:
+        return _Loaded(mesh, path)
+    from wpot.pipeline import repair_mesh
+
+    fixed, index_map, removed = repair_mesh(mesh)
+    print(f"--repair {label}: " + (f"removed {removed}" if removed else "nothing to repair"))
+    if not removed:
+        return _Loaded(mesh, path)
+    return _Loaded(fixed, path, index_map, mesh.n_vertices)
+
+
+def _load(path: str, label: str, repair: bool = False) -> _Loaded:
     from wpot.io import load_mesh
 
     if not Path(path).is_file():
         raise CliError(f"mesh file not found: {path}")
-    return load_mesh(path)
+    return _repaired(load_mesh(path, warn=not repair), path, label, repair)
 
 
 def _summary_lines(c: Any, match_ratio: float) -> list[str]:
+    sa, sb = getattr(c, "sample_a", None), getattr(c, "sample_b", None)
+    n1, n2 = len(c.mass1), len(c.mass2)
+    if sa is None and sb is None:
+        points = "vertices"
+        where = f"transport on every vertex: {n1} x {n2}"
+    else:
+        na = len(c.correspondence)
+        nb = len(sb.nearest) if sb is not None else n2
+        points = "samples"
+        where = f"transport on {n1} x {n2} farthest-point samples of {na} x {nb} vertices"
     lines = [
         f"distance: {c.distance:.6g}  ({'U, Eq. 6' if c.transport == 'balanced' else 'SU, Eq. 27'}; "
         f"{signature_title(c.signature)}, {c.transport} transport)",
+        where,
         f"converged: {bool(c.result.converged)} at beta {float(c.result.beta):.3g}"
         f" ({int(c.result.n_newton)} Newton steps, {int(c.result.n_linear)} linear iterations)",
-        f"matched pairs (G > {match_ratio:g} m1): {len(c.matched)} of {len(c.correspondence)} vertices",
+        f"matched pairs (G > {match_ratio:g} m1): {len(c.matched)} of {n1} {points} of A",
     ]
     if c.registration is not None:
         r = c.registration
         lines.append(f"registration: scale {r.scale:.4g}, rms residual {r.rms:.4g} over {r.n_pairs} pairs")
     else:
-        n1, n2 = len(c.mass1), len(c.mass2)
         why = (f"with balanced transport a point of A (mass 1/{n1}) fits in one of B (mass 1/{n2}) only when "
                f"{n2} <= {n1}/{match_ratio:g}; use --transport partial, equal --max-vertices, or a lower --match-ratio"
                if c.transport == "balanced" and n2 > n1 / match_ratio else "lower --match-ratio, or try --transport partial")
@@ -231,10 +465,69 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     return lines
 
 
-def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = None,
+def _state_info(comparer: Any, run: str | None, n_run_shapes: int | None) -> dict[str, Any] | None:
+    """What comparison.json records of the signature's fitted state (WKS's energy grid): the values, and
+    whether they were fitted to this pair or read from a run. None for a signature with nothing to fit."""
+    state = comparer.stage.state()
+    if not comparer.stage.needs_fit or not state:
+        return None
+    return {"fitted_to": "this pair" if run is None else "run", "run": run,
+            "n_shapes": 2 if run is None else n_run_shapes, **state}
+
+
+def _state_lines(comparer: Any, info: dict[str, Any] | None) -> list[str]:
+    """The printed account of the fitted state: which grid, and why it matters for the distance."""
+    if info is None:
+        return []
+    title = comparer.stage.title
+    desc = "; ".join(f"{len(info[k])} {'energies (log E)' if k == 'energies' else k} from {min(info[k]):.4g} to "
+                     f"{max(info[k]):.4g}" for k in comparer.stage.state_keys)
+    what = "energy grid" if "energies" in comparer.stage.state_keys else "grid"
+    if info["fitted_to"] == "this pair":
+        return [f"{title} {what}: fitted to this pair ({desc})",
+                f"  (an all-vs-all run fits one {what} to its whole dataset, paper section 3.2, and so gives this pair "
+                f"another distance; --energies-from RUN compares on that run's {what})"]
+    return [f"{title} {what}: from the run {info['run']}, fitted to its {info['n_shapes']} shapes ({desc})"]
+
+
+def _run_state(run: str, config: Any) -> tuple[dict[str, Any], int, list[str]]:
+    """The signature state stored in the run folder ``run`` for ``config``'s signature, the run's shape count,
+    and the settings (flag: run value, this value) that differ from the run's other than the signature's own,
+    which must match: the grid was fitted for them."""
+    import dataclasses
+
+    from wpot.pipeline import RunStore, param_differences
+    from wpot.signatures import get_signature
+
+    sig = get_signature(config.signature)
+    if not sig.needs_fit:
+        raise CliError(f"--energies-from: {sig.title} has no fitted grid to take from a run (it is used as it is); "
+                       "drop --energies-from")
+    if not Path(run).is_dir():
+        raise CliError(f"--energies-from: no such run folder: {run}")
+    with RunStore(run) as store:
+        state, params, n = store.signature_state(), store.params, store.n_shapes
+    table, switches = flag_table(), _switches()
+    own = {f.metadata.get("keyword", f.name) for f in dataclasses.fields(sig.Options)} | {"signature"}
+    diffs = param_differences(params, config.run_key())
+    words = [f"{table.get(k, k)}: the run's {_value_words(x, table.get(k), switches)}, here "
+             f"{_value_words(y, table.get(k), switches)}" for k, x, y in diffs]
+    mismatch = [w for (k, _, _), w in zip(diffs, words) if k in own]
+    if mismatch:
+        raise CliError(f"--energies-from {run}: its grid was fitted for other {sig.title} settings ("
+                       + "; ".join(mismatch) + "); give the run's settings")
+    if not state:
+        raise CliError(f"--energies-from {run}: the run has not fitted its {sig.title} grid yet (rerun its all-vs-all)")
+    return state, n, [w for (k, _, _), w in zip(diffs, words) if k not in own]
+
+
+def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
                      refined: np.ndarray | None = None) -> list[Path]:
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given) and
-    correspondence.png (of ``refined`` when given, else of the plan's correspondence)."""
+    correspondence.png (of ``refined`` when given, else of the plan's correspondence).
+
+    Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
+    maps to -1, and ``index_map_a`` / ``index_map_b`` give the file index of each vertex used."""
     from wpot.plot import plot_correspondence
 
     out.mkdir(parents=True, exist_ok=True)
@@ -245,6 +538,8 @@ def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = Non
         "converged": bool(c.result.converged),
         "beta": float(c.result.beta),
         "n_matched": int(len(c.matched)),
+        "n_points": [int(len(c.mass1)), int(len(c.mass2))],
+        "n_vertices": [int(a.mesh.n_vertices), int(b.mesh.n_vertices)],
         "self_energies": c.self_energies,
         "history": c.history.tolist(),
         "registration": None
@@ -260,44 +555,89 @@ def _save_comparison(c: Any, a, b, out: Path, extra: dict[str, Any] | None = Non
     }
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
-    arrays = {} if refined is None else {"correspondence_zoomout": refined}
-    np.savez(files[1], correspondence=c.correspondence, matched=c.matched, matched_weight=c.matched_weight,
+
+    def on_input(corr: np.ndarray) -> np.ndarray:
+        full = np.full(a.n_input, -1, dtype=np.int64)
+        full[a.to_input(np.arange(a.mesh.n_vertices))] = b.to_input(corr)
+        return full
+
+    arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined)}
+    for name, m in (("index_map_a", a), ("index_map_b", b)):
+        if m.index_map is not None:
+            arrays[name] = m.index_map
+    matched = np.stack([a.to_input(c.matched[:, 0]), b.to_input(c.matched[:, 1])], axis=1) if len(c.matched) else c.matched
+    np.savez(files[1], correspondence=on_input(c.correspondence), matched=matched, matched_weight=c.matched_weight,
              mass1=c.mass1, mass2=c.mass2, **arrays)
+    mb = b.mesh
     title_b = "B"
     if c.registration is not None:  # draw B in A's pose: undo the fitted similarity
-        b = c.registration.inverse().apply(b)
+        mb = c.registration.inverse().apply(mb)
         title_b = "B, moved onto A by the inverse of the fitted registration"
     shown, what = (c.correspondence, "correspondence") if refined is None else (refined, "ZoomOut correspondence")
-    plot_correspondence(a, b, shown, titles=(f"A, coloured through the {what}", title_b), path=files[2])
+    plot_correspondence(a.mesh, mb, shown, titles=(f"A, coloured through the {what}", title_b), path=files[2])
     return files
 
 
+def _check_out_folder(out: str | None) -> None:
+    """--out names a folder: refuse a file there before any work, not after it."""
+    if out is not None and Path(out).exists() and not Path(out).is_dir():
+        raise CliError(f"--out {out} is a file; give a folder")
+
+
+def _check_trials(a: argparse.Namespace) -> None:
+    if a.trials < 1:
+        raise CliError(f"--trials must be >= 1, got {a.trials}")
+    if a.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {a.seed}")
+
+
+def _check_size(m: _Loaded, config: Any, label: str) -> None:
+    from wpot.comparison import check_mesh_size
+
+    check_mesh_size(m.mesh, config, f"{label} ({m.path})")
+
+
 def cmd_demo(a: argparse.Namespace) -> None:
-    from wpot.comparison import compare
+    from wpot.comparison import Comparer
     from wpot.examples import example_pair
 
     t0 = time.perf_counter()
-    # equal vertex counts, so that a balanced plan can match vertex to vertex (G > 0.9 m1) and a
-    # registration can be fitted
-    pair = example_pair(a.n, seed=0, n_target=a.n)
-    src, tgt = pair.source, pair.target
     config = config_from_args(a)
     _check_zoomout(a)
-    c = compare(src, tgt, config=config, device=a.device)
-    print(f"example shapes: {src.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
+    _check_out_folder(a.out)
+    # equal vertex counts, so that a balanced plan can match vertex to vertex (G > 0.9 m1) and a
+    # registration can be fitted
+    try:
+        pair = example_pair(a.n, seed=0, n_target=a.n)
+    except ValueError as exc:  # "n must be an integer >= 50, ...": n is --n here
+        raise CliError(re.sub(r"^n must", "--n must", str(exc))) from None
+    src = _repaired(pair.source, "example A", "A", a.repair)
+    tgt = _repaired(pair.target, "example B", "B", a.repair)
+    for m, label in ((src, "A"), (tgt, "B")):
+        _check_size(m, config, label)
+    comparer = Comparer(config, device=a.device, progress=_progress(a))
+    c = comparer.compare(src.mesh, tgt.mesh)
+    print(f"example shapes: {pair.source.n_vertices} vertices each (two triangulations of one surface, B rigidly moved)")
+    print(f"settings: {config.describe()}")
     for line in _summary_lines(c, a.match_ratio):
+        print(line)
+    state = _state_info(comparer, None, None)
+    for line in _state_lines(comparer, state):
         print(line)
 
     def median_error(corr: np.ndarray, label: str) -> float:
         """Ground truth: source vertex i is well matched when the target vertex it maps to samples a point of
         the surface near vertex i (in the source frame, in mean edge lengths). Prints and returns the median."""
-        err = np.linalg.norm(pair.target_in_source_frame[corr] - src.vertices, axis=1) / src.mean_edge_length
+        truth = pair.target_in_source_frame[tgt.to_input(corr)]
+        err = np.linalg.norm(truth - pair.source.vertices[src.to_input(np.arange(src.mesh.n_vertices))], axis=1)
+        err = err / pair.source.mean_edge_length
         print(f"{label}: median {np.median(err):.2f} mean edge lengths, "
               f"{100 * np.mean(err <= 2):.0f}% of vertices within 2 edge lengths")
         return float(np.median(err))
 
-    extra = {"median_error_edge_lengths": median_error(c.correspondence, "correspondence error vs ground truth")}
-    refined = _zoomout(a, src, tgt, c)
+    extra = {"median_error_edge_lengths": median_error(c.correspondence, "correspondence error vs ground truth"),
+             "signature_state": state, "repair": bool(a.repair)}
+    refined = _zoomout(a, src.mesh, tgt.mesh, c)
     if refined is not None:
         extra["median_error_edge_lengths_zoomout"] = median_error(refined, "after ZoomOut")
     files = _save_comparison(c, src, tgt, Path(a.out), extra, refined=refined)
@@ -309,18 +649,36 @@ def cmd_demo(a: argparse.Namespace) -> None:
 
 
 def cmd_compare(a: argparse.Namespace) -> None:
-    from wpot.comparison import compare
+    from wpot.comparison import Comparer
 
     config = config_from_args(a)  # option errors before any file is read
     _check_zoomout(a)
-    ma, mb = _load(a.mesh_a), _load(a.mesh_b)
-    c = compare(ma, mb, config=config, device=a.device)
-    print(f"A: {a.mesh_a} ({ma.n_vertices} vertices)   B: {a.mesh_b} ({mb.n_vertices} vertices)")
+    _check_out_folder(a.out)
+    state, n_run, other = None, None, []
+    if a.energies_from is not None:
+        state, n_run, other = _run_state(a.energies_from, config)
+    ma, mb = _load(a.mesh_a, "A", a.repair), _load(a.mesh_b, "B", a.repair)
+    for m, label in ((ma, "A"), (mb, "B")):
+        _check_size(m, config, label)
+    comparer = Comparer(config, device=a.device, signature_state=state, progress=_progress(a))
+    c = comparer.compare(ma.mesh, mb.mesh)
+    def size(m: _Loaded) -> str:
+        return (f"{m.mesh.n_vertices} vertices" if m.index_map is None
+                else f"{m.mesh.n_vertices} of its {m.n_input} vertices after --repair")
+
+    print(f"A: {a.mesh_a} ({size(ma)})   B: {a.mesh_b} ({size(mb)})")
+    print(f"settings: {config.describe()}")
     for line in _summary_lines(c, a.match_ratio):
         print(line)
-    refined = _zoomout(a, ma, mb, c)
+    info = _state_info(comparer, a.energies_from, n_run)
+    for line in _state_lines(comparer, info):
+        print(line)
+    if other:
+        print(f"  (other settings than the run's: {'; '.join(other)}; so this is not the run's distance for the pair)")
+    refined = _zoomout(a, ma.mesh, mb.mesh, c)
     if a.out:
-        extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout)}
+        extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
+                 "settings": config.describe(), "signature_state": info, "repair": bool(a.repair)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined)
         print("saved " + ", ".join(str(f) for f in files))
 
@@ -345,7 +703,7 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
     try:
         store = run_all_vs_all(
             a.source, a.out, jobs=(jobs or None), scheduler=a.scheduler, labels=a.labels,
-            progress=not a.no_progress, config=config, device=a.device,
+            progress=_progress(a), config=config, device=a.device, repair=a.repair,
         )
     except ImportError as exc:
         if a.scheduler is None:
@@ -355,9 +713,14 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         total, done = len(store.tasks()), len(store.done())
         fails = store.failures()
         conv = sum(1 for r in store.pair_rows() if r["converged"])
+        repairs = store.get("repairs") or {}
+    if a.repair:
+        print("--repair: " + ("; ".join(f"{name}: removed {what}" for name, what in repairs.items())
+                              if repairs else "nothing to repair"))
     print(f"{done} of {total} pairs in {a.out} ({conv} converged), {time.perf_counter() - t0:.1f} s this session")
     if fails:
-        raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {fails[0][2]}); rerun to retry them")
+        raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {cli_words(fails[0][2])}); "
+                       "rerun to retry them")
 
 
 def cmd_classify(a: argparse.Namespace) -> None:
@@ -365,6 +728,7 @@ def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.pipeline import RunStore
     from wpot.report import PAPER_TABLE1, classify_run, confusions, misses_text
 
+    _check_trials(a)
     with RunStore(a.run) as store:
         r = classify_run(store, trials=a.trials, seed=a.seed)
         p = store.params
@@ -420,6 +784,7 @@ def cmd_export(a: argparse.Namespace) -> None:
 def cmd_report(a: argparse.Namespace) -> None:
     from wpot.report import build_report
 
+    _check_trials(a)
     out = build_report(a.runs, a.out, trials=a.trials, seed=a.seed)
     print(out.read_text())
     print(f"saved {out}")

@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike
 from wpot import _validate
 from wpot.config import DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS, ComparisonConfig
 from wpot.mesh import Mesh
+from wpot.progress import as_progress
 from wpot.registration import Registration, fit_similarity
 from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_point_sampling
 
@@ -52,6 +53,8 @@ __all__ = [
     "cost_scale",
     "solver_mass_penalty",
     "choose_cost_mode",
+    "check_mesh_size",
+    "min_vertices",
 ]
 
 #: fraction of the device's free memory a solve may plan to use (`Comparer`'s default ``memory_limit``)
@@ -138,12 +141,6 @@ def solver_mass_penalty(C: Any, mass_penalty: float, *, penalty_scale: str = "re
     return mp * s / math.sqrt(n1 * n2)
 
 # ----------------------------------------------------------------------------------------------- memory
-def _free_memory(device: str) -> int:
-    import warp as wp
-
-    return int(wp.get_device(device).free_memory)
-
-
 def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: float) -> bool:
     """Whether an ``n1 × n2`` problem with ``dim``-dimensional signatures must run matrix-free.
 
@@ -168,6 +165,47 @@ def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: floa
         f"{lazy / 2**30:.2f} GiB matrix-free, but the budget is {budget_bytes / 2**30:.2f} GiB; pass max_vertices "
         f"(at most about {k} here for the dense mode) to subsample both meshes by farthest-point sampling"
     )
+
+
+# ------------------------------------------------------------------------------------------- mesh size
+#: the fewest vertices of a mesh in a comparison: three points to sample (`SamplerOptions.max_vertices`) and
+#: three matched pairs to fit a registration
+MIN_VERTICES = 3
+#: the fewest Laplace-Beltrami eigenpairs a spectral signature (one with an ``n_eigen`` option: WKS, HKS) takes
+#: from a mesh with fewer vertices than ``n_eigen`` (it uses all of them). Below this, every vertex's signature
+#: is a mix of a handful of eigenfunctions, and the spectrum's top lies in another band than a full mesh's, so
+#: the shared grid fails with a message about units of length (or, worse, fits and gives a meaningless distance).
+MIN_EIGENPAIRS = 10
+
+
+def min_vertices(config: ComparisonConfig) -> tuple[int, str]:
+    """The fewest vertices a mesh may have in a comparison with ``config``, and why (for the error message)."""
+    from wpot.signatures import get_signature
+
+    title = get_signature(config.signature).title
+    n_eigen = getattr(config.signature_options, "n_eigen", None)
+    if n_eigen is None:
+        return MIN_VERTICES, f"a comparison needs at least {MIN_VERTICES} points to sample and to match"
+    need = max(MIN_VERTICES, min(int(n_eigen), MIN_EIGENPAIRS))
+    return need, (f"{title} takes min(n_eigen, N) Laplace-Beltrami eigenpairs from a mesh of N vertices and needs "
+                  f"at least {need} of them (n_eigen={n_eigen})")
+
+
+def check_mesh_size(mesh: Mesh, config: ComparisonConfig, name: str = "mesh") -> None:
+    """A `ValueError` naming ``name`` when ``mesh`` has too few vertices for ``config`` (`min_vertices`), raised
+    before any spectrum or transport is computed."""
+    need, why = min_vertices(config)
+    if mesh.n_vertices < need:
+        raise ValueError(f"{name} has only {mesh.n_vertices} vertices, too few to compare: {why}")
+
+
+def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
+    """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
+    n_eigen = getattr(stage.options, "n_eigen", None)
+    if n_eigen is not None:
+        return (f"Laplace-Beltrami spectrum of {label} ({mesh.n_vertices} vertices, "
+                f"{min(int(n_eigen), mesh.n_vertices)} eigenpairs)")
+    return f"fitting {stage.title} to {label} ({mesh.n_vertices} vertices)"
 
 
 # ----------------------------------------------------------------------------------------------- results
@@ -229,9 +267,10 @@ class Comparer:
     Parameters
     ----------
     config : a `wpot.config.ComparisonConfig`; or leave it out and give the flat keywords below
-    signature : a registered signature (`wpot.signatures.signature_names`): "wks" (intrinsic, §2.3; cost
-        Eq. 29), "ldsift" (extrinsic, §2.2; L2), "hks" (intrinsic, heat kernel), ...
-    transport : "balanced" (Eq. 6–16) or "partial" (Eq. 17–26)
+    signature : one of the registered signatures (`wpot.signatures.signature_names()`): "wks" (default;
+        intrinsic, §2.3; cost Eq. 29), "ldsift" (extrinsic, §2.2; L2) or "hks" (intrinsic, heat kernel)
+    transport : one of `wpot.config.TRANSPORTS`: "balanced" (default; Eq. 6–16) or "partial" (Eq. 17–26,
+        for a shape against a part of another)
     max_vertices, vertices_per_sample, fps_metric, pooling : the sampler's options (`wpot.sampling.SamplerOptions`;
         by default every vertex is used)
     mass_penalty, penalty_scale : partial transport's χ² penalty. With ``penalty_scale="relative"`` (default)
@@ -255,6 +294,9 @@ class Comparer:
         `fit` (a dataset) or, for a lone pair, by `compare` to the two shapes
     memory_limit : bytes a transport problem may use on the device (None: `MEMORY_FRACTION` of its free
         memory). A problem whose dense form does not fit runs matrix-free (`choose_cost_mode`).
+    progress : report the steps of `compare` and `fit` (spectra, signatures, sampling, transport), each with
+        its time: True (on standard error; in Jupyter `tqdm.auto` shows the bars as widgets), False (default:
+        nothing), or a `wpot.progress.Progress`
     """
 
     def __init__(
@@ -266,6 +308,7 @@ class Comparer:
         energies: ArrayLike | None = None,
         signature_state: dict[str, Any] | None = None,
         memory_limit: float | None = None,
+        progress: Any = False,
         **keywords: Any,
     ) -> None:
         if config is None:
@@ -280,6 +323,7 @@ class Comparer:
             signature_state = {"energies": energies}
         caches = None
         self._setup(config, device, cache_dir, signature_state, memory_limit, caches)
+        self.progress = as_progress(progress)
 
     def _setup(self, config: ComparisonConfig, device: str | None, cache_dir: Any, signature_state: Any,
                memory_limit: float | None, caches: tuple[Any, Any] | None) -> None:
@@ -289,6 +333,7 @@ class Comparer:
         from wpot.signatures import get_signature
 
         self.config = config
+        self.progress = as_progress(False)
         self.device = _resolve_device(device)
         self.cache_dir = cache_dir
         self.memory_limit = None if memory_limit is None else _validate.positive_finite("memory_limit", memory_limit)
@@ -313,7 +358,7 @@ class Comparer:
 
     def __getattr__(self, name: str) -> Any:
         # the flat settings (mass_penalty, max_vertices, n_eigen, ldsift_slab, ...) read from the configuration
-        if name.startswith("_") or name in ("config", "stage"):
+        if name.startswith("_") or name in ("config", "stage", "progress"):
             raise AttributeError(name)
         kw = self.config.keywords()
         if name in kw:
@@ -366,6 +411,7 @@ class Comparer:
                    (self.signature_cache, self.spectrum_cache) if same_dir else None)
         if new.config.sampler.fps_metric == self.config.sampler.fps_metric:
             new.sampler.share_samples_with(self.sampler)
+        new.progress = self.progress
         return new
 
     # ------------------------------------------------------------------------------ signatures
@@ -385,10 +431,36 @@ class Comparer:
         if self.stage.key() != old:
             self._self_energies.clear()  # the signatures (and so the self-comparisons) depend on the state
 
-    def fit(self, meshes: Sequence[Mesh]) -> None:
-        """Fit the signature to a dataset (WKS's energy grid, HKS's times: one for every shape, paper §3.2)."""
+    def fit(self, meshes: Sequence[Mesh], *, labels: Sequence[str] | None = None) -> None:
+        """Fit the signature to a dataset (WKS's energy grid, HKS's times: one for every shape, paper §3.2).
+
+        With ``progress``, each mesh's share (for WKS and HKS its spectrum, the long part) is reported: a line per
+        mesh for a pair (``labels`` names them; default: their positions), a bar for more."""
+        meshes = list(meshes)
         old = self.stage.key()
-        self.stage.fit(list(meshes))
+        from wpot.signatures import Signature
+
+        if self.stage.needs_fit and type(self.stage).fit is not Signature.fit:  # a signature with its own fit
+            with self.progress.stage(f"fitting {self.stage.title} to {len(meshes)} shapes"):
+                self.stage.fit(meshes)
+        elif self.stage.needs_fit and len(meshes) <= 2:  # a pair: a line per mesh
+            names = list(labels) if labels is not None else [f"shape {k}" for k in range(len(meshes))]
+            inputs = []
+            for name, m in zip(names, meshes):
+                with self.progress.stage(_fit_step(self.stage, name, m)):
+                    inputs.append(self.stage.fit_input(m))
+            self.stage.fit_from(inputs)
+        elif self.stage.needs_fit:  # a dataset: a bar
+            spectral = hasattr(self.stage.options, "n_eigen")
+            bar = self.progress.bar(len(meshes), "spectra" if spectral else f"fitting {self.stage.title}", "shape")
+            inputs = []
+            try:
+                for m in meshes:
+                    inputs.append(self.stage.fit_input(m))
+                    bar.update()
+            finally:
+                bar.close()
+            self.stage.fit_from(inputs)
         if self.stage.key() != old:
             self._self_energies.clear()
 
@@ -426,9 +498,21 @@ class Comparer:
         """What the transport sees of ``mesh``: every vertex, or its farthest-point samples."""
         return self.sampler.points(mesh, self.signatures(mesh))
 
+    def _reported_points(self, mesh: Mesh, label: str) -> Points:
+        """`points`, with the signatures and the sampling reported as two steps."""
+        with self.progress.stage(f"{self.stage.title} signatures of {label} ({mesh.n_vertices} vertices)"):
+            sig = self.signatures(mesh)
+        k = self.n_samples(mesh.n_vertices)
+        if k >= mesh.n_vertices:
+            return self.sampler.points(mesh, sig)
+        with self.progress.stage(f"farthest-point sampling of {label}: {k} of {mesh.n_vertices} vertices"):
+            return self.sampler.points(mesh, sig)
+
     # ------------------------------------------------------------------------------ transport
     def _budget(self) -> float:
-        return self.memory_limit if self.memory_limit is not None else MEMORY_FRACTION * _free_memory(self.device)
+        from wpot._warp import available_memory
+
+        return self.memory_limit if self.memory_limit is not None else MEMORY_FRACTION * available_memory(self.device)
 
     def transport_problem(self, pa: Points, pb: Points) -> Any:
         """The `wpot.ot.TransportProblem` between two point sets: the cost (dense, or a `FeatureCost` when the
@@ -477,16 +561,22 @@ class Comparer:
         for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
             if not isinstance(m, Mesh):
                 raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
+            check_mesh_size(m, self.config, name)
         if self.stage.needs_fit and not self.stage.fitted:
-            self.fit([mesh_a, mesh_b])
+            self.fit([mesh_a, mesh_b], labels=["A", "B"])
         self.sampler.check_cells(mesh_a, mesh_b)
-        pa, pb = self.points(mesh_a), self.points(mesh_b)
-        res = self.solver.solve(self.transport_problem(pa, pb))
+        pa, pb = self._reported_points(mesh_a, "A"), self._reported_points(mesh_b, "B")
+        what = "every vertex" if pa.subsample is None and pb.subsample is None else "farthest-point samples"
+        with self.progress.stage(f"{self.transport} transport on {what}, {len(pa.signatures)} x {len(pb.signatures)}"):
+            res = self.solver.solve(self.transport_problem(pa, pb))
         hist = res.energy_history
         self_e = None
         distance = float(res.objective)  # U (Eq. 6): for balanced transport the objective is the cost
         if self.transport == "partial":
-            (uaa, haa), (ubb, hbb) = self.self_energy(mesh_a), self.self_energy(mesh_b)
+            with self.progress.stage("self-comparison of A (Eq. 27)"):
+                uaa, haa = self.self_energy(mesh_a)
+            with self.progress.stage("self-comparison of B (Eq. 27)"):
+                ubb, hbb = self.self_energy(mesh_b)
             distance = float(debiased(distance, uaa, ubb))
             self_e = (uaa, ubb)
             hist = debias_history(hist, haa, hbb)
@@ -561,18 +651,27 @@ def _resolve_device(device: str | None) -> str:
 
 
 def compare(mesh_a: Mesh, mesh_b: Mesh, *, config: ComparisonConfig | None = None, device: str | None = None,
-            **options: Any) -> Comparison:
+            progress: Any = False, **options: Any) -> Comparison:
     """Compare two meshes by statistical-physics optimal transport of their vertex signatures.
 
-    One-shot form of `Comparer`, which lists every option: ``signature`` (`wpot.signatures.signature_names`:
-    "wks", "ldsift", "hks"), ``transport`` ("balanced" or "partial"), ``max_vertices``, ``mass_penalty``,
-    the signature's options (``n_eigen``, ...), ``solver_options``, ... For many pairs, build one
-    `Comparer`, so that signatures are computed once per shape and every shape shares one fitted state
-    (WKS's energy grid).
+    One-shot form of `Comparer`. For many pairs, build one `Comparer`, so that signatures are computed once
+    per shape and every shape shares one fitted state (WKS's energy grid).
+
+    Parameters
+    ----------
+    mesh_a, mesh_b : the two shapes (`wpot.Mesh`, e.g. from `wpot.load_mesh`); the correspondence maps A to B
+    signature : one of the registered signatures (`wpot.signatures.signature_names()`): "wks" (default; wave
+        kernel, intrinsic), "ldsift" (depth images + SIFT, extrinsic) or "hks" (heat kernel, intrinsic)
+    transport : one of `wpot.config.TRANSPORTS`: "balanced" (default; all mass matched) or "partial"
+        (a shape against a part of another)
+    max_vertices, mass_penalty, solver_options, the signature's options (``n_eigen``, ...), ... : every other
+        keyword of `Comparer`, which describes them all; or ``config``, a `wpot.ComparisonConfig`
+    device : Warp device ("cpu", "cuda", "cuda:0"); None is Warp's default
+    progress : ``True`` reports each step with its time (`wpot.progress`)
 
     Returns
     -------
     Comparison : distance (U or SU, Eq. 27), correspondence (N_A,), matched pairs, masses, registration,
         and the solver's `OTResult`.
     """
-    return Comparer(config, device=device, **options).compare(mesh_a, mesh_b)
+    return Comparer(config, device=device, progress=progress, **options).compare(mesh_a, mesh_b)

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import dataclasses
 import functools
 import json
 import os
@@ -73,6 +74,8 @@ __all__ = [
     "dask_executor",
     "decade_grid",
     "discover_shapes",
+    "param_differences",
+    "repair_mesh",
     "run_all_vs_all",
 ]
 
@@ -81,7 +84,72 @@ SCHEMA_VERSION = 1
 
 
 class RunMismatchError(ValueError):
-    """A run folder already holds a run with different parameters or shapes."""
+    """A run folder already holds a run with different parameters or shapes.
+
+    Attributes
+    ----------
+    folder : the run folder
+    differences : the settings that differ, as (keyword, stored, requested) (empty when the shapes differ):
+        only settings whose meaning differs, each by its `wpot.Comparer` keyword (the transport solver as
+        ``"method"``, its other options as ``"solver_options.<name>"``, ``"repair"`` for the mesh repair), a
+        value left out of a key read as its default. The ``wpot`` command words them with its flags.
+    """
+
+    def __init__(self, message: str, *, folder: str | Path | None = None,
+                 differences: Sequence[tuple[str, Any, Any]] = ()) -> None:
+        super().__init__(message)
+        self.folder = None if folder is None else str(folder)
+        self.differences = tuple(differences)
+
+
+def _key_defaults() -> dict[str, Any]:
+    """What a run key's entry means when it is absent or None: the default of its keyword (signature
+    options of every registered signature included; ``fps_metric`` and ``pooling`` are None in a key without
+    sampling, which samples nothing and so means their defaults)."""
+    from wpot.config import ComparisonConfig
+    from wpot.signatures import SIGNATURES
+
+    out: dict[str, Any] = {}
+    for cls in SIGNATURES.values():
+        for f in dataclasses.fields(cls.Options):
+            out.setdefault(f.metadata.get("keyword", f.name), f.default)
+    out.update(ComparisonConfig().keywords())
+    out.pop("solver_options", None)
+    out["method"] = ComparisonConfig().method
+    return out
+
+
+def _flat_key(params: Mapping[str, Any]) -> dict[str, Any]:
+    """A run key with its solver options spread out (``method``, ``solver_options.<name>``)."""
+    out = {k: v for k, v in params.items() if k != "solver_options"}
+    for k, v in dict(params.get("solver_options") or {}).items():
+        out["method" if k == "method" else f"solver_options.{k}"] = v
+    return out
+
+
+def param_differences(stored: Mapping[str, Any], requested: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    """The settings whose meaning differs between two run keys, as (keyword, stored, requested).
+
+    An absent or None entry means its default (`_key_defaults`), so a key that leaves out an option at its
+    default, or names no sampling option because nothing is sampled, differs only where a setting does.
+    When the signatures differ, options that only one of them has are left out: the signature itself is
+    the difference."""
+    from wpot.signatures import SIGNATURES
+
+    defaults = _key_defaults()
+    old, new = _flat_key(stored), _flat_key(requested)
+    signature_changed = old.get("signature") != new.get("signature")
+    signature_keywords = {f.metadata.get("keyword", f.name) for cls in SIGNATURES.values()
+                          for f in dataclasses.fields(cls.Options)}
+    out = []
+    for k in sorted(set(old) | set(new), key=lambda k: (k != "signature", k != "transport", k)):
+        if signature_changed and k in signature_keywords and (k not in old or k not in new):
+            continue
+        a = old.get(k) if old.get(k) is not None else defaults.get(k)
+        b = new.get(k) if new.get(k) is not None else defaults.get(k)
+        if a != b:
+            out.append((k, a, b))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- shapes
@@ -94,12 +162,13 @@ class ShapeSpec:
     mesh: Mesh | None = None
     labels: Mapping[str, str] | None = None
 
-    def load(self) -> Mesh:
+    def load(self, *, warn: bool = True) -> Mesh:
+        """The mesh (read from ``path``; ``warn=False`` reads it without the `MeshWarning` about its defects)."""
         if self.mesh is not None:
             return self.mesh
         from wpot.io import load_mesh
 
-        return load_mesh(self.path)
+        return load_mesh(self.path, warn=warn)
 
 
 def discover_shapes(
@@ -246,11 +315,15 @@ class RunStore:
         if self.get("params_hash") is not None:
             if self.params != params:
                 old = self.params
-                diff = {k: (old.get(k), params.get(k)) for k in sorted(set(old) | set(params)) if old.get(k) != params.get(k)}
+                diff = param_differences(old, params)
+                if not diff:  # equal in meaning but not in layout: list the raw entries
+                    diff = [(k, old.get(k), params.get(k)) for k in sorted(set(old) | set(params))
+                            if old.get(k) != params.get(k)]
                 raise RunMismatchError(
                     f"{str(self.folder)!r} holds a run with other parameters: "
-                    + "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, (a, b) in diff.items())
-                    + ". Use another --out folder, or rerun with the stored parameters to resume."
+                    + "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, a, b in diff)
+                    + ". Use another run folder, or rerun with the stored parameters to resume.",
+                    folder=self.folder, differences=diff,
                 )
             old_fps = [r[0] for r in self.con.execute("SELECT fingerprint FROM shapes ORDER BY idx")]
             if old_fps != fps:
@@ -262,7 +335,8 @@ class RunStore:
                     else "the same names but different mesh contents"
                 )
                 raise RunMismatchError(
-                    f"{str(self.folder)!r} holds a run over other shapes ({what}); use another --out folder"
+                    f"{str(self.folder)!r} holds a run over other shapes ({what}); use another run folder",
+                    folder=self.folder,
                 )
             self._write_labels(labels)  # labels may be added or corrected on resume; they change no distance
             return
@@ -586,19 +660,40 @@ def _worker_comparer(config: Mapping[str, Any]):
 
 
 @functools.lru_cache(maxsize=64)
-def _mesh_at(path: str) -> Mesh:
+def _mesh_at(path: str, repair: bool = False) -> Mesh:
     from wpot.io import load_mesh
 
+    if repair:
+        return repair_mesh(load_mesh(path, warn=False))[0]
     return load_mesh(path)
 
 
-def _worker_mesh(spec: Any) -> Mesh:
-    return spec if isinstance(spec, Mesh) else _mesh_at(spec)
+def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
+    """A task's mesh: given, or read from its path (and repaired when the run repairs its meshes)."""
+    return spec if isinstance(spec, Mesh) else _mesh_at(spec, bool(config.get("repair", False)))
+
+
+def repair_mesh(mesh: Mesh) -> tuple[Mesh, np.ndarray, str]:
+    """`Mesh.cleaned` with an account of what it removed.
+
+    Returns
+    -------
+    mesh, index_map : as `Mesh.cleaned` (``index_map[i]`` is the input index of the repaired mesh's vertex i)
+    removed : what was removed, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"``; "" when nothing was
+    """
+    fixed, index_map = mesh.cleaned()
+    n_degenerate = int(mesh.degenerate_faces.size)
+    counts = [
+        (n_degenerate, "zero-area triangle", "zero-area triangles"),
+        (mesh.n_faces - fixed.n_faces - n_degenerate, "duplicate triangle", "duplicate triangles"),
+        (mesh.n_vertices - fixed.n_vertices, "unreferenced vertex", "unreferenced vertices"),
+    ]
+    return fixed, index_map, ", ".join(f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0)
 
 
 def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
     """Compute (and cache on disk) one shape's signatures; returns its vertex count."""
-    mesh = _worker_mesh(spec)
+    mesh = _worker_mesh(spec, config)
     _worker_comparer(config).signatures(mesh)
     return mesh.n_vertices
 
@@ -606,20 +701,20 @@ def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
 def _fit_input_task(spec: Any, config: Mapping[str, Any]) -> Any:
     """One shape's contribution to fitting the signature to the dataset (`Signature.fit_input`: for WKS, its
     eigenvalues; the eigenvectors stay in the run's spectrum cache, on disk)."""
-    return _worker_comparer(config).stage.fit_input(_worker_mesh(spec))
+    return _worker_comparer(config).stage.fit_input(_worker_mesh(spec, config))
 
 
 def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
     """Solve one pair (raw energy U and its per-β history), self-contained so any executor can run it."""
     t0 = time.perf_counter()
     comp = _worker_comparer(config)
-    a = _worker_mesh(spec_i)
+    a = _worker_mesh(spec_i, config)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # non-convergence is recorded in the store's `converged` column
         if i == j:
             res = comp.self_transport(a)
         else:
-            res = comp.transport_plan(a, _worker_mesh(spec_j))
+            res = comp.transport_plan(a, _worker_mesh(spec_j, config))
     return {
         "i": i,
         "j": j,
@@ -645,9 +740,10 @@ def run_all_vs_all(
     scheduler: str | None = None,
     labels: str | Path | Mapping[str, Mapping[str, str]] | None = None,
     device: str | None = None,
-    progress: bool = True,
+    progress: Any = True,
     max_pairs: int | None = None,
     config: Any = None,
+    repair: bool = False,
     **comparer_options: Any,
 ) -> RunStore:
     """Compare every pair of ``shapes`` and store the results in the run folder ``out`` (resumable).
@@ -670,14 +766,21 @@ def run_all_vs_all(
         first column is also level "class". Without it, "class" comes from the file names.
     device : Warp device every worker uses (None: Warp's default; on Dask, each worker's own choice,
         see `choose_worker_device`)
-    progress : show a tqdm bar with pairs per second and the ETA
+    progress : a `tqdm.auto` bar for every phase (reading the meshes, fitting the signature, the signatures, the
+        pairs with their rate and ETA) on standard error: True, False, or a `wpot.progress.Progress`
     max_pairs : stop after committing this many new pairs (for tests and partial runs)
+    repair : repair every mesh with `wpot.Mesh.cleaned` (zero-area and duplicate triangles, unreferenced
+        vertices) before it is used, here and in the workers; what was removed from which shape is stored
+        with the run (``store.get("repairs")``: name -> what was removed) and reported. The shapes' stored
+        fingerprints are those of the repaired meshes, so a resume must repair too.
 
     Returns
     -------
     RunStore : the open store; ``distance_matrix()`` and ``distance_matrices()`` read the results back.
     """
+    from wpot.comparison import check_mesh_size
     from wpot.config import ComparisonConfig
+    from wpot.progress import as_progress
 
     if scheduler is not None:
         if executor is not None:
@@ -685,8 +788,10 @@ def run_all_vs_all(
         with dask_executor(scheduler, n_workers=jobs) as ex:
             return run_all_vs_all(
                 shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, labels=labels,
-                device=device, progress=progress, max_pairs=max_pairs, config=config, **comparer_options,
+                device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair,
+                **comparer_options,
             )
+    reporter = as_progress(progress)
     if labels is not None and not isinstance(labels, (str, Path)):
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
     specs = discover_shapes(shapes, labels=labels)
@@ -698,12 +803,37 @@ def run_all_vs_all(
         raise TypeError("give either config or the comparison keywords (signature, transport, ...), not both")
     params = config.run_key()
 
-    meshes = [s.load() for s in specs]  # validates every file up front: fail before any work
+    # every file read and checked up front: fail before any work
+    meshes, repairs = [], {}
+    bar = reporter.bar(len(specs), "reading meshes", "mesh")
+    try:
+        for s in specs:
+            m = s.load(warn=not repair)
+            if repair:
+                m, _, what = repair_mesh(m)
+                if what:
+                    repairs[s.name] = what
+                    reporter.write(f"repaired {s.name}: removed {what}")
+            check_mesh_size(m, config, f"shape {s.name!r}" + (f" ({s.path})" if s.path else ""))
+            meshes.append(m)
+            bar.update()
+    finally:
+        bar.close()
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
     store = RunStore(out, create=True)
-    store.initialize(params, shape_rows, lab)
+    stored_repair = bool(store.get("repair", False))
+    try:
+        store.initialize(params, shape_rows, lab)
+    except RunMismatchError as exc:
+        if exc.differences or stored_repair == bool(repair):
+            raise
+        raise RunMismatchError(f"{exc} The run was made with repair={stored_repair}; rerun with repair={stored_repair} "
+                               "to resume it.", folder=out, differences=[("repair", stored_repair, bool(repair))]) from None
+    store.set("repair", bool(repair))
+    if repair:
+        store.set("repairs", repairs)
     todo = [t for t in store.tasks() if t not in store.done()]
     if not todo:
         return store
@@ -719,18 +849,19 @@ def run_all_vs_all(
         # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
         # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
         task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
-                       "device": device}
+                       "device": device, "repair": bool(repair)}
         from wpot.signatures import get_signature
 
         stage = get_signature(config.signature)(config.signature_options)
         if stage.needs_fit and task_config["state"] is None:
-            inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs], "spectra", progress)
+            inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs],
+                          "spectra" if hasattr(stage.options, "n_eigen") else f"fitting {stage.title}", reporter)
             stage.fit_from(inputs)
             task_config["state"] = stage.state()
             store.set_signature_state(task_config["state"])
         needed = sorted({i for t in todo for i in t})
-        _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", progress)
-        _run_pairs(store, executor, todo, task_specs, task_config, progress, max_pairs)
+        _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", reporter)
+        _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
     finally:
         if own_pool is not None:
             own_pool.shutdown(wait=True, cancel_futures=True)
@@ -850,11 +981,9 @@ def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -
             f.cancel()
 
 
-def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: bool) -> list[Any]:
+def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: Any) -> list[Any]:
     """Run ``fn(*args)`` for each args (inline or on the executor), in order, with a progress bar."""
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=len(arglist), desc=what, unit="shape", disable=not progress, leave=False)
+    bar = progress.bar(len(arglist), what, "shape")
     try:
         if executor is None:
             out = []
@@ -872,11 +1001,9 @@ def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str,
         bar.close()
 
 
-def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: bool, max_pairs: int | None) -> None:
-    from tqdm.auto import tqdm
-
+def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: Any, max_pairs: int | None) -> None:
     total = len(store.tasks())
-    bar = tqdm(total=total, initial=total - len(todo), desc="pairs", unit="pair", disable=not progress, dynamic_ncols=True)
+    bar = progress.bar(total, "pairs", "pair", initial=total - len(todo), leave=True)
     n_new = 0
 
     def handle(i: int, j: int, fut_or_rec: Any) -> None:

@@ -11,7 +11,7 @@ than mplot3d's ``plot_trisurf`` for meshes of thousands of faces. The view conve
 * `plot_cumulative_errors`: cumulative geodesic-error curves of several methods (Fig. 6);
 * `plot_vertex_scalar`: a shape coloured by a per-vertex value such as the matched mass;
 * `plot_registration`: a part drawn on its full shape after a similarity transform (Fig. 1);
-* `plot_correspondence`: two shapes side by side, coloured by a smooth function carried through a map.
+* `plot_correspondence`: a map between two shapes, shown by colours carried through it (overlaid or side by side).
 """
 from __future__ import annotations
 
@@ -379,15 +379,18 @@ def plot_registration(
 
     The part is moved by the similarity ``x -> scale * rotation @ x + translation``, given by ``registration``
     (any object with ``.scale``, ``.rotation`` (3, 3) and ``.translation`` (3,), such as the registration of a
-    `wpot.comparison` result) or by the keywords; with neither, the part is drawn where it is.
+    `wpot.comparison` result) or by the keywords; with neither, the part is drawn where it is. The part is
+    always drawn over the full shape, also where the transform puts it inside or behind it.
     """
     from matplotlib.colors import to_rgba
 
     s, r, t = _transform_of(registration, scale, rotation, translation)
     moved = part.transformed(rotation=r, translation=t, scale=s)
     fig, ax = _figure_and_axes(ax, (5.6, 4.2))
-    # the part lies on the full shape where the registration is good: draw it over it
-    bias = 2.0 * max(full.mean_edge_length, moved.mean_edge_length)
+    # drawn over the full shape wherever it lands, also inside or behind it (a shrunk or misplaced part would
+    # otherwise be hidden, and a poor registration would look like no part at all)
+    span = np.ptp(np.concatenate([full.vertices, moved.vertices]), axis=0)
+    bias = 10.0 * float(np.linalg.norm(span))
     draw_mesh(ax, [full, moved], [to_rgba(full_color), to_rgba(part_color)], elev=elev, azim=azim,
               depth_bias=[0.0, bias])
     if title:
@@ -402,24 +405,69 @@ def _smooth_colours(mesh: Mesh) -> np.ndarray:
     return 0.1 + 0.8 * (v - lo) / np.where(hi > lo, hi - lo, 1.0)
 
 
+def _footprint(mesh: Mesh, elev: float, azim: float, lo: np.ndarray, hi: np.ndarray,
+               pixels: int = 700) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The area the mesh covers seen from (elev, azim), rasterized on the view-plane rectangle [lo, hi]:
+    an (H, W) float mask in [0, 1] (row 0 at ``lo[1]``), slightly smoothed so that its 0.5 contour is the
+    mesh's outline, and the ``(x0, x1, y0, y1)`` extent of its pixel centres for ``imshow``/``contour``."""
+    import cv2
+
+    step = float((hi - lo).max()) / pixels
+    w, h = int(np.ceil((hi[0] - lo[0]) / step)) + 1, int(np.ceil((hi[1] - lo[1]) / step)) + 1
+    p = mesh.vertices @ _view_axes(elev, azim)[:2].T
+    tri = np.round((p - lo) / step * 16).astype(np.int32)[mesh.faces]  # 4 fractional bits (shift=4)
+    mask = np.zeros((h, w), np.uint8)
+    for t in tri:  # one convex fill per triangle: overlapping faces must not cancel (fillPoly is even-odd)
+        cv2.fillConvexPoly(mask, t, 255, lineType=cv2.LINE_8, shift=4)
+    mask = cv2.GaussianBlur(mask.astype(np.float32) / 255.0, (5, 5), 1.0)
+    return mask, (float(lo[0]), float(lo[0] + (w - 1) * step), float(lo[1]), float(lo[1] + (h - 1) * step))
+
+
+#: how `plot_correspondence` explains its colours (the caption under the figure)
+CORRESPONDENCE_KEY = (
+    "Colour = position on B (x red, y green, z blue), carried to A through the map: each vertex of A takes the "
+    "colour of the vertex of B it is matched to. A correct map gives A the colours that B, drawn in its own "
+    "colours, has at the same places; a patch of a foreign colour is a region matched to the wrong part of B."
+)
+
+
 def plot_correspondence(
     source: Mesh,
     target: Mesh,
     correspondence: ArrayLike,
     *,
+    layout: str = "overlay",
     target_colors: ArrayLike | None = None,
-    titles: tuple[str, str] = ("source (colours pulled back through the map)", "target"),
+    titles: tuple[str, str] = ("A, coloured through the map", "B"),
+    caption: bool = True,
     elev: float = 10.0,
     azim: float = 0.0,
     path: str | Path | None = None,
     dpi: int = 150,
 ) -> Figure:
-    """Two shapes side by side: the target coloured by a smooth function (default: its coordinates as RGB),
-    the source coloured by that function carried through the map (vertex ``i`` of the source takes the colour
-    of target vertex ``correspondence[i]``). A good map shows the same colour pattern on both.
+    """A correspondence from a source shape A to a target shape B, seen through colours.
 
-    ``correspondence`` : (N_source,) int, the target vertex of each source vertex (``-1``: unmatched, grey).
+    B is coloured by a smooth function (default: its coordinates as RGB) and A by that function carried
+    through the map: vertex ``i`` of A takes the colour of vertex ``correspondence[i]`` of B (``-1``:
+    unmatched, drawn grey). Colours go from B to A because the map gives every vertex of A one vertex of B;
+    the other way round, the vertices of B that no vertex of A maps to would have no colour.
+
+    ``layout="overlay"`` (default) draws B under and around A in one axes, in the frame the meshes are given
+    in: A coloured through the map, B as a grey silhouette with its outline drawn over A, and beside them a
+    key, B in its own colours. Give B in A's frame (e.g. moved by the inverse of the comparison's
+    registration) so that the outline shows where B lands on A. ``layout="side-by-side"`` draws A and B in
+    two axes, for shapes that do not overlay (e.g. in different poses). ``titles`` names A and B (legend
+    entries, or panel titles); ``caption`` adds `CORRESPONDENCE_KEY` under the figure.
+
+    ``correspondence`` : (N_source,) int, the target vertex of each source vertex.
     """
+    from textwrap import fill
+
+    from matplotlib.legend_handler import HandlerTuple
+    from matplotlib.patches import Patch
+
+    if layout not in ("overlay", "side-by-side"):
+        raise ValueError(f'layout must be "overlay" or "side-by-side", got {layout!r}')
     corr = np.asarray(correspondence)
     if corr.shape != (source.n_vertices,) or (corr.size and not np.issubdtype(corr.dtype, np.integer)):
         raise ValueError(f"correspondence must be ({source.n_vertices},) integer target vertices, got {corr.shape} {corr.dtype}")
@@ -429,10 +477,45 @@ def plot_correspondence(
     if tc.shape != (target.n_vertices, 3):
         raise ValueError(f"target_colors must have shape ({target.n_vertices}, 3), got {tc.shape}")
     sc = np.where(corr[:, None] >= 0, tc[np.maximum(corr, 0)], 0.6)
-    fig = _new_figure((10.0, 4.2))
-    ax1, ax2 = fig.subplots(1, 2)
-    draw_mesh(ax1, source, _vertex_to_face(source, sc), elev=elev, azim=azim, shade=0.35)
-    draw_mesh(ax2, target, _vertex_to_face(target, tc), elev=elev, azim=azim, shade=0.35)
-    ax1.set_title(titles[0], fontsize=9)
-    ax2.set_title(titles[1], fontsize=9)
+    if layout == "side-by-side":
+        fig = _new_figure((10.0, 4.8 if caption else 4.2))
+        ax1, ax2 = fig.subplots(1, 2)
+        draw_mesh(ax1, source, _vertex_to_face(source, sc), elev=elev, azim=azim, shade=0.35)
+        draw_mesh(ax2, target, _vertex_to_face(target, tc), elev=elev, azim=azim, shade=0.35)
+        ax1.set_title(titles[0], fontsize=9)
+        ax2.set_title(titles[1], fontsize=9)
+        wrap = 150
+    else:
+        fig = _new_figure((9.0, 5.6 if caption else 5.0))
+        ax, side = fig.subplots(1, 2, width_ratios=[3.0, 1.0])
+        draw_mesh(ax, source, _vertex_to_face(source, sc), elev=elev, azim=azim, shade=0.35)
+        view = _view_axes(elev, azim)
+        xy = np.concatenate([source.vertices @ view[:2].T, target.vertices @ view[:2].T])
+        lo, hi = xy.min(0), xy.max(0)
+        pad = 0.03 * (hi - lo).max()
+        lo, hi = lo - pad, hi + pad
+        mask, extent = _footprint(target, elev, azim, lo, hi)
+        shadow = np.zeros(mask.shape + (4,))
+        shadow[..., :3] = 0.55
+        shadow[..., 3] = 0.35 * (mask > 0.5)
+        ax.imshow(shadow, origin="lower", extent=extent, zorder=0, interpolation="nearest")
+        ax.contour(mask, levels=[0.5], origin="lower", extent=extent, colors="0.15", linewidths=1.0, zorder=3)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        draw_mesh(side, target, _vertex_to_face(target, tc), elev=elev, azim=azim, shade=0.35)
+        side.set_title("key: B in its own colours", fontsize=9)
+        handles = [
+            (Patch(facecolor=(0.85, 0.25, 0.3)), Patch(facecolor=(0.3, 0.75, 0.35)), Patch(facecolor=(0.3, 0.35, 0.85))),
+            Patch(facecolor=(0.55, 0.55, 0.55, 0.35), edgecolor="0.15"),
+        ]
+        labels = [fill(titles[0], 34), fill(f"{titles[1]}: silhouette and outline", 34)]
+        if np.any(corr < 0):
+            handles.append(Patch(facecolor="0.6"))
+            labels.append("unmatched vertices of A")
+        side.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=8, frameon=False,
+                    handler_map={tuple: HandlerTuple(ndivide=None, pad=0)})
+        wrap = 130
+    if caption:
+        fig.supxlabel(fill(CORRESPONDENCE_KEY, wrap), fontsize=8)
     return _finish(fig, path, dpi)

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
-import warp as wp
 
+from wpot._warp import available_memory
 from wpot._validate import boolean, integer_at_least, nonnegative_finite, one_of, positive_finite
 from wpot.ot.problem import FeatureCost
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2, DEFAULT_STEP
@@ -215,21 +214,6 @@ class EngineOptions:
     verbose: int
 
 
-def _host_available_bytes() -> float:
-    """MemAvailable of /proc/meminfo (Linux); elsewhere the free physical pages; inf when unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
-    try:
-        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return math.inf
-
-
 def check_mode(C, options: SolverOptions, device: str) -> bool:
     """The options that depend on the cost's mode (``C`` as the caller passed it: checked before any pass
     over it); returns whether to form the dense plan.
@@ -249,10 +233,7 @@ def check_mode(C, options: SolverOptions, device: str) -> bool:
     if options.dense_plan and lazy:
         n1, n2 = C.shape
         need = 8.0 * n1 * n2
-        avail = _host_available_bytes()
-        dev = wp.get_device(device)
-        if dev.is_cuda:
-            avail = min(avail, float(dev.free_memory))
+        avail = available_memory(device, host_too=True)
         if need > avail:
             raise ValueError(
                 f"dense_plan=True needs an (N1, N2) = ({n1}, {n2}) float64 array of {need / 2**30:.2f} "

@@ -1,0 +1,103 @@
+"""Progress reports for the long steps of a comparison or a run: a line per stage with its time, bars for loops.
+
+`Progress` is the one object that long-running code is handed (`wpot.Comparer(progress=...)`,
+`wpot.compare(..., progress=True)`, `wpot.run_all_vs_all(progress=...)`, the ``wpot`` command): the code
+names its stages and loops, the reporter decides whether and where they are shown. Nothing is global, so a
+test or a notebook passes its own reporter (`as_progress` turns ``True``/``False`` into one).
+
+* ``stage(what)``: a context manager around one step (a spectrum, the signatures, the transport): its
+  name is written when it starts and its wall time when it ends, ``"spectrum of A (300 vertices) ... 1.2 s"``;
+* ``bar(total, desc, unit)``: a `tqdm.auto` bar for a loop (shapes, pairs), which Jupyter shows as a widget;
+* ``write(text)``: one line that does not break a running bar.
+
+A disabled reporter (``Progress(enabled=False)``, what ``progress=False`` gives) shows nothing and costs
+nothing; its bars are tqdm's disabled bars, so callers never branch on whether progress is on.
+"""
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from typing import Any, Callable, Iterator, TextIO
+
+__all__ = ["Progress", "as_progress"]
+
+
+class Progress:
+    """Reports stages and loops to a text stream (default: standard error).
+
+    Parameters
+    ----------
+    stream : where lines and bars go (None: ``sys.stderr`` at the time of writing)
+    enabled : False shows nothing
+    clock : seconds, for the stage times (the seam that lets a test give fixed times)
+    """
+
+    def __init__(self, stream: TextIO | None = None, *, enabled: bool = True,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        self._stream = stream
+        self.enabled = bool(enabled)
+        self.clock = clock
+        self._open = False  # a stage's line is written up to its "..." and waits for its time
+
+    @property
+    def stream(self) -> TextIO:
+        return sys.stderr if self._stream is None else self._stream
+
+    def __repr__(self) -> str:
+        return f"Progress({'on' if self.enabled else 'off'})"
+
+    def write(self, text: str) -> None:
+        """One line (through tqdm, so that a bar being drawn is redrawn below it)."""
+        if not self.enabled:
+            return
+        from tqdm.auto import tqdm
+
+        self.break_line()
+        tqdm.write(text, file=self.stream)
+
+    def break_line(self) -> None:
+        """End a running stage's line, so that other output (a warning) starts on a line of its own; the stage's
+        time then comes on a line of its own too, with its name."""
+        if self._open:
+            self.stream.write("\n")
+            self._open = False
+
+    @contextlib.contextmanager
+    def stage(self, what: str) -> Iterator[None]:
+        """Write ``what`` when the step starts and its wall time when it ends (also when it raises)."""
+        if not self.enabled:
+            yield
+            return
+        out = self.stream
+        out.write(f"{what} ... ")
+        out.flush()
+        self._open = True
+        t0 = self.clock()
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            took = f"{self.clock() - t0:.1f} s{'' if ok else ' (stopped)'}"
+            out.write(f"{took}\n" if self._open else f"{what}: {took}\n")
+            out.flush()
+            self._open = False
+
+    def bar(self, total: int, desc: str, unit: str = "it", *, initial: int = 0, leave: bool = False) -> Any:
+        """A `tqdm.auto.tqdm` bar (disabled when this reporter is; ``leave``: kept on screen when closed); close
+        it when done."""
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not self.enabled, leave=leave,
+                    dynamic_ncols=True, file=self.stream)
+
+
+def as_progress(progress: "bool | Progress | None") -> Progress:
+    """The reporter for a ``progress=`` argument: a `Progress` as it is; True: one on standard error;
+    False or None: a disabled one."""
+    if isinstance(progress, Progress):
+        return progress
+    if progress is None or isinstance(progress, bool):
+        return Progress(enabled=bool(progress))
+    raise TypeError(f"progress must be True, False or a wpot.progress.Progress, got {type(progress).__name__}")
