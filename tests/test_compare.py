@@ -298,11 +298,15 @@ def test_registration_recovers_the_rigid_motion_between_the_pair(ab, pair):
     assert reg is not None
     # target = source surface rotated and translated: the fitted similarity is that motion
     angle = np.degrees(Rotation.from_matrix(reg.rotation @ pair.rotation.T).magnitude())
-    assert angle < 3.0
-    # least squares over all matches, including the wrong ones, pulls the scale below 1 (those pairs
-    # point across the shape), but not far
-    assert 0.6 < reg.scale < 1.05
-    assert np.linalg.norm(reg.translation - pair.translation) < 0.1 * pair.source.bounding_box_diagonal
+    assert angle < 2.0
+    # the robust fit: the wrong matches (pairs pointing across the shape) do not pull the scale below 1, as they
+    # pull the least-squares fit of the same pairs
+    assert reg.method == "robust" and abs(reg.scale - 1) < 0.02
+    plain = fit_similarity(pair.source.vertices[ab.matched[:, 0]], pair.target.vertices[ab.matched[:, 1]], ab.matched_weight)
+    assert plain.scale < reg.scale
+    assert np.linalg.norm(reg.translation - pair.translation) < 0.02 * pair.source.bounding_box_diagonal
+    assert 0.5 < reg.inlier_fraction <= 1 and reg.n_pairs == len(ab.matched)
+    assert reg.target_diagonal == pytest.approx(pair.target.bounding_box_diagonal)
 
 
 def test_distance_to_itself_is_smallest(comparer, pair, ab):

@@ -115,3 +115,60 @@ def test_zoomout_reuses_a_cached_larger_spectrum_else_computes_only_k_end(monkey
     asked.clear()
     zoomout(a, b, start, k_end=30)
     assert asked == []  # the larger cached spectra serve
+
+
+def _disjoint(parts: list[Mesh], spacing: float = 3.0) -> Mesh:
+    """The parts side by side (offset along x), as one mesh with one connected component per part."""
+    vs, fs, off = [], [], 0
+    for i, m in enumerate(parts):
+        vs.append(m.vertices + [spacing * i, 0.0, 0.0])
+        fs.append(m.faces + off)
+        off += m.n_vertices
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # MeshWarning: several components, which is the point here
+        return Mesh(np.vstack(vs), np.vstack(fs))
+
+
+def _relabelled(a: Mesh, seed: int) -> tuple[Mesh, np.ndarray]:
+    """A relabelled copy B of ``a`` and the truth (A's vertex i is B's vertex truth[i])."""
+    perm = np.random.default_rng(seed).permutation(a.n_vertices)
+    inv = np.argsort(perm)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return Mesh(a.vertices[perm], inv[a.faces]), inv
+
+
+@pytest.mark.filterwarnings("ignore::wpot.spectral.SpectralWarning")
+def test_a_mesh_of_many_components_is_recovered_like_a_connected_one():
+    # a scan-like mesh: one body and 11 small islands (12 zero eigenvalues, above the default k_start of 10).
+    # Before, every island's vertices collapsed (no non-constant eigenfunction of the whole mesh reached them by
+    # k_end; with an 800-vertex body, 60 % of the vertices were right after ZoomOut from a 70 % start).
+    parts = [wpot.example_mesh(300, seed=0)] + [
+        Mesh(wpot.example_mesh(50, seed=i).vertices * 0.15, wpot.example_mesh(50, seed=i).faces) for i in range(1, 12)]
+    a = _disjoint(parts)
+    assert a.n_components == 12
+    b, truth = _relabelled(a, 0)
+    start = _noisy(truth, b.n_vertices, 0.3, seed=1)
+    out = zoomout(a, b, start)
+    assert np.mean(start == truth) < 0.75
+    assert np.mean(out == truth) > 0.97
+    assert np.unique(out).size > 0.97 * a.n_vertices  # distinct targets, no collapse
+    # the same refinement as the connected body alone gets on its own vertices
+    body, body_truth = _relabelled(parts[0], 0)
+    alone = zoomout(parts[0], body, _noisy(body_truth, body.n_vertices, 0.3, seed=1))
+    assert np.mean(out[:300] == truth[:300]) >= np.mean(alone == body_truth) - 0.02
+
+
+@pytest.mark.filterwarnings("ignore::wpot.spectral.SpectralWarning")
+def test_two_components_map_onto_a_relabelled_copy():
+    a = _disjoint([wpot.example_mesh(200, seed=3), wpot.example_mesh(150, seed=4)])
+    b, truth = _relabelled(a, 2)
+    out = zoomout(a, b, _noisy(truth, b.n_vertices, 0.4, seed=5), k_end=60)
+    assert np.mean(out == truth) > 0.97
+    # a component's vertices stay in the component most of them were mapped to
+    lb = b.component_labels
+    assert np.all(lb[out] == lb[truth])

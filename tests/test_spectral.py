@@ -14,6 +14,7 @@ from wpot.spectral import (
     LaplaceBeltrami,
     SpectralWarning,
     Spectrum,
+    cached_eigenpairs,
     choose_solver,
     eigenpairs,
     laplace_beltrami,
@@ -301,3 +302,26 @@ def test_corrupt_cache_entry_is_recomputed_with_a_warning(tmp_path, damage):
     assert calls == [1]
     np.testing.assert_array_equal(entry["x"], np.arange(1000.0))
     assert Cache("unit", cache_dir=tmp_path).get("fp", params) is not None  # rewritten, readable
+
+
+def test_the_components_warning_is_given_once_per_mesh_not_once_per_use(tmp_path):
+    a = trimesh.creation.icosphere(2)
+    v = np.vstack([a.vertices, a.vertices * 0.5 + [4.0, 0, 0]])
+    f = np.vstack([a.faces, a.faces + len(a.vertices)])
+    with pytest.warns(MeshWarning):
+        m = Mesh(v, f)
+    cache = Cache("spectrum-warn-test", cache_dir=tmp_path)
+    with pytest.warns(SpectralWarning, match="2 connected components"):
+        first = eigenpairs(m, k=12, cache=cache)
+    with pytest.warns(MeshWarning):
+        copy = Mesh(m.vertices.copy(), m.faces.copy())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpectralWarning)  # a second use of the same mesh (an equal copy too): silent
+        again = eigenpairs(copy, k=12, cache=cache)
+        found = cached_eigenpairs(m, k=12, cache=cache)
+        from_disk = eigenpairs(m, k=12, cache=Cache("spectrum-warn-test", cache_dir=tmp_path))
+    assert again.from_cache and found is not None and from_disk.from_cache
+    assert again.n_zero == found.n_zero == from_disk.n_zero == first.n_zero == 2
+    # a computation (here without the cache) warns again: the warning belongs to computing the spectrum
+    with pytest.warns(SpectralWarning, match="2 connected components"):
+        eigenpairs(m, k=12, cache=False)

@@ -456,7 +456,9 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     ]
     if c.registration is not None:
         r = c.registration
-        lines.append(f"registration: scale {r.scale:.4g}, rms residual {r.rms:.4g} over {r.n_pairs} pairs")
+        over = f"over {r.n_inliers} of {r.n_pairs} pairs (the inliers)" if r.n_inliers != r.n_pairs else f"over {r.n_pairs} pairs"
+        lines.append(f"registration: scale {r.scale:.4g}, rms residual {r.rms_text()} {over}, "
+                     f"rotation {r.rotation_degrees:.3g} degrees")
     else:
         why = (f"with balanced transport a point of A (mass 1/{n1}) fits in one of B (mass 1/{n2}) only when "
                f"{n2} <= {n1}/{match_ratio:g}; use --transport partial, equal --max-vertices, or a lower --match-ratio"
@@ -550,6 +552,8 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
             "translation": c.registration.translation.tolist(),
             "rms": c.registration.rms,
             "n_pairs": c.registration.n_pairs,
+            "n_inliers": c.registration.n_inliers,
+            "method": c.registration.method,
         },
         **(extra or {}),
     }
@@ -644,7 +648,8 @@ def cmd_demo(a: argparse.Namespace) -> None:
     if c.registration is not None:
         rel = c.registration.rotation @ pair.rotation.T
         angle = float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
-        print(f"registration vs the true rigid motion of B: rotation off by {angle:.1f} degrees")
+        print(f"registration vs the true rigid motion of B: rotation off by {angle:.1f} degrees, "
+              f"scale {c.registration.scale:.3f} (true 1)")
     print(f"saved {files[2]} ({time.perf_counter() - t0:.1f} s)")
 
 

@@ -225,8 +225,9 @@ class Comparison:
     matched_weight : (K,) float64, the plan entries ``G(i, j)`` of the matched pairs
     mass1 : (n_A,) float64, the mass each (sampled) vertex of A sends, ``Σ_l G(k, l)`` (uniform for balanced)
     mass2 : (n_B,) float64, the mass each (sampled) vertex of B receives
-    registration : similarity transform taking A onto B fitted to the matched pairs weighted by G
-        (§5.1), or None when fewer than 3 non-collinear pairs matched
+    registration : similarity transform taking A onto B fitted to the matched pairs (§5.1) by
+        `wpot.registration.fit_similarity_robust` (wrong matches are left out as outliers: its ``inliers``
+        mask and ``rms`` over them), or None when fewer than 3 non-collinear pairs matched
     result : the solver's `OTResult` for A vs B (on the sampled vertices when subsampled)
     self_energies : (U(A, A), U(B, B)) for partial transport, else None
     history : (n_β, 2) float64, columns β and D(β): U_β (balanced) or SU_β (partial) at each annealing β
@@ -612,7 +613,11 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
     registration = None
     if len(matched) >= 3:
         try:
-            registration = fit_similarity(mesh_a.vertices[matched[:, 0]], mesh_b.vertices[matched[:, 1]], weight)
+            from wpot.registration import fit_similarity_robust
+
+            # robust: the wrong matches (pairs pointing across the shape) would pull a least-squares fit in
+            registration = fit_similarity_robust(mesh_a.vertices[matched[:, 0]], mesh_b.vertices[matched[:, 1]],
+                                                 weight).with_target(mesh_b)
         except ValueError:
             registration = None  # degenerate (collinear) matches; documented as None
     return Comparison(

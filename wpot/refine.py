@@ -14,6 +14,16 @@ for k = ``k_start``, ``k_start + step``, … up to ``k_end``. The eigenpairs are
 `wpot.eigenpairs` (Φ M-orthonormal for M/area), taken from its cache: a `Comparer` that computed WKS
 signatures has already computed them.
 
+Meshes with several connected components (scans often have some): the Laplace–Beltrami operator is then
+block diagonal, one block per component, and the eigenvalue 0 repeats once per component. Taking the first k
+eigenpairs of the whole mesh fails twice: a k at or below the component count embeds every vertex of a
+component at one point (on a scan of 11 components, k_start 10 sent 14,174 vertices onto 3), and a small
+component's eigenvalues (area-normalized over the whole mesh) come so late that it gets no non-constant
+eigenfunction before k_end and collapses at every k. So `zoomout` refines each component of A on its own: it
+goes to the component of B that most of its vertices map to, and ZoomOut runs between the two components
+(each a connected mesh, with its own spectrum; vertices first mapped elsewhere are left out of the first
+functional map). A component of fewer than 3 vertices, on either side, keeps its map.
+
 Use it for whole shapes that are near-isometric (poses of one body): the method assumes that the two
 Laplace–Beltrami spectra match. It cannot tell left from right: WKS maps mix the two sides of a symmetric
 body, and ZoomOut makes them consistent with one side, sometimes the mirror one (17 of 40 TOSCA test pairs).
@@ -92,7 +102,8 @@ def zoomout(
     mesh_a, mesh_b : the two shapes (N_A and N_B vertices), whole and near-isometric
     correspondence : (N_A,) int, for each vertex of A a vertex of B, e.g. ``Comparison.correspondence``
     k_start, k_end, step : spectral resolutions k_start, k_start + step, ..., then k_end (defaults 10, 5, and
-        k_end = `ZOOMOUT_K_END` = 100, or the eigenpairs available when fewer: 19 rounds)
+        k_end = `ZOOMOUT_K_END` = 100, or the eigenpairs available when fewer: 19 rounds). With several
+        connected components they apply to each pair of components, clamped to its smaller vertex count
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default: the cached
         spectrum of `ZOOMOUT_N_EIGEN` = 500 eigenpairs (the WKS default; the vertex count when smaller) when a
         WKS comparison has computed it, else k_end eigenpairs
@@ -124,7 +135,22 @@ def zoomout(
     if k_end > k_max:
         raise ValueError(f"k_end={k_end} exceeds the {k_max} eigenpairs available (n_eigen={n_eigen}; meshes of "
                          f"{mesh_a.n_vertices} and {mesh_b.n_vertices} vertices); lower k_end")
+    if mesh_a.n_components == 1 and mesh_b.n_components == 1:
+        return _zoom(mesh_a, mesh_b, t, k_start, k_end, step, n_eigen)
+    return _zoom_components(mesh_a, mesh_b, t, k_start, k_end, step, n_eigen)
 
+
+def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
+    ks = list(range(k_start, k_end + 1, step))
+    if ks[-1] != k_end:
+        ks.append(k_end)
+    return ks
+
+
+def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int, n_eigen: int | None,
+          valid: np.ndarray | None = None) -> np.ndarray:
+    """ZoomOut between two connected meshes: t (N_A,) int64 → (N_A,) int64. ``valid`` (N_A,) bool, optional:
+    the vertices of A whose map enters the first functional map (the others' entries of t are ignored)."""
     from wpot.spectral import cached_eigenpairs, eigenpairs, laplace_beltrami
 
     def basis(mesh: Mesh) -> np.ndarray:
@@ -138,10 +164,42 @@ def zoomout(
     phi_a, phi_b = basis(mesh_a), basis(mesh_b)
     mass_a = laplace_beltrami(mesh_a)[1].diagonal()
     weighted_a = phi_a * (mass_a / mass_a.sum())[:, None]  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
-    ks = list(range(k_start, k_end + 1, step))
-    if ks[-1] != k_end:
-        ks.append(k_end)
-    for k in ks:
-        fmap = weighted_a[:, :k].T @ phi_b[t, :k]  # (k, k): B's coefficients -> A's
+    first = weighted_a if valid is None else weighted_a * valid[:, None]
+    t = np.where(valid, t, 0) if valid is not None else t
+    for n, k in enumerate(_schedule(k_start, k_end, step)):
+        fmap = (first if n == 0 else weighted_a)[:, :k].T @ phi_b[t, :k]  # (k, k): B's coefficients -> A's
         t = _nearest(phi_a[:, :k], phi_b[:, :k] @ fmap.T)
     return t
+
+
+def _component(mesh: Mesh, labels: np.ndarray, c: int) -> tuple[Mesh, np.ndarray]:
+    """Component ``c`` of ``mesh`` as a mesh of its own, and its vertices' indices (n_c,) in ``mesh``."""
+    idx = np.nonzero(labels == c)[0]
+    local = np.full(mesh.n_vertices, -1, dtype=np.int64)
+    local[idx] = np.arange(idx.size)
+    return Mesh(mesh.vertices[idx], local[mesh.faces[labels[mesh.faces[:, 0]] == c]]), idx
+
+
+def _zoom_components(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int,
+                     n_eigen: int | None) -> np.ndarray:
+    """ZoomOut component by component (see the module docstring): each component of A against the component of
+    B that most of its vertices map to."""
+    la, lb = mesh_a.component_labels, mesh_b.component_labels
+    out = t.copy()
+    parts_b: dict[int, tuple[Mesh, np.ndarray]] = {}
+    for ca in np.unique(la):
+        sub_a, ia = _component(mesh_a, la, int(ca))
+        cb = int(np.argmax(np.bincount(lb[t[ia]])))
+        if cb not in parts_b:
+            parts_b[cb] = _component(mesh_b, lb, cb)
+        sub_b, ib = parts_b[cb]
+        n_loc = min(ia.size, ib.size)
+        if n_loc < 3 or sub_a.n_faces == 0 or sub_b.n_faces == 0:
+            continue
+        local_b = np.full(mesh_b.n_vertices, -1, dtype=np.int64)
+        local_b[ib] = np.arange(ib.size)
+        t_loc = local_b[t[ia]]
+        ke = min(k_end, n_loc if n_eigen is None else min(n_eigen, n_loc))
+        out[ia] = ib[_zoom(sub_a, sub_b, t_loc, min(k_start, ke), ke, step,
+                           None if n_eigen is None else min(n_eigen, n_loc), valid=t_loc >= 0)]
+    return out

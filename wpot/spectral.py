@@ -396,8 +396,8 @@ def _cached(store: Cache, mesh: Mesh, params: dict[str, Any]) -> Spectrum | None
     entry = store.get(mesh.fingerprint, params)
     if entry is None:
         return None
-    if mesh.n_components > 1:  # the same warning as a fresh computation would give
-        _check_zero_eigenvalues(entry["evals"], mesh.n_components)
+    # no SpectralWarning here: it was given when this spectrum was computed, and a warning per use would repeat
+    # it for every pair of an all-vs-all (`eigenpairs`, Warns)
     return Spectrum(
         evals=entry["evals"],
         evecs=entry["evecs"],
@@ -452,7 +452,10 @@ def eigenpairs(
 
     Warns
     -----
-    `SpectralWarning` when the mesh has several components (repeated zero eigenvalue).
+    `SpectralWarning` when the mesh has several components (repeated zero eigenvalue), or when the computed
+    spectrum does not start with one zero per component. Only when the spectrum is computed, not when it is read
+    from the cache: once per mesh and cache entry, however many comparisons use it (the number of components
+    stays in ``Spectrum.n_zero``; `wpot.io.load_mesh` also warns about components when it reads the file).
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"eigenpairs expects a wpot.Mesh, got {type(mesh).__name__}")
