@@ -6,6 +6,7 @@ import pytest
 import trimesh
 
 from wpot.datasets import (
+    TOSCA8_CLASSES,
     build_head_dataset,
     class_label,
     correspondence_group,
@@ -14,8 +15,11 @@ from wpot.datasets import (
     load_head_dataset,
     read_label_csv,
     read_test_pairs,
+    tosca8,
+    tosca8_draws,
     tosca_ground_truth,
     tosca_vts,
+    write_shape_list,
 )
 from wpot.io import save_mesh
 from wpot.mesh import Mesh
@@ -100,6 +104,89 @@ def test_test_pairs_and_ground_truth(tosca5k):
         tosca_ground_truth(tosca5k, "cat0", "dog0")
     with pytest.raises(ValueError, match="does not exist"):
         tosca_vts(tosca5k, "unicorn0")
+
+
+# ----------------------------------------------------------------------------- TOSCA8
+def _touch_tosca(folder, counts):
+    """Empty ``.mat`` files named like TOSCA's low-res set: ``counts[cls]`` = the shape numbers present."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cls, numbers in counts.items():
+        for k in numbers:
+            (folder / f"{cls}{k}.mat").write_bytes(b"")
+    return folder
+
+
+def test_tosca8_takes_the_lowest_numbers_per_class(tmp_path):
+    counts = {c: range(7) for c in TOSCA8_CLASSES}
+    counts["horse"] = [0, 2, 3, 4, 5, 6, 7, 10, 12]  # no horse1: skipped, not a gap in the six
+    counts["cat"] = [10, 9, 8, 7, 5, 4, 3, 2, 1, 0]  # number order, not name order (cat10 < cat2 by name)
+    counts["wolf"] = [0, 1, 2]  # not a TOSCA8 class
+    folder = _touch_tosca(tmp_path / "tosca_lowres", counts)
+    t = tosca8(tmp_path)  # the parent of tosca_lowres works too
+    assert len(t.subset) == 48
+    assert [n for n in t.subset.names if n.startswith("horse")] == ["horse0", "horse2", "horse3", "horse4", "horse5", "horse6"]
+    assert [n for n in t.subset.names if n.startswith("cat")] == [f"cat{k}" for k in range(6)]
+    assert list(dict.fromkeys(t.subset.classes.tolist())) == list(TOSCA8_CLASSES)
+    assert len(t.full) == 7 * 6 + 9 + 10 and not any(n.startswith("wolf") for n in t.full.names)
+    assert set(t.subset.names) <= set(t.full.names)
+    assert tosca8(folder).subset.names == t.subset.names  # deterministic, folder or parent
+    del counts["cat"]
+    counts["seahorse"] = range(5)
+    _touch_tosca(tmp_path / "short", counts)
+    with pytest.raises(ValueError, match="fewer than 6"):
+        tosca8(tmp_path / "short")
+
+
+def test_write_shape_list_is_read_by_all_vs_all(tiny_folder, tmp_path):
+    from wpot.pipeline import discover_shapes
+
+    s = list_shapes(tiny_folder)
+    lst, lab = write_shape_list(s, tmp_path / "lists", "tiny")
+    specs = discover_shapes(lst, labels=lab)
+    assert [x.name for x in specs] == list(s.names)
+    assert [x.labels["class"] for x in specs] == s.classes.tolist()
+    assert read_label_csv(lab).names == s.names
+
+
+@pytest.fixture(scope="module")
+def tosca_lowres(shared_data):
+    p = shared_data / "tosca_lowres"
+    if not p.is_dir():
+        pytest.skip(f"TOSCA low-resolution meshes not found at {p}")
+    return p
+
+
+@pytest.mark.data
+@pytest.mark.filterwarnings("ignore:.*mesh defects:UserWarning")  # seahorses: 3 components, known (data README)
+def test_tosca8_on_the_real_data(tosca_lowres, tmp_path):
+    from wpot.io import load_mesh
+    from wpot.pipeline import discover_shapes
+
+    t = tosca8(tosca_lowres)
+    sub = {c: [n for n, lab in zip(t.subset.names, t.subset.classes) if lab == c] for c in TOSCA8_CLASSES}
+    assert {c: len(v) for c, v in sub.items()} == {c: 6 for c in TOSCA8_CLASSES}
+    assert sub["seahorse"] == [f"seahorse{k}" for k in range(6)]  # exactly six exist
+    assert sub["horse"] == ["horse0", "horse2", "horse3", "horse4", "horse5", "horse6"]
+    full = {c: int((t.full.classes == c).sum()) for c in TOSCA8_CLASSES}
+    assert full == {"cat": 9, "centaur": 6, "david": 15, "dog": 11, "horse": 17, "michael": 20, "victoria": 24,
+                    "seahorse": 6}
+    assert tosca8(tosca_lowres.parent).subset.paths == t.subset.paths
+    files = t.write(tmp_path)
+    specs = discover_shapes(files["subset"][0], labels=files["subset"][1])
+    assert [x.name for x in specs] == list(t.subset.names)
+    assert len(discover_shapes(files["full"][0], labels=files["full"][1])) == 108
+    for name, path in zip(t.subset.names, t.subset.paths):
+        m = load_mesh(path)
+        lo = 2000 if name.startswith("seahorse") else 3000
+        assert lo < m.n_vertices < 3500, (name, m.n_vertices)
+
+
+def test_tosca8_draws_wraps_classification_draws():
+    lab = np.repeat(TOSCA8_CLASSES, 7)
+    d = np.where(lab[:, None] == lab[None, :], 1.0, 2.0)
+    r = tosca8_draws(d, lab, n_draws=5, n_trials=20)
+    assert r.draws.shape == (5, 48) and r.per_class == 6
+    np.testing.assert_array_equal(r.leave_one_out, 1.0)
 
 
 # ----------------------------------------------------------------------------- HEAD

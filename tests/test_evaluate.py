@@ -9,6 +9,7 @@ import trimesh
 
 from wpot.evaluate import (
     GeodesicDistances,
+    classification_draws,
     correspondence_error,
     cumulative_curve,
     curve_auc,
@@ -346,3 +347,67 @@ def test_symmetric_flip_rejects_bad_input(sphere):
         symmetric_flip(sphere, [0], [0], [1], min_separation=-1.0)
     with pytest.warns(UserWarning, match="lateral"):
         assert np.isnan(symmetric_flip(sphere, [0, 1], [0, 1], [0, 1]).fraction)
+
+
+# ----------------------------------------------------------------------------- random draws of k per class
+def _separated(sizes, within=1.0, between=10.0):
+    """Block distances: ``within`` inside a class, ``between`` across, classes ``c0, c1, ...``."""
+    lab = np.repeat([f"c{k}" for k in range(len(sizes))], sizes)
+    d = np.where(lab[:, None] == lab[None, :], within, between)
+    np.fill_diagonal(d, 0.0)
+    return d, lab
+
+
+def test_classification_draws_perfectly_separated_is_100_percent():
+    d, lab = _separated([5, 6, 9])
+    r = classification_draws(d, lab, per_class=3, n_draws=20, n_trials=50, seed=1)
+    assert r.n_draws == 20 and r.draws.shape == (20, 9)
+    np.testing.assert_array_equal(r.one_shot, 1.0)
+    np.testing.assert_array_equal(r.leave_one_out, 1.0)
+    # every draw: 3 distinct shapes of each class, and the draws differ
+    for idx in r.draws:
+        assert len(set(idx.tolist())) == 9
+        assert [int((lab[idx] == c).sum()) for c in ("c0", "c1", "c2")] == [3, 3, 3]
+    assert len({tuple(x) for x in r.draws.tolist()}) > 1
+    # a class of exactly per_class shapes (c0: shapes 0-4) is whole in every draw
+    whole = classification_draws(d, lab, per_class=5, n_draws=4, n_trials=5).draws
+    assert all(set(range(5)) <= set(x) for x in whole.tolist())
+
+
+def test_classification_draws_one_class_always_confused():
+    # queries of class c2 are nearer (0.5) to every c0 shape than to their own class (1): c2 is always wrong,
+    # c0 and c1 always right (rows are queries; c0 queries see c2 at 10). Both protocols: 2/3 in every draw.
+    d, lab = _separated([4, 4, 4])
+    d[np.ix_(lab == "c2", lab == "c0")] = 0.5
+    r = classification_draws(d, lab, per_class=3, n_draws=10, n_trials=40, seed=0)
+    np.testing.assert_allclose(r.one_shot, 2 / 3)
+    np.testing.assert_allclose(r.leave_one_out, 2 / 3)
+    assert r.one_shot_std == pytest.approx(0.0, abs=1e-12) and r.leave_one_out_mean == pytest.approx(2 / 3)
+
+
+def test_classification_draws_score_depends_on_the_drawn_shapes():
+    # one bad shape (index 0, class c0) whose nearest shape is in c1; classes of 3, draws of 2 per class.
+    # Leave-one-out of a draw = 1 - 1/6 when shape 0 is drawn, 1 otherwise; it is drawn with probability 2/3.
+    d, lab = _separated([3, 3, 3])
+    d[0, lab == "c1"] = 0.5
+    r = classification_draws(d, lab, per_class=2, n_draws=600, n_trials=10, seed=3)
+    has_bad = (r.draws == 0).any(axis=1)
+    np.testing.assert_allclose(r.leave_one_out, np.where(has_bad, 5 / 6, 1.0))
+    assert has_bad.mean() == pytest.approx(2 / 3, abs=0.06)
+    assert r.leave_one_out_mean == pytest.approx(1 - (2 / 3) / 6, abs=0.01)
+    assert r.leave_one_out_std > 0
+
+
+def test_classification_draws_is_reproducible_and_checks_its_input():
+    d, lab = _separated([4, 5])
+    d[0, lab == "c1"] = 0.5
+    a = classification_draws(d, lab, per_class=3, n_draws=5, n_trials=20, seed=7)
+    b = classification_draws(d, lab, per_class=3, n_draws=5, n_trials=20, seed=7)
+    np.testing.assert_array_equal(a.draws, b.draws)
+    np.testing.assert_array_equal(a.one_shot, b.one_shot)
+    with pytest.raises(ValueError, match="fewer than per_class=5"):
+        classification_draws(d, lab, per_class=5)
+    with pytest.raises(ValueError, match="per_class must be >= 2"):
+        classification_draws(d, lab, per_class=1)
+    with pytest.raises(ValueError, match="n_draws"):
+        classification_draws(d, lab, per_class=2, n_draws=0)

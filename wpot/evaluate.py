@@ -6,6 +6,8 @@ Classification (Tables 1-4)
       training shape, repeat ``n_trials`` times (Table 1: 10,000 trials, mean accuracy).
     * `leave_one_out_1nn` / `leave_one_out_levels`: each shape takes the label of its nearest other shape, at
       every label level of a CSV (Tables 2-4: genera, families, superfamilies).
+    * `classification_draws`: both of the above on many random subsets of a fixed size per class drawn from a
+      larger set's matrix (TOSCA8: six per class, and the paper does not say which six).
     The distance from query ``i`` to shape ``j`` is ``distances[i, j]`` (row = query). Ties at the smallest
     distance are split: a query whose nearest shapes tie earns the fraction of them that carry its label,
     which is the expected score under a random tie-break (never a hidden bias toward low indices).
@@ -40,6 +42,8 @@ __all__ = [
     "one_shot_1nn",
     "leave_one_out_1nn",
     "leave_one_out_levels",
+    "ClassificationDraws",
+    "classification_draws",
     "PartRetrieval",
     "part_retrieval",
     "GeodesicDistances",
@@ -220,6 +224,91 @@ def leave_one_out_levels(distances: ArrayLike, levels: Mapping[str, ArrayLike]) 
     if not levels:
         raise ValueError("levels is empty: give at least one label level")
     return {name: leave_one_out_1nn(distances, lab) for name, lab in levels.items()}
+
+
+@dataclass(frozen=True)
+class ClassificationDraws:
+    """One-shot and leave-one-out 1-NN accuracies on random subsets of ``per_class`` shapes per class.
+
+    ``one_shot[k]`` (mean over that draw's one-shot trials) and ``leave_one_out[k]`` are the accuracies of draw
+    ``k``, whose shapes are ``draws[k]`` ((C * per_class,) int64 indices into the full matrix, class by class
+    in the order of ``classes``). ``*_mean`` / ``*_std`` summarize them over draws (the spread that the
+    choice of shapes causes, not an error of the mean).
+    """
+
+    one_shot: np.ndarray = field(repr=False)
+    leave_one_out: np.ndarray = field(repr=False)
+    draws: np.ndarray = field(repr=False)
+    per_class: int
+    n_trials: int
+    seed: int | None
+    classes: tuple[str, ...]
+
+    @property
+    def n_draws(self) -> int:
+        return len(self.draws)
+
+    @property
+    def one_shot_mean(self) -> float:
+        return float(self.one_shot.mean())
+
+    @property
+    def one_shot_std(self) -> float:
+        return float(self.one_shot.std())
+
+    @property
+    def leave_one_out_mean(self) -> float:
+        return float(self.leave_one_out.mean())
+
+    @property
+    def leave_one_out_std(self) -> float:
+        return float(self.leave_one_out.std())
+
+
+def classification_draws(
+    distances: ArrayLike,
+    labels: ArrayLike,
+    *,
+    per_class: int,
+    n_draws: int = 200,
+    seed: int | None = 0,
+    n_trials: int = 1000,
+) -> ClassificationDraws:
+    """`one_shot_1nn` and `leave_one_out_1nn` on ``n_draws`` random subsets of ``per_class`` shapes per class.
+
+    A benchmark defined as "k shapes of each class" without saying which (TOSCA8) can be scored over the
+    choices instead of on one of them: each draw takes ``per_class`` shapes of every class uniformly without
+    replacement from ``distances`` (the matrix of all shapes, row = query) and scores the sub-matrix of those
+    shapes alone. A class with exactly ``per_class`` shapes is in every draw whole; one with fewer is an error.
+
+    Parameters
+    ----------
+    distances : (n, n) float64 over the full set; labels : (n,) its classes.
+    per_class : shapes drawn per class (>= 2, so that leave-one-out has a same-class neighbour to find).
+    n_draws : number of random subsets. seed : `numpy.random.default_rng` seed for the draws and, through it,
+        for each draw's one-shot trials (None: fresh entropy).
+    n_trials : one-shot trials per draw.
+    """
+    d, _, classes, code = _check_distances(distances, labels)
+    if per_class < 2:
+        raise ValueError(f"per_class must be >= 2, got {per_class}")
+    if n_draws < 1:
+        raise ValueError(f"n_draws must be >= 1, got {n_draws}")
+    members = [np.nonzero(code == k)[0] for k in range(len(classes))]
+    short = {str(c): len(m) for c, m in zip(classes, members) if len(m) < per_class}
+    if short:
+        raise ValueError(f"these classes have fewer than per_class={per_class} shapes: {short}")
+    rng = np.random.default_rng(seed)
+    draws = np.empty((n_draws, len(classes) * per_class), dtype=np.int64)
+    one_shot = np.empty(n_draws)
+    loo = np.empty(n_draws)
+    for k in range(n_draws):
+        idx = np.concatenate([np.sort(rng.choice(m, per_class, replace=False)) for m in members])
+        draws[k] = idx
+        sub, lab = d[np.ix_(idx, idx)], code[idx]
+        one_shot[k] = one_shot_1nn(sub, lab, n_trials=n_trials, seed=int(rng.integers(2**63))).mean
+        loo[k] = leave_one_out_1nn(sub, lab).accuracy
+    return ClassificationDraws(one_shot, loo, draws, per_class, n_trials, seed, tuple(classes.tolist()))
 
 
 @dataclass(frozen=True)
