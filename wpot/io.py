@@ -457,9 +457,87 @@ def _mat_array(x: Any, name: str) -> np.ndarray:
     return a
 
 
+#: MAT v5 data types scipy reads (miINT8 ... miUINT32, miSINGLE, miDOUBLE, miINT64, miUINT64, miMATRIX,
+#: miCOMPRESSED, miUTF8/16/32)
+_MAT5_TYPES = frozenset([1, 2, 3, 4, 5, 6, 7, 9, 12, 13, 14, 15, 16, 17, 18])
+
+
+def _check_mat5_elements(buf: bytes, little: bool, depth: int = 0) -> None:
+    """Walk a MAT v5 element stream and refuse unknown data types and sizes past the buffer's end.
+
+    scipy 1.17's ``loadmat`` reads an unknown data type inside a matrix without checking it and crashes the
+    interpreter (SIGSEGV, found by benchmarks/fuzz_readers.py); a tag walk before it turns such files into a
+    ValueError. Compressed elements are inflated (up to 1 GiB) and walked too; matrices are walked inside."""
+    if depth > 32:
+        raise _Malformed("MAT elements nested more than 32 deep")
+    import struct
+    import zlib
+
+    u32 = "<I" if little else ">I"
+    pos = 0
+    while pos + 8 <= len(buf):
+        (first,) = struct.unpack_from(u32, buf, pos)
+        if first >> 16:  # small data element: type and size in one word, data in the next 4 bytes
+            mdtype, nbytes, start, step = first & 0xFFFF, first >> 16, pos + 4, 8
+            if nbytes > 4:
+                raise _Malformed(f"small MAT element at byte {pos} declares {nbytes} bytes (at most 4)")
+        else:
+            mdtype = first
+            (nbytes,) = struct.unpack_from(u32, buf, pos + 4)
+            start = pos + 8
+            step = 8 + (nbytes if mdtype == 15 else (nbytes + 7) // 8 * 8)
+        if mdtype not in _MAT5_TYPES:
+            raise _Malformed(f"unknown MAT data type {mdtype} at byte {pos}")
+        if start + nbytes > len(buf):
+            raise _Malformed(f"MAT element at byte {pos} declares {nbytes} bytes but only {len(buf) - start} follow")
+        body = buf[start:start + nbytes]
+        if mdtype == 15:
+            d = zlib.decompressobj()
+            try:
+                inner = d.decompress(body, 1 << 30)
+            except zlib.error as exc:
+                raise _Malformed(f"compressed MAT element at byte {pos}: {exc}") from None
+            if d.unconsumed_tail:
+                raise _Malformed(f"compressed MAT element at byte {pos} inflates past 1 GiB")
+            _check_mat5_elements(inner, little, depth + 1)
+        elif mdtype == 14:
+            _check_mat5_dims(body, little, pos)
+            _check_mat5_elements(body, little, depth + 1)
+        pos += step
+
+
+def _check_mat5_dims(body: bytes, little: bool, pos: int) -> None:
+    """Refuse a matrix whose dimensions claim more elements than its bytes can hold (scipy would allocate for
+    the claim first: a 2 kB file asking for 17 GiB, found by benchmarks/fuzz_readers.py). Every element of a
+    dense, character, logical, cell or struct array takes at least one byte of the file; sparse arrays
+    (class 5) store only their non-zeros and are not checked."""
+    import struct
+
+    e = "<" if little else ">"
+    if len(body) < 24:
+        return  # too short to hold flags and dimensions: scipy's own checks refuse it
+    mdtype, nbytes = struct.unpack_from(e + "II", body, 0)
+    if mdtype != 6 or nbytes < 4:  # array flags (miUINT32) come first in a well-formed matrix
+        return
+    mclass = struct.unpack_from(e + "I", body, 8)[0] & 0xFF
+    dtype, dbytes = struct.unpack_from(e + "II", body, 16)
+    if mclass == 5 or dtype != 5 or dbytes % 4 or 24 + dbytes > len(body):  # dims: miINT32
+        return
+    dims = struct.unpack_from(e + f"{dbytes // 4}i", body, 24)
+    n = 1
+    for d in dims:
+        if d < 0:
+            raise _Malformed(f"MAT matrix at byte {pos} has a negative dimension {dims}")
+        n *= d
+    if n > len(body):
+        raise _Malformed(f"MAT matrix at byte {pos} declares dimensions {dims} ({n} elements) in {len(body)} bytes")
+
+
 def _read_mat(data: bytes, variable: str | None) -> tuple[np.ndarray, np.ndarray]:
     import scipy.io
 
+    if len(data) >= 128 and data[126:128] in (b"IM", b"MI") and data[124:126] in (b"\x00\x01", b"\x01\x00"):
+        _check_mat5_elements(data[128:], little=data[126:128] == b"IM")
     try:
         d = scipy.io.loadmat(io.BytesIO(data), squeeze_me=False, struct_as_record=True)
     except NotImplementedError as exc:

@@ -15,7 +15,13 @@ shape with itself, which Eq. 27 needs) and commits each finished pair at once to
 
 The database runs in WAL mode and only the coordinating process writes to it. A killed run loses at most
 the pairs in flight: rerunning the same command resumes, skipping every committed pair. Rerunning with
-other parameters or another shape list raises `RunMismatchError`.
+other parameters or another shape list raises `RunMismatchError`; a shape file whose content changed since
+the run began is refused by name (`RunMismatchError` at the start; a pair whose worker reads a changed file
+fails and is recorded in ``failures``). One run folder has one coordinator at a time: `run_all_vs_all` holds
+an exclusive lock on ``out/wpot.lock`` (`fcntl.flock`, released by the OS when the process ends, however it
+ends), and a second run on the same folder raises `RunLockedError` at once rather than computing pairs twice.
+A store that SQLite cannot read (truncated, overwritten) raises `CorruptRunError` naming the file; it is
+never read as an empty or partial run.
 
 Execution is pluggable: ``jobs=1`` runs pairs inline; ``jobs>1`` uses a `ProcessPoolExecutor` (spawned
 processes, safe with CUDA); any `concurrent.futures.Executor` can be passed instead, e.g. a Dask
@@ -66,6 +72,8 @@ import numpy as np
 from wpot.mesh import Mesh
 
 __all__ = [
+    "CorruptRunError",
+    "RunLockedError",
     "RunMismatchError",
     "RunStore",
     "ShapeSpec",
@@ -77,10 +85,33 @@ __all__ = [
     "param_differences",
     "repair_mesh",
     "run_all_vs_all",
+    "run_lock",
 ]
 
 STORE_NAME = "wpot.sqlite"
+LOCK_NAME = "wpot.lock"
 SCHEMA_VERSION = 1
+
+
+class RunLockedError(OSError):
+    """Another process is running `run_all_vs_all` on the same run folder (it holds ``wpot.lock``).
+
+    Two coordinators on one folder would compute the same pairs twice; the second one stops at once instead.
+    The lock goes with the process that holds it (also when that process is killed), so after a crash the
+    command simply reruns."""
+
+    def __init__(self, message: str, *, folder: str | Path) -> None:
+        super().__init__(message)
+        self.folder = str(folder)
+
+
+class CorruptRunError(ValueError):
+    """A run folder's ``wpot.sqlite`` cannot be read as a wpot run (truncated, overwritten, not SQLite, or
+    without the run's tables): refused, never read as an empty or partial run."""
+
+    def __init__(self, message: str, *, path: str | Path) -> None:
+        super().__init__(message)
+        self.path = str(path)
 
 
 class RunMismatchError(ValueError):
@@ -226,11 +257,34 @@ class RunStore:
         if not create and not self.path.is_file():
             raise FileNotFoundError(f"no wpot run in {str(self.folder)!r} (missing {STORE_NAME}); run `wpot all-vs-all ... --out {self.folder}` first")
         self.folder.mkdir(parents=True, exist_ok=True)
+        existed = self.path.is_file() and self.path.stat().st_size > 0
         self.con = sqlite3.connect(self.path, timeout=60.0, isolation_level=None)
         from wpot.ot import debiased
 
         # Eq. 27 in SQL is wpot.ot.debiased itself, so the stored distance is the one the Python API computes
         self.con.create_function("debiased", 3, debiased, deterministic=True)
+        try:
+            self._open(existed, create)
+        except sqlite3.DatabaseError as exc:  # "file is not a database", "database disk image is malformed"
+            self.con.close()
+            raise CorruptRunError(
+                f"the run store {str(self.path)!r} is damaged ({exc}); it cannot be resumed or read. Move it away "
+                "and rerun the command to compute the run again (or restore it from a copy)", path=self.path,
+            ) from None
+
+    def _open(self, existed: bool, create: bool) -> None:
+        """Check an existing file (SQLite's ``quick_check``: every page readable and consistent) and create
+        the tables. Raises `sqlite3.DatabaseError` (turned into `CorruptRunError`) or `CorruptRunError`."""
+        if existed:
+            bad = [r[0] for r in self.con.execute("PRAGMA quick_check")]
+            if bad != ["ok"]:
+                raise sqlite3.DatabaseError("; ".join(map(str, bad[:3])))
+            tables = {r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if not {"run", "shapes", "pairs"} <= tables:
+                raise sqlite3.DatabaseError(f"not a wpot run: its tables are {sorted(tables)}")
+        elif not create:  # an empty file: a store whose run was never recorded
+            raise CorruptRunError(f"the run store {str(self.path)!r} is empty; rerun `wpot all-vs-all ... --out "
+                                  f"{self.folder}` to compute the run", path=self.path)
         self.con.execute("PRAGMA journal_mode=WAL")
         self.con.execute("PRAGMA synchronous=NORMAL")
         self.con.executescript(
@@ -329,13 +383,17 @@ class RunStore:
             if old_fps != fps:
                 old_names = [r[0] for r in self.con.execute("SELECT name FROM shapes ORDER BY idx")]
                 new_names = [s[0] for s in shapes]
-                what = (
-                    f"stored {len(old_names)} shapes, requested {len(new_names)}"
-                    if old_names != new_names
-                    else "the same names but different mesh contents"
-                )
+                if old_names != new_names:
+                    msg = (f"{str(self.folder)!r} holds a run over other shapes (stored {len(old_names)} shapes, "
+                           f"requested {len(new_names)}); use another run folder")
+                else:
+                    changed = [n for n, a, b in zip(new_names, old_fps, fps) if a != b]
+                    msg = (f"{str(self.folder)!r} holds a run over the same shape names but the content of "
+                           f"{len(changed)} of them changed since the run began: "
+                           f"{', '.join(changed[:10])}{', ...' if len(changed) > 10 else ''}. Restore the files "
+                           "the run was made with to resume it, or use another run folder")
                 raise RunMismatchError(
-                    f"{str(self.folder)!r} holds a run over other shapes ({what}); use another run folder",
+                    msg,
                     folder=self.folder,
                 )
             self._write_labels(labels)  # labels may be added or corrected on resume; they change no distance
@@ -669,8 +727,20 @@ def _mesh_at(path: str, repair: bool = False) -> Mesh:
 
 
 def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
-    """A task's mesh: given, or read from its path (and repaired when the run repairs its meshes)."""
-    return spec if isinstance(spec, Mesh) else _mesh_at(spec, bool(config.get("repair", False)))
+    """A task's mesh: given, or read from its path (and repaired when the run repairs its meshes).
+
+    A path comes with the fingerprint the coordinator read (``(path, fingerprint)``): a file edited after the
+    run began raises ValueError naming it (the pair is recorded in ``failures``), so a pair is never computed
+    on another mesh than the one the run's shapes table describes."""
+    if isinstance(spec, Mesh):
+        return spec
+    path, fingerprint = spec if isinstance(spec, tuple) else (spec, None)
+    mesh = _mesh_at(path, bool(config.get("repair", False)))
+    if fingerprint is not None and mesh.fingerprint != fingerprint:
+        _mesh_at.cache_clear()
+        raise ValueError(f"{path} changed while the run was going (its content is not the one the run began "
+                         "with); restore it, or start a new run folder")
+    return mesh
 
 
 def repair_mesh(mesh: Mesh) -> tuple[Mesh, np.ndarray, str]:
@@ -729,6 +799,41 @@ def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, An
 
 
 # ------------------------------------------------------------------------------------------------ runner
+@contextlib.contextmanager
+def run_lock(folder: str | Path) -> Iterator[None]:
+    """Hold the run folder's exclusive lock (``folder/wpot.lock``, `fcntl.flock`) for the block.
+
+    One coordinator per run folder: a second process, or a second call in this one (flock locks belong to
+    each opened file, so they conflict within a process too), gets `RunLockedError` at once, naming the folder.
+    The operating system drops the lock when its process ends, also on SIGKILL, so a crashed run leaves nothing
+    to clean up; the lock file itself stays (it holds the owner's host:pid, for the message only)."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    key = str(folder.resolve())
+    fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                owner = os.pread(fd, 200, 0).decode("ascii", "replace").strip()
+            except OSError:
+                owner = ""
+            raise RunLockedError(
+                f"another wpot all-vs-all is running on the run folder {key!r}"
+                + (f" (process {owner})" if owner else "")
+                + "; wait for it to finish (or stop it), then rerun this command to resume the run",
+                folder=key,
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{socket.gethostname()}:{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
 def run_all_vs_all(
     shapes: str | Path | Sequence[str | Path | Mesh],
     out: str | Path,
@@ -777,7 +882,24 @@ def run_all_vs_all(
     Returns
     -------
     RunStore : the open store; ``distance_matrix()`` and ``distance_matrices()`` read the results back.
+
+    Raises
+    ------
+    RunLockedError : another process is running on ``out`` (one coordinator per run folder: `run_lock`)
+    RunMismatchError : ``out`` holds a run with other parameters or shapes, or a shape file changed since
+    CorruptRunError : ``out/wpot.sqlite`` is damaged
     """
+    with run_lock(out):
+        return _run_all_vs_all(
+            shapes, out, signature=signature, transport=transport, jobs=jobs, executor=executor,
+            scheduler=scheduler, labels=labels, device=device, progress=progress, max_pairs=max_pairs,
+            config=config, repair=repair, **comparer_options,
+        )
+
+
+def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, scheduler, labels, device, progress,
+                    max_pairs, config, repair, **comparer_options) -> RunStore:
+    """`run_all_vs_all` with the run folder's lock held."""
     from wpot.comparison import check_mesh_size
     from wpot.config import ComparisonConfig
     from wpot.progress import as_progress
@@ -786,8 +908,8 @@ def run_all_vs_all(
         if executor is not None:
             raise ValueError(f"give either executor or scheduler, not both (got scheduler={scheduler!r})")
         with dask_executor(scheduler, n_workers=jobs) as ex:
-            return run_all_vs_all(
-                shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, labels=labels,
+            return _run_all_vs_all(
+                shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, scheduler=None, labels=labels,
                 device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair,
                 **comparer_options,
             )
@@ -844,7 +966,7 @@ def run_all_vs_all(
 
         own_pool = cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"))
         executor = own_pool
-    task_specs = [s.path if s.path is not None else m for s, m in zip(specs, meshes)]
+    task_specs = [(s.path, m.fingerprint) if s.path is not None else m for s, m in zip(specs, meshes)]
     try:
         # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
         # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
