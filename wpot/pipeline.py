@@ -889,17 +889,18 @@ def run_all_vs_all(
     RunMismatchError : ``out`` holds a run with other parameters or shapes, or a shape file changed since
     CorruptRunError : ``out/wpot.sqlite`` is damaged
     """
-    with run_lock(out):
+    with contextlib.ExitStack() as held:  # the run folder's lock, taken once the inputs are checked
         return _run_all_vs_all(
             shapes, out, signature=signature, transport=transport, jobs=jobs, executor=executor,
             scheduler=scheduler, labels=labels, device=device, progress=progress, max_pairs=max_pairs,
-            config=config, repair=repair, **comparer_options,
+            config=config, repair=repair, held=held, **comparer_options,
         )
 
 
 def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, scheduler, labels, device, progress,
-                    max_pairs, config, repair, **comparer_options) -> RunStore:
-    """`run_all_vs_all` with the run folder's lock held."""
+                    max_pairs, config, repair, held, **comparer_options) -> RunStore:
+    """`run_all_vs_all`: the inputs are read and checked first (a refused input leaves no run folder behind),
+    then the run folder's lock (`run_lock`) is entered on ``held`` for the rest of the run."""
     from wpot.comparison import check_mesh_size
     from wpot.config import ComparisonConfig
     from wpot.progress import as_progress
@@ -910,7 +911,7 @@ def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, schedu
         with dask_executor(scheduler, n_workers=jobs) as ex:
             return _run_all_vs_all(
                 shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, scheduler=None, labels=labels,
-                device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair,
+                device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair, held=held,
                 **comparer_options,
             )
     reporter = as_progress(progress)
@@ -944,6 +945,7 @@ def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, schedu
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
+    held.enter_context(run_lock(out))
     store = RunStore(out, create=True)
     stored_repair = bool(store.get("repair", False))
     try:
