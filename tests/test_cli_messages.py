@@ -119,6 +119,26 @@ def test_a_comparison_reports_each_step_with_its_time(pair):
     assert "balanced transport on farthest-point samples, 100 x 100 ... 1.0 s" in buf.getvalue().splitlines()
 
 
+def test_a_terminal_also_sees_the_annealing_betas(pair):
+    import wpot
+    from wpot.progress import Progress
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    a, b = (wpot.load_mesh(p) for p in pair)
+    out = Terminal()
+    c = wpot.Comparer(n_eigen=30, n_energies=30, max_vertices=60, device="cpu", cache_dir=False,
+                      progress=Progress(out, clock=Clock())).compare(a, b)
+    text = out.getvalue()
+    assert "annealing:" in text and "beta/s" in text
+    # the bar (redrawn at most every 0.1 s) shows a solved beta's U, as the result's history records it
+    assert any(f"beta {st.beta:.3g}, U {st.cost:.9g}" in text for st in c.result.history)
+    # the stage's time comes on a line of its own once the bar has been drawn
+    assert "balanced transport on farthest-point samples, 60 x 60: 1.0 s" in text.splitlines()
+
+
 def test_a_stage_that_fails_says_so():
     from wpot.progress import Progress
 

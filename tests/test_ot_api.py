@@ -198,3 +198,16 @@ def test_energy_history_is_beta_and_objective_per_step():
     p = wo.solve_partial(C, device="cpu")
     np.testing.assert_array_equal(p.energy_history[:, 1], [h.objective for h in p.history])
     assert p.energy_history[-1, 1] == pytest.approx(p.objective, rel=1e-12)
+
+
+@pytest.mark.parametrize("method, penalty", [("anneal", None), ("ipm", None), ("auto", None), ("anneal", 0.05)])
+def test_on_beta_reports_each_solved_beta_as_the_history_records_it(method, penalty):
+    rng = np.random.default_rng(3)
+    C = rng.random((40, 30))
+    seen = []
+    solver = wo.make_solver(method)
+    problem = wo.TransportProblem(C, mass_penalty=penalty, device="cpu")
+    r = solver.solve(problem, on_beta=seen.append)
+    assert r.converged and len(seen) == len(r.history) >= 2
+    assert tuple(seen) == r.history  # the same BetaStep values, in the user's units, in order
+    assert solver.solve(problem).cost == r.cost  # reporting changes nothing

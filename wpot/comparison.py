@@ -553,6 +553,22 @@ class Comparer:
             self._self_energies[key] = r
         return r
 
+    def _solve_reported(self, problem: Any) -> Any:
+        """Solve ``problem``; with progress shown live (a terminal, a notebook), a bar counts the solved betas and
+        shows the last β and U."""
+        if not self.progress.live:
+            return self.solver.solve(problem)
+        self.progress.break_line()  # the transport stage's line: the bar goes below it
+        bar = self.progress.bar(None, "annealing", "beta")
+        try:
+            def step(s: Any) -> None:
+                bar.set_postfix_str(f"beta {s.beta:.3g}, U {s.cost:.9g}", refresh=False)
+                bar.update()
+
+            return self.solver.solve(problem, on_beta=step)
+        finally:
+            bar.close()
+
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
         """Compare A with B; see `Comparison`. A signature that needs fitting and is not fitted yet is fitted
         to A and B."""
@@ -569,7 +585,7 @@ class Comparer:
         pa, pb = self._reported_points(mesh_a, "A"), self._reported_points(mesh_b, "B")
         what = "every vertex" if pa.subsample is None and pb.subsample is None else "farthest-point samples"
         with self.progress.stage(f"{self.transport} transport on {what}, {len(pa.signatures)} x {len(pb.signatures)}"):
-            res = self.solver.solve(self.transport_problem(pa, pb))
+            res = self._solve_reported(self.transport_problem(pa, pb))
         hist = res.energy_history
         self_e = None
         distance = float(res.objective)  # U (Eq. 6): for balanced transport the objective is the cost

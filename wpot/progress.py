@@ -47,6 +47,16 @@ class Progress:
     def __repr__(self) -> str:
         return f"Progress({'on' if self.enabled else 'off'})"
 
+    @property
+    def live(self) -> bool:
+        """Whether a bar redrawn in place can be shown: the stream is a terminal, or this is a Jupyter kernel
+        (where `tqdm.auto` draws a widget). Bars inside a stage (the annealing's betas) are shown only then, so
+        that a log file gets one line per stage."""
+        if not self.enabled:
+            return False
+        isatty = getattr(self.stream, "isatty", None)
+        return bool(isatty is not None and isatty()) or "ipykernel" in sys.modules
+
     def write(self, text: str) -> None:
         """One line (through tqdm, so that a bar being drawn is redrawn below it)."""
         if not self.enabled:

@@ -101,9 +101,11 @@ def _predict(eng: Engine, beta: float, beta_prev: float) -> Point:
     return eng.evaluate(eng.lam, eng.y, beta)
 
 
-def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None) -> AnnealOutcome:
+def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
+           on_beta: Callable[[dict], None] | None = None) -> AnnealOutcome:
     """Algorithm 1 from the engine's current duals: the betas ``beta0`` (default: the options' beta0),
-    x step, ... up to beta_max (normalized units), at most max_iter of them.
+    x step, ... up to beta_max (normalized units), at most max_iter of them. ``on_beta`` is called with each
+    solved beta's record (as `AnnealOutcome.records` holds them) as soon as it is solved (progress reports).
 
     A Newton solve that fails after a solved beta goes back to that beta's duals and reaches the failed
     beta through the geometric midpoint (down to `MIN_SPLIT_STEP`); with no shorter step left, the result is
@@ -163,6 +165,8 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None) 
         fe = free_energy(eng, pt, beta)
         rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
         raw.append(rec)
+        if on_beta is not None:
+            on_beta(rec)
         if o.verbose:
             print(f"  beta={beta:.3e} U={pt.u:.12g} res={pt.residual:.2e} newton={nn} cg={nl} "
                   f"gap<={pt.xphi / beta:.2e} t_eval={eng.t.eval:.2f}s")

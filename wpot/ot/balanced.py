@@ -9,6 +9,8 @@ annealing starts at beta0 from a nearly uniform plan, or at a later beta from th
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from wpot.ot.anneal import anneal
@@ -16,14 +18,14 @@ from wpot.ot.ipm import ipm_start
 from wpot.ot.newton import Engine
 from wpot.ot.options import SolverOptions, check_mode
 from wpot.ot.problem import TransportProblem, check_balanced, orient, prepare_cost, prepare_masses, resolve_device
-from wpot.ot.result import OTResult, build_result
+from wpot.ot.result import BetaStep, OTResult, beta_step, build_result
 
 
 def solve_balanced_problem(problem: TransportProblem, options: SolverOptions, *, interior_point: bool = False,
-                           kind: str = "solve_balanced") -> OTResult:
+                           kind: str = "solve_balanced", on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
     """Solve the balanced ``problem`` (``mass_penalty`` None) by Algorithm 1, from beta0 or, with
     ``interior_point``, from the hand-off beta of the interior-point start (stored cost only). ``kind``
-    names the caller in warnings."""
+    names the caller in warnings; ``on_beta`` gets each solved beta's `BetaStep` as it is solved."""
     if problem.partial:
         raise ValueError(f"solve_balanced_problem needs a balanced problem (mass_penalty=None), got {problem!r}")
     if interior_point and problem.matrix_free:
@@ -53,5 +55,6 @@ def solve_balanced_problem(problem: TransportProblem, options: SolverOptions, *,
         y = e.y[0].numpy() + e.y[1].numpy()
         return -(float(lam @ prob.m_r) + float(y @ prob.m_c)) - pt.f_sum / beta
 
-    out = anneal(eng, free_energy, beta0=beta0).add_work(*n_ipm)
+    hook = None if on_beta is None else (lambda r: on_beta(beta_step(r, cost.scale, total)))
+    out = anneal(eng, free_energy, beta0=beta0, on_beta=hook).add_work(*n_ipm)
     return build_result(eng, out, total, kind, partial=False, dense=dense, plan_topk=options.plan_topk)

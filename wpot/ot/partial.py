@@ -9,19 +9,22 @@ eliminated in closed form. Callers use `wpot.ot.solve_partial` or a solver of `w
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from wpot.ot.anneal import anneal
 from wpot.ot.newton import Engine
 from wpot.ot.options import SolverOptions, check_mode
 from wpot.ot.problem import TransportProblem, orient, prepare_cost, prepare_masses, resolve_device
-from wpot.ot.result import OTResult, build_result
+from wpot.ot.result import BetaStep, OTResult, beta_step, build_result
 
 
-def solve_partial_problem(problem: TransportProblem, options: SolverOptions, *, kind: str = "solve_partial"
-                          ) -> OTResult:
+def solve_partial_problem(problem: TransportProblem, options: SolverOptions, *, kind: str = "solve_partial",
+                          on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
     """Solve the partial ``problem`` (``mass_penalty`` given; ``a``, ``b`` are the reference measures rho1,
-    rho2, normalized to sum 1) by Algorithm 1. ``kind`` names the caller in warnings."""
+    rho2, normalized to sum 1) by Algorithm 1. ``kind`` names the caller in warnings; ``on_beta`` gets each
+    solved beta's `BetaStep` as it is solved."""
     if not problem.partial:
         raise ValueError(f"solve_partial_problem needs a mass_penalty, got {problem!r}")
     mass_penalty = problem.mass_penalty
@@ -51,5 +54,6 @@ def solve_partial_problem(problem: TransportProblem, options: SolverOptions, *, 
         return (-pt.x - 0.5 * float(prob.b_r @ (lam * lam)) - 0.5 * float(prob.a_c @ (mu * mu))
                 - pt.f_sum / beta)
 
-    out = anneal(eng, free_energy)
+    hook = None if on_beta is None else (lambda r: on_beta(beta_step(r, cost.scale, 1.0)))
+    out = anneal(eng, free_energy, on_beta=hook)
     return build_result(eng, out, 1.0, kind, partial=True, dense=dense, plan_topk=options.plan_topk)

@@ -112,6 +112,13 @@ def debiased(u12, u11, u22, *, strict: bool = True):
     return vals[0] - 0.5 * (vals[1] + vals[2])
 
 
+def beta_step(r: dict, scale: float, total: float) -> BetaStep:
+    """One annealing record (normalized units, `wpot.ot.anneal.AnnealOutcome.records`) in the user's units."""
+    return BetaStep(beta=r["beta"] / scale, cost=r["u"] * scale * total, free_energy=r["f"] * scale * total,
+                    n_newton=r["nn"], n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * scale * total,
+                    objective=r["obj"] * scale * total)
+
+
 def build_result(eng: Engine, out: AnnealOutcome, total: float, kind: str, *, partial: bool, dense: bool,
                  plan_topk: int) -> OTResult:
     """The `OTResult` of a finished annealing (``out``) on ``eng``, in the user's units and orientation:
@@ -121,12 +128,7 @@ def build_result(eng: Engine, out: AnnealOutcome, total: float, kind: str, *, pa
     p = eng.p
     s = p.scale
     warn_not_converged(kind, out)
-    hist = tuple(
-        BetaStep(beta=r["beta"] / s, cost=r["u"] * s * total, free_energy=r["f"] * s * total, n_newton=r["nn"],
-                 n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * s * total,
-                 objective=r["obj"] * s * total)
-        for r in out.records
-    )
+    hist = tuple(beta_step(r, s, total) for r in out.records)
     plan = None
     if dense:
         plan = eng.plan(out.beta)

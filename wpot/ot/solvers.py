@@ -10,7 +10,7 @@ the function forms `solve_balanced` / `solve_partial`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import Any, Callable, ClassVar, Mapping, Protocol, runtime_checkable
 
 from wpot._validate import integer_at_least, positive_finite
 from wpot.ot import kernels as K
@@ -18,7 +18,7 @@ from wpot.ot.balanced import solve_balanced_problem
 from wpot.ot.options import SolverOptions
 from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
-from wpot.ot.result import OTResult
+from wpot.ot.result import BetaStep, OTResult
 
 __all__ = ["AUTO_IPM_POINTS", "SOLVERS", "AnnealSolver", "AutoSolver", "InteriorPointSolver", "TransportSolver",
            "make_solver", "solve_balanced", "solve_partial"]
@@ -58,9 +58,10 @@ class TransportSolver(Protocol):
     name: ClassVar[str]
     options: SolverOptions
 
-    def solve(self, problem: TransportProblem) -> OTResult:
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """The `OTResult` of ``problem`` (costs in its units; ``converged`` False with a RuntimeWarning when a
-        tolerance was not met)."""
+        tolerance was not met). ``on_beta`` is called with each solved beta's `BetaStep` as soon as it is
+        solved (progress reports); the same steps end up in ``OTResult.history``."""
         ...
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
@@ -132,12 +133,12 @@ class AnnealSolver(_Solver):
 
     name: ClassVar[str] = "anneal"
 
-    def solve(self, problem: TransportProblem) -> OTResult:
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """Solve ``problem`` (see `TransportSolver.solve`)."""
         problem = _check_problem(problem)
         if problem.partial:
-            return solve_partial_problem(problem, self.options)
-        return solve_balanced_problem(problem, self.options)
+            return solve_partial_problem(problem, self.options, on_beta=on_beta)
+        return solve_balanced_problem(problem, self.options, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
         """Peak bytes of a solve of an ``n1 x n2`` problem (``matrix_free``: a `FeatureCost` of ``dim``
@@ -181,13 +182,13 @@ class InteriorPointSolver(_Solver):
 
     name: ClassVar[str] = "ipm"
 
-    def solve(self, problem: TransportProblem) -> OTResult:
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """Solve ``problem`` (see `TransportSolver.solve`); ValueError for partial or matrix-free problems."""
         problem = _check_problem(problem)
         if problem.partial:
             raise ValueError("method='ipm' solves balanced transport only (mass_penalty=None); use "
                              "method='anneal' for partial transport")
-        return solve_balanced_problem(problem, self.options, interior_point=True)
+        return solve_balanced_problem(problem, self.options, interior_point=True, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
         """Peak bytes of a solve (see `AnnealSolver.memory_bytes`): during the interior-point start, C, W,
@@ -226,9 +227,9 @@ class AutoSolver(_Solver):
             return "anneal"
         return "ipm" if min(problem.shape) >= self.ipm_points else "anneal"
 
-    def solve(self, problem: TransportProblem) -> OTResult:
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """Solve ``problem`` with the solver `method_for` picks."""
-        return SOLVERS[self.method_for(problem)](self.options).solve(problem)
+        return SOLVERS[self.method_for(problem)](self.options).solve(problem, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
         """Peak bytes of the solver this size gets (see `AnnealSolver.memory_bytes`); for stored costs of
