@@ -55,7 +55,7 @@ class Progress:
         if not self.enabled:
             return False
         isatty = getattr(self.stream, "isatty", None)
-        return bool(isatty is not None and isatty()) or "ipykernel" in sys.modules
+        return bool(isatty is not None and isatty()) or _in_jupyter()
 
     def write(self, text: str) -> None:
         """One line (through tqdm, so that a bar being drawn is redrawn below it)."""
@@ -101,6 +101,18 @@ class Progress:
 
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not self.enabled, leave=leave,
                     dynamic_ncols=True, file=self.stream)
+
+
+def _in_jupyter() -> bool:
+    """True inside a running Jupyter kernel (not merely with ipykernel imported, as a test runner may have it)."""
+    ipython = sys.modules.get("IPython")
+    if ipython is None:
+        return False
+    try:
+        shell = ipython.get_ipython()
+    except Exception:  # an IPython without a usable get_ipython: not a kernel we can draw in
+        return False
+    return type(shell).__name__ == "ZMQInteractiveShell"
 
 
 def as_progress(progress: "bool | Progress | None") -> Progress:
