@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable
 
-__all__ = ["positive_finite", "nonnegative_finite", "integer_at_least", "one_of", "boolean"]
+__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "boolean"]
 
 
 def _number(value: Any) -> float | None:
@@ -33,6 +33,14 @@ def nonnegative_finite(name: str, value: Any) -> float:
     v = _number(value)
     if v is None or not (math.isfinite(v) and v >= 0):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+def number_at_least(name: str, value: Any, minimum: float) -> float:
+    """``value`` as a finite float >= ``minimum``."""
+    v = _number(value)
+    if v is None or not (math.isfinite(v) and v >= minimum):
+        raise ValueError(f"{name} must be a number >= {minimum:g}, got {value!r}")
     return v
 
 

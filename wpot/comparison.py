@@ -182,10 +182,12 @@ def min_vertices(config: ComparisonConfig) -> tuple[int, str]:
     """The fewest vertices a mesh may have in a comparison with ``config``, and why (for the error message)."""
     from wpot.signatures import get_signature
 
+    from wpot.signatures._spectral import SpectralOptions
+
     title = get_signature(config.signature).title
-    n_eigen = getattr(config.signature_options, "n_eigen", None)
-    if n_eigen is None:
+    if not isinstance(config.signature_options, SpectralOptions):
         return MIN_VERTICES, f"a comparison needs at least {MIN_VERTICES} points to sample and to match"
+    n_eigen = config.signature_options.n_eigen
     need = max(MIN_VERTICES, min(int(n_eigen), MIN_EIGENPAIRS))
     return need, (f"{title} takes min(n_eigen, N) Laplace-Beltrami eigenpairs from a mesh of N vertices and needs "
                   f"at least {need} of them (n_eigen={n_eigen})")
@@ -199,12 +201,21 @@ def check_mesh_size(mesh: Mesh, config: ComparisonConfig, name: str = "mesh") ->
         raise ValueError(f"{name} has only {mesh.n_vertices} vertices, too few to compare: {why}")
 
 
+def fit_phase(stage: Any) -> str:
+    """The progress name of fitting ``stage`` to a dataset: "spectra" for a spectral signature (its fit inputs are
+    the shapes' spectra, the long part), else "fitting <title>"."""
+    from wpot.signatures._spectral import SpectralSignature
+
+    return "spectra" if isinstance(stage, SpectralSignature) else f"fitting {stage.title}"
+
+
 def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
     """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
-    n_eigen = getattr(stage.options, "n_eigen", None)
-    if n_eigen is not None:
+    from wpot.signatures._spectral import SpectralSignature
+
+    if isinstance(stage, SpectralSignature):
         return (f"Laplace-Beltrami spectrum of {label} ({mesh.n_vertices} vertices, "
-                f"{min(int(n_eigen), mesh.n_vertices)} eigenpairs)")
+                f"{min(int(stage.options.n_eigen), mesh.n_vertices)} eigenpairs)")
     return f"fitting {stage.title} to {label} ({mesh.n_vertices} vertices)"
 
 
@@ -322,8 +333,7 @@ class Comparer:
             if signature_state is not None:
                 raise ValueError("give either energies or signature_state, not both")
             signature_state = {"energies": energies}
-        caches = None
-        self._setup(config, device, cache_dir, signature_state, memory_limit, caches)
+        self._setup(config, device, cache_dir, signature_state, memory_limit, None)
         self.progress = as_progress(progress)
 
     def _setup(self, config: ComparisonConfig, device: str | None, cache_dir: Any, signature_state: Any,
@@ -334,7 +344,6 @@ class Comparer:
         from wpot.signatures import get_signature
 
         self.config = config
-        self.progress = as_progress(False)
         self.device = _resolve_device(device)
         self.cache_dir = cache_dir
         self.memory_limit = None if memory_limit is None else _validate.positive_finite("memory_limit", memory_limit)
@@ -452,8 +461,7 @@ class Comparer:
                     inputs.append(self.stage.fit_input(m))
             self.stage.fit_from(inputs)
         elif self.stage.needs_fit:  # a dataset: a bar
-            spectral = hasattr(self.stage.options, "n_eigen")
-            bar = self.progress.bar(len(meshes), "spectra" if spectral else f"fitting {self.stage.title}", "shape")
+            bar = self.progress.bar(len(meshes), fit_phase(self.stage), "shape")
             inputs = []
             try:
                 for m in meshes:

@@ -888,20 +888,11 @@ def run_all_vs_all(
     RunLockedError : another process is running on ``out`` (one coordinator per run folder: `run_lock`)
     RunMismatchError : ``out`` holds a run with other parameters or shapes, or a shape file changed since
     CorruptRunError : ``out/wpot.sqlite`` is damaged
+
+    The inputs are read and checked first, so a refused input leaves no run folder behind; the run folder's
+    lock (`run_lock`) is then held for the rest of the run.
     """
-    with contextlib.ExitStack() as held:  # the run folder's lock, taken once the inputs are checked
-        return _run_all_vs_all(
-            shapes, out, signature=signature, transport=transport, jobs=jobs, executor=executor,
-            scheduler=scheduler, labels=labels, device=device, progress=progress, max_pairs=max_pairs,
-            config=config, repair=repair, held=held, **comparer_options,
-        )
-
-
-def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, scheduler, labels, device, progress,
-                    max_pairs, config, repair, held, **comparer_options) -> RunStore:
-    """`run_all_vs_all`: the inputs are read and checked first (a refused input leaves no run folder behind),
-    then the run folder's lock (`run_lock`) is entered on ``held`` for the rest of the run."""
-    from wpot.comparison import check_mesh_size
+    from wpot.comparison import check_mesh_size, fit_phase
     from wpot.config import ComparisonConfig
     from wpot.progress import as_progress
 
@@ -909,9 +900,9 @@ def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, schedu
         if executor is not None:
             raise ValueError(f"give either executor or scheduler, not both (got scheduler={scheduler!r})")
         with dask_executor(scheduler, n_workers=jobs) as ex:
-            return _run_all_vs_all(
+            return run_all_vs_all(
                 shapes, out, signature=signature, transport=transport, jobs=jobs, executor=ex, scheduler=None, labels=labels,
-                device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair, held=held,
+                device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair,
                 **comparer_options,
             )
     reporter = as_progress(progress)
@@ -945,51 +936,51 @@ def _run_all_vs_all(shapes, out, *, signature, transport, jobs, executor, schedu
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
-    held.enter_context(run_lock(out))
-    store = RunStore(out, create=True)
-    stored_repair = bool(store.get("repair", False))
-    try:
-        store.initialize(params, shape_rows, lab)
-    except RunMismatchError as exc:
-        if exc.differences or stored_repair == bool(repair):
-            raise
-        raise RunMismatchError(f"{exc} The run was made with repair={stored_repair}; rerun with repair={stored_repair} "
-                               "to resume it.", folder=out, differences=[("repair", stored_repair, bool(repair))]) from None
-    store.set("repair", bool(repair))
-    if repair:
-        store.set("repairs", repairs)
-    todo = [t for t in store.tasks() if t not in store.done()]
-    if not todo:
+    with run_lock(out):
+        store = RunStore(out, create=True)
+        stored_repair = bool(store.get("repair", False))
+        try:
+            store.initialize(params, shape_rows, lab)
+        except RunMismatchError as exc:
+            if exc.differences or stored_repair == bool(repair):
+                raise
+            raise RunMismatchError(f"{exc} The run was made with repair={stored_repair}; rerun with repair={stored_repair} "
+                                   "to resume it.", folder=out, differences=[("repair", stored_repair, bool(repair))]) from None
+        store.set("repair", bool(repair))
+        if repair:
+            store.set("repairs", repairs)
+        todo = [t for t in store.tasks() if t not in store.done()]
+        if not todo:
+            return store
+
+        own_pool = None
+        if executor is None and (jobs is None or jobs > 1):
+            import multiprocessing as mp
+
+            own_pool = cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"))
+            executor = own_pool
+        task_specs = [(s.path, m.fingerprint) if s.path is not None else m for s, m in zip(specs, meshes)]
+        try:
+            # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
+            # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
+            task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
+                           "device": device, "repair": bool(repair)}
+            from wpot.signatures import get_signature
+
+            stage = get_signature(config.signature)(config.signature_options)
+            if stage.needs_fit and task_config["state"] is None:
+                inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs],
+                              fit_phase(stage), reporter)
+                stage.fit_from(inputs)
+                task_config["state"] = stage.state()
+                store.set_signature_state(task_config["state"])
+            needed = sorted({i for t in todo for i in t})
+            _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", reporter)
+            _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
+        finally:
+            if own_pool is not None:
+                own_pool.shutdown(wait=True, cancel_futures=True)
         return store
-
-    own_pool = None
-    if executor is None and (jobs is None or jobs > 1):
-        import multiprocessing as mp
-
-        own_pool = cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"))
-        executor = own_pool
-    task_specs = [(s.path, m.fingerprint) if s.path is not None else m for s, m in zip(specs, meshes)]
-    try:
-        # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
-        # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
-        task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
-                       "device": device, "repair": bool(repair)}
-        from wpot.signatures import get_signature
-
-        stage = get_signature(config.signature)(config.signature_options)
-        if stage.needs_fit and task_config["state"] is None:
-            inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs],
-                          "spectra" if hasattr(stage.options, "n_eigen") else f"fitting {stage.title}", reporter)
-            stage.fit_from(inputs)
-            task_config["state"] = stage.state()
-            store.set_signature_state(task_config["state"])
-        needed = sorted({i for t in todo for i in t})
-        _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", reporter)
-        _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
-    finally:
-        if own_pool is not None:
-            own_pool.shutdown(wait=True, cancel_futures=True)
-    return store
 
 
 class DaskExecutor(cf.Executor):

@@ -214,10 +214,8 @@ class SamplerOptions:
         if self.max_vertices is not None:
             object.__setattr__(self, "max_vertices", _validate.integer_at_least("max_vertices", self.max_vertices, 3))
         if self.vertices_per_sample is not None:
-            v = self.vertices_per_sample
-            if isinstance(v, bool) or _number(v) is None or not (np.isfinite(float(v)) and float(v) >= 1):
-                raise ValueError(f"vertices_per_sample must be a number >= 1 or None, got {v!r}")
-            object.__setattr__(self, "vertices_per_sample", float(v))
+            object.__setattr__(self, "vertices_per_sample",
+                               _validate.number_at_least("vertices_per_sample", self.vertices_per_sample, 1))
         _validate.one_of("fps_metric", self.fps_metric, FPS_METRICS)
         _validate.one_of("pooling", self.pooling, POOLINGS)
 
@@ -246,13 +244,6 @@ class SamplerOptions:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "SamplerOptions":
         return cls(**dict(d))
-
-
-def _number(v: Any) -> float | None:
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return None
 
 
 class FarthestPointSampler:
