@@ -18,8 +18,11 @@ Sections, each printed as a table and saved to ``DIR/gpu_suite.json`` when ``--o
    solver beside ``ot.emd`` on the same cost, with the gap;
 4. a large matrix-free problem (random L2 costs in R^100, N = 20,000 on a GPU, 300 with ``--small``; the first 12
    or 4 betas): time and certified gap bound at the last (the dual bound is over all N^2 entries);
-5. what the solver cannot yet be asked (issue 19): a batch of pairs in the same kernel launches, and the count of
-   host-device synchronisations per Newton step; printed as not available so that the table says what is missing.
+5. host-device transfers of each run above on ``--device``, per Newton step and per CG iteration: device-to-host
+   reads (each a synchronisation on a GPU) and host-to-device writes, as the engine counts them
+   (`wpot.ot.newton.Timers`: the same counts on every device, up to the end of the annealing);
+6. what the solver cannot yet be asked (issue 19): a batch of pairs in the same kernel launches; printed as not
+   available so that the table says what is missing.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ import argparse
 import json
 import time
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +53,37 @@ def _random_problem(n: int, dim: int, seed: int):
     rng = np.random.default_rng(seed)
     x, y = rng.random((n, dim)), rng.random((n, dim))
     return x, y
+
+
+@contextmanager
+def engine_timers():
+    """Collects each solve's engine timers (`wpot.ot.newton.Timers.as_dict`, taken when its annealing
+    returns, as benchmarks/ot_speed.py takes them) into the yielded list."""
+    from wpot.ot import balanced, partial
+
+    got: list[dict] = []
+    originals = (balanced.anneal, partial.anneal)
+
+    def wrap(orig):
+        def anneal(eng, fe, **kw):
+            out = orig(eng, fe, **kw)
+            got.append(eng.t.as_dict())
+            return out
+        return anneal
+
+    balanced.anneal, partial.anneal = wrap(originals[0]), wrap(originals[1])
+    try:
+        yield got
+    finally:
+        balanced.anneal, partial.anneal = originals
+
+
+def transfers(tm: dict) -> dict:
+    """Host-device transfers of one solve (its engine timers) in all and per Newton step and CG iteration."""
+    nn, nm = max(tm["n_newton"], 1), max(tm["n_matvec"], 1)
+    return {"n_newton": tm["n_newton"], "n_cg": tm["n_matvec"], "n_d2h": tm["n_d2h"], "n_h2d": tm["n_h2d"],
+            "d2h_per_newton": tm["n_d2h"] / nn, "h2d_per_newton": tm["n_h2d"] / nn,
+            "d2h_per_cg": tm["n_d2h"] / nm, "h2d_per_cg": tm["n_h2d"] / nm}
 
 
 def environment(device: str) -> dict:
@@ -79,7 +114,8 @@ def agreement(device: str, n: int) -> list[dict]:
     rows = []
     for name, solve in cases.items():
         t = time.perf_counter()
-        r = solve(device)
+        with engine_timers() as tms:
+            r = solve(device)
         secs = time.perf_counter() - t
         ref = solve("cpu") if device != "cpu" else r
         rows.append({
@@ -88,6 +124,7 @@ def agreement(device: str, n: int) -> list[dict]:
             "rel_diff_U": abs(r.cost - ref.cost) / abs(ref.cost),
             "max_marginal_diff": float(max(np.abs(r.mass1 - ref.mass1).max(), np.abs(r.mass2 - ref.mass2).max())),
             "seconds": secs,
+            "transfers": transfers(tms[-1]),
         })
     return rows
 
@@ -106,10 +143,11 @@ def tosca_sized_pair(device: str, n: int) -> dict:
     for method in ("anneal", "ipm"):  # compile the kernels outside the timing
         wpot.ot.solve_balanced(C[:60, :60], device=device, method=method)
     t = time.perf_counter()
-    r = comparer.solver.solve(problem)
+    with engine_timers() as tms:
+        r = comparer.solver.solve(problem)
     secs = time.perf_counter() - t
     row = {"problem": f"WKS pair, {n} x {n} vertices ({comparer.solver.method_for(problem)})", "seconds": secs,
-           "U": r.cost, "converged": bool(r.converged), "n_newton": r.n_newton}
+           "U": r.cost, "converged": bool(r.converged), "n_newton": r.n_newton, "transfers": transfers(tms[-1])}
     a = np.full(n, 1.0 / n)
     emd = _emd(a, a, C)
     if emd is not None:
@@ -123,13 +161,15 @@ def large_matrix_free(device: str, n: int, max_iter: int) -> dict:
 
     x, y = _random_problem(n, 100, 2)
     t = time.perf_counter()
-    with warnings.catch_warnings():  # capped at max_iter betas: "not converged" is expected and reported below
+    # capped at max_iter betas: "not converged" is expected and reported below
+    with warnings.catch_warnings(), engine_timers() as tms:
         warnings.simplefilter("ignore", RuntimeWarning)
         r = wo.solve_balanced(wo.FeatureCost(x, y, "l2", device=device), device=device, max_iter=max_iter)
     secs = time.perf_counter() - t
     last = r.history[-1]
     return {"problem": f"matrix-free L2 in R^100, N = {n}", "seconds": secs, "converged": bool(r.converged),
-            "betas": len(r.history), "gap_bound_rel": last.gap_bound / abs(r.cost), "n_newton": r.n_newton}
+            "betas": len(r.history), "gap_bound_rel": last.gap_bound / abs(r.cost), "n_newton": r.n_newton,
+            "transfers": transfers(tms[-1])}
 
 
 def main() -> None:
@@ -157,9 +197,15 @@ def main() -> None:
     print(f"{r['problem']}: {r['seconds']:.1f} s for {r['betas']} betas (max_iter {max_iter}), gap bound "
           f"{r['gap_bound_rel']:.1e} of U, converged {r['converged']}")
 
+    print(f"\n{'host-device transfers on ' + a.device + ' (d2h: syncs)':<44} {'newton':>6} {'cg':>6} "
+          f"{'d2h/newton':>10} {'h2d/newton':>10} {'d2h/cg':>7} {'h2d/cg':>7}")
+    for r in [*report["agreement"], report["pair"], report["large"]]:
+        tr = r["transfers"]
+        print(f"{r['problem']:<44} {tr['n_newton']:>6} {tr['n_cg']:>6} {tr['d2h_per_newton']:>10.1f} "
+              f"{tr['h2d_per_newton']:>10.1f} {tr['d2h_per_cg']:>7.2f} {tr['h2d_per_cg']:>7.2f}")
+
     report["not_available"] = {
         "batch of pairs in shared kernel launches": "not implemented (issue 19)",
-        "host-device synchronisations per Newton step": "not instrumented (issue 19)",
         "MDOT-TNT peer": "not run (not installed)",
     }
     for k, v in report["not_available"].items():

@@ -6,7 +6,9 @@ masses as cell-pooled samples give, where an earlier Newton variant stalled).
 Solvers: wpot.ot.solve_balanced (Warp; method="anneal" and method="ipm", default CG and optionally the dense
 direct solve), POT's exact ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
 Printed: wall time, relative gap of <C, plan> to ot.emd's optimum, L1 marginal error (relative to the
-total mass), wpot's Newton/CG counts and where its time goes. Timings on a shared machine are noisy.
+total mass), wpot's Newton/CG counts, where its time goes, and its host-device transfers per Newton step and
+per CG iteration (device-to-host reads are synchronisations on a GPU; the counts are those a GPU run makes,
+whatever the device). Timings on a shared machine are noisy.
 
     python benchmarks/ot_speed.py                 # N = 500, 1000, 3400
     python benchmarks/ot_speed.py --sizes 500 1000 --quick
@@ -40,6 +42,15 @@ def masses(n: int, spread: float, seed: int = 1):
 
 def row(name, t, gap, merr, extra=""):
     print(f"  {name:<34} {t:9.2f} s   gap {gap:10.2e}   marg.err {merr:9.2e}   {extra}")
+
+
+def transfers(tm: dict) -> str:
+    """The engine's host-device transfers (`wpot.ot.newton.Timers` as a dict, up to the end of the annealing)
+    per Newton step and per CG iteration (Schur matvec)."""
+    nn, nm = max(tm["n_newton"], 1), max(tm["n_matvec"], 1)
+    return (f"host-device transfers: d2h (syncs) {tm['n_d2h']} = {tm['n_d2h'] / nn:.1f} per Newton step, "
+            f"{tm['n_d2h'] / nm:.2f} per CG iteration; h2d {tm['n_h2d']} = {tm['n_h2d'] / nn:.1f} per Newton step, "
+            f"{tm['n_h2d'] / nm:.2f} per CG iteration ({tm['n_newton']} Newton steps, {tm['n_matvec']} CG iterations)")
 
 
 def main():
@@ -119,6 +130,7 @@ def main():
                   + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
                   + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
                   f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
+            print("      " + transfers(tm))
             print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
         if args.direct and n <= 2000:
             t = time.perf_counter()

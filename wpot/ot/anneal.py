@@ -64,7 +64,7 @@ def _tangent(eng: Engine, pt: Point) -> int:
     o = eng.o
     if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
         # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
-        n_lin, _ = eng.direction(Point(eng.row_ws.numpy().copy(), eng.col_ws.numpy().copy(), 0.0, 0.0))
+        n_lin, _ = eng.direction(Point(eng.to_host(eng.row_ws).copy(), eng.to_host(eng.col_ws).copy(), 0.0, 0.0))
         return n_lin
     return 0
 

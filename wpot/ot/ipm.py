@@ -183,7 +183,8 @@ class _IPM:
         p = eng.p
         d = p.device
         z = lambda n: wp.zeros(n, dtype=wp.float64, device=d)  # noqa: E731
-        self.G = wp.array(np.outer(p.m_r, p.m_c), dtype=wp.float64, device=d)  # the product plan: feasible
+        self.G = wp.empty((p.n_r, p.n_c), dtype=wp.float64, device=d)
+        eng.to_device(self.G, np.outer(p.m_r, p.m_c))  # the product plan: feasible
         self.S = wp.zeros((p.n_r, p.n_c), dtype=wp.float64, device=d)  # reduced costs at the last evaluation
         self.row_gs, self.row_smin, self.row_r, self.col_r = z(p.n_r), z(p.n_r), z(p.n_r), z(p.n_c)
         self.row_rs, self.row_rg = z(p.n_r), z(p.n_r)
@@ -207,11 +208,11 @@ class _IPM:
                            self.row_r, self.col_r],
                   device=p.device)
         self.upd = None
-        mu = float(self.row_gs.numpy().sum()) / (p.n_r * p.n_c)
-        r1 = p.m_r - e.row_g.numpy()
-        r2 = p.m_c - e.col_g.numpy()
+        mu = float(e.to_host(self.row_gs).sum()) / (p.n_r * p.n_c)
+        r1 = p.m_r - e.to_host(e.row_g)
+        r2 = p.m_c - e.to_host(e.col_g)
         res = 0.5 * float(np.abs(r1).sum() + np.abs(r2).sum())
-        return mu, float(e.row_u.numpy().sum()), res, float(self.row_smin.numpy().min())
+        return mu, float(e.to_host(e.row_u).sum()), res, float(e.to_host(self.row_smin).min())
 
     def _ratio(self, mu_t: float, corr: bool) -> tuple[float, float]:
         """Steps to the boundary (s, G) for the engine's current direction (and the affine sums)."""
@@ -222,7 +223,7 @@ class _IPM:
                   inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a,
                           self.a_a, self.a_b, self.a_y, mu_t, int(corr)],
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
-        return float(self.row_rs.numpy().min()), float(self.row_rg.numpy().min())
+        return float(e.to_host(self.row_rs).min()), float(e.to_host(self.row_rg).min())
 
     def _step(self, mu_t: float) -> tuple[float, float]:
         """Take the engine's current direction (target ``mu_t``, corrector from the affine arrays): the dual
@@ -251,8 +252,8 @@ class _IPM:
             if mu <= 1.2 * mu_f:
                 # centering at the target (the central plan's marginals are mu_f sum 1/s): Newton on them with
                 # the primal-dual weights, until they are close enough for the dual Newton of the annealing
-                d1 = p.m_r - mu_f * self.row_r.numpy()
-                d2 = p.m_c - mu_f * self.col_r.numpy()
+                d1 = p.m_r - mu_f * e.to_host(self.row_r)
+                d2 = p.m_c - mu_f * e.to_host(self.col_r)
                 res_c = 0.5 * float(np.abs(d1).sum() + np.abs(d2).sum())
                 if res_c <= CENTERED:
                     break
@@ -274,13 +275,14 @@ class _IPM:
             wp.copy(self.a_y, e.dy_a)
             rs, rg = self._ratio(0.0, False)
             ad, ap = min(1.0, rs), min(1.0, rg)
-            m = self.row_m.numpy().sum(axis=0)
+            row_m = e.to_host(self.row_m)
+            m = row_m.sum(axis=0)
             mu_aff = (mu * nn + ap * m[0] + ad * m[1] + ap * ad * m[2]) / nn
             sigma = min(1.0, max(0.0, mu_aff / mu)) ** 3
             mu_t = max(sigma * mu, mu_f)
             # corrector, T = mu_t - dG_aff ds_aff: rows sum_l (G/s) ds = sum_l T/s - m_r -> g1 = m_r - sum T/s
-            g1 = p.m_r - (mu_t * self.row_r.numpy() - self.row_m.numpy()[:, 3])
-            g2 = p.m_c - (mu_t * self.col_r.numpy() - self.col_m.numpy())
+            g1 = p.m_r - (mu_t * e.to_host(self.row_r) - row_m[:, 3])
+            g2 = p.m_c - (mu_t * e.to_host(self.col_r) - e.to_host(self.col_m))
             n_lin += self._solve(g1, g2, rtol=1e-2)
             ad, ap = self._step(mu_t)
             n_it += 1
@@ -312,10 +314,11 @@ def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     beta_h = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, 0.25 * u0), o.beta_max)
     n_it, n_lin = ipm.run(beta_h, o.verbose)
     # (U* = 0, e.g. a shape against itself: the re-aimed beta is capped by beta_max)
-    beta_h2 = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.row_u.numpy().sum())), o.beta_max)
+    beta_h2 = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.to_host(eng.row_u).sum())), o.beta_max)
     if beta_h2 > beta_h:
         k2, l2 = ipm.run(beta_h2, o.verbose)
         n_it, n_lin, beta_h = n_it + k2, n_lin + l2, beta_h2
+    eng.t.n_newton += n_it  # the interior-point iterations are Newton steps (as `OTResult.n_newton` counts them)
     eng.invalidate_preconditioner()  # it was built from the interior-point weights
     del ipm  # frees G
     return beta_h, n_it, n_lin, time.perf_counter() - t0

@@ -2,7 +2,10 @@
 
 State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (phi, phi', row and
 column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. Length-N vectors are handled on the host
-(zero-copy views on "cpu"), where the CG recurrences and the sparse preconditioner run.
+(zero-copy views on "cpu"), where the CG recurrences and the sparse preconditioner run. Every read of a
+device array goes through `Engine.to_host` and every write of host data through `Engine.to_device`, which
+count them (`Timers.n_d2h`, `Timers.n_h2d`): on a GPU each is a transfer, and each read waits for the
+device (a synchronisation); the counts are the same on every device.
 
 Two modes (`wpot.ot.kernels`): stored (a dense C, and the Hessian weights W stored by the evaluation
 pass) and matrix-free (C from the signatures, W recomputed where it is read: no N1 x N2 array; each pass
@@ -15,8 +18,8 @@ large N and is reused across Newton steps and betas while CG converges about as 
 one (`REFRESH_EXTRA_CG`).
 
 The `Engine`'s public step API (`evaluate`, `direction`, `trial`, `accept`, `newton`, `free_pass`,
-`snapshot`/`restore`, `invalidate_preconditioner`, `plan`, `plan_top`) is what the annealing loop
-(`wpot.ot.anneal`) and the interior-point start (`wpot.ot.ipm`) drive.
+`snapshot`/`restore`, `invalidate_preconditioner`, `plan`, `plan_top`, `to_host`/`to_device`) is what the
+annealing loop (`wpot.ot.anneal`) and the interior-point start (`wpot.ot.ipm`) drive.
 """
 from __future__ import annotations
 
@@ -48,6 +51,13 @@ FTB_MIN_X = 1.0
 
 @dataclass
 class Timers:
+    """Seconds spent per phase of one `Engine`'s solve and its work counts (``as_dict`` is what benchmarks print).
+
+    n_newton counts Newton steps (`Engine.newton`'s and the interior-point iterations: `OTResult.n_newton`);
+    n_d2h / n_h2d count the device-to-host reads (`Engine.to_host`) and host-to-device writes
+    (`Engine.to_device`) of device arrays, the transfers (and, for reads, synchronisations) a GPU makes.
+    """
+
     eval: float = 0.0
     prep: float = 0.0
     precond: float = 0.0
@@ -58,6 +68,9 @@ class Timers:
     n_matvec: int = 0
     n_factor: int = 0
     n_free: int = 0
+    n_newton: int = 0
+    n_d2h: int = 0
+    n_h2d: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -140,10 +153,10 @@ class Engine:
         self.delta = z(n_r)  # the row sweep's sums, then delta(k), of the strided matvec
         self.d_a, self.d_b = z(n_r), z(n_r)
         self.dy_a, self.zero_c = z(n_c), z(n_c)
-        self.b.assign(wp.array(prob.b_r, dtype=wp.float64, device=d))
         self.t = Timers()
-        self.a_sum = float(prob.a_c.sum())
         self._host = wp.get_device(d).is_cpu
+        self.to_device(self.b, prob.b_r)
+        self.a_sum = float(prob.a_c.sum())
         # strided lanes on GPUs (see `_record_matvec`); one thread per row on the CPU (unless the options
         # say otherwise)
         if opts.matvec_lanes is None:
@@ -153,8 +166,7 @@ class Engine:
         self.eval_lanes = self.lanes or 1  # `K.eval_rows` runs one lane per row on the CPU
         self.lane_f = wp.zeros((n_r, self.eval_lanes, 6), dtype=wp.float64, device=d)
         self.lane_p = wp.zeros((n_r, self.eval_lanes), dtype=wp.int32, device=d)
-        self._v_view = self.v.numpy() if self._host else None
-        self._mv_view = self.mv.numpy() if self._host else None
+        self._mv_view = np.asarray(self.mv) if self._host else None  # zero-copy, for zeroing it
         self._matvec_cmd = None
         self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
         self._M_iters = 0
@@ -181,9 +193,9 @@ class Engine:
                   outputs=[self.row_g, self.row_w, self.piv, self.tail, self.row_u, self.row_xphi, self.s_piv],
                   device=p.device)
         self._w_point = (lam[0], lam[1], y[0], y[1], beta)
-        rg, cg = self.row_g.numpy(), self.col_g.numpy()
-        lam_h = lam[0].numpy() + lam[1].numpy()
-        y_h = y[0].numpy() + y[1].numpy()
+        rg, cg = self.to_host(self.row_g), self.to_host(self.col_g)
+        lam_h = self.to_host(lam[0]) + self.to_host(lam[1])
+        y_h = self.to_host(y[0]) + self.to_host(y[1])
         x = self._x_of_y(y_h)
         tgt1 = p.m_r + p.b_r * lam_h
         tgt2 = p.m_c + p.a_c * (y_h - x)
@@ -193,8 +205,8 @@ class Engine:
         res = 0.5 * float(np.abs(g1).sum() + np.abs(g2).sum())
         pt = Point(g1, g2, merit, res, x=x)
         if full:
-            pt.u = float(self.row_u.numpy().sum())
-            pt.xphi = float(self.row_xphi.numpy().sum())
+            pt.u = float(self.to_host(self.row_u).sum())
+            pt.xphi = float(self.to_host(self.row_xphi).sum())
         self.t.eval += time.perf_counter() - t0
         self.t.n_eval += 1
         return pt
@@ -207,7 +219,7 @@ class Engine:
         wp.launch(K.variant(K.free_rows, self.csrc), dim=p.n_r,
                   inputs=[self.csrc, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
                   outputs=[self.row_f, self.row_ws, self.col_ws], device=p.device)
-        pt.f_sum = float(self.row_f.numpy().sum())
+        pt.f_sum = float(self.to_host(self.row_f).sum())
         self.t.eval += time.perf_counter() - t0
         self.t.n_free += 1
 
@@ -225,20 +237,30 @@ class Engine:
         src.lam_hi, src.lam_lo, src.y_hi, src.y_lo = lh, ll, yh, yl
         return src
 
-    def _put(self, dst: wp.array, src: np.ndarray):
-        """Host vector -> device array: a copy into the zero-copy view on "cpu", ``assign`` elsewhere."""
+    # ------------------------------------------------------------------ host <-> device
+    def to_host(self, arr: wp.array) -> np.ndarray:
+        """The device array ``arr`` as a numpy array: a zero-copy view on "cpu", elsewhere a copy that waits
+        for the device (a synchronisation). The solver reads device arrays only through here, so that
+        ``t.n_d2h`` counts the reads a GPU run makes."""
+        self.t.n_d2h += 1
+        return arr.numpy()
+
+    def to_device(self, dst: wp.array, src: np.ndarray) -> None:
+        """Host data ``src`` -> the device array ``dst`` (same shape): a copy into its zero-copy view on
+        "cpu", an upload (``assign``) elsewhere. The solver writes host data only through here, so that
+        ``t.n_h2d`` counts the uploads a GPU run makes."""
+        self.t.n_h2d += 1
         if self._host:
-            dst.numpy()[:] = src
+            np.asarray(dst)[:] = src
         else:
             dst.assign(src)
 
     def _matvec(self, v: np.ndarray) -> np.ndarray:
         p = self.p
-        if self._host:  # zero-copy views of the device arrays
-            self._v_view[:] = v
+        self.to_device(self.v, v)
+        if self._host:  # a zero-copy view of the device array
             self._mv_view[:] = 0.0
         else:
-            self.v.assign(v)
             self.mv.zero_()
         if self._matvec_cmd is None:  # recorded once per W source: only the arrays' contents change
             self._matvec_cmd = self._record_matvec()
@@ -246,7 +268,7 @@ class Engine:
             self.delta.zero_()
         for cmd in self._matvec_cmd:
             cmd.launch()
-        out = self.mv.numpy().copy()
+        out = self.to_host(self.mv).copy()
         if p.partial:
             a = p.a_c
             out += a * v - a * (float(a @ v) / self.a_sum)
@@ -286,9 +308,9 @@ class Engine:
             self._matvec_cmd = None  # the duals' buffers alternate: record the matvec for this point
         else:
             self._wsrc = self._wsink
-        e1 = self.row_w.numpy() + p.b_r
-        self._put(self.e1, e1)
-        self._put(self.g1, pt.g1)
+        e1 = self.to_host(self.row_w) + p.b_r
+        self.to_device(self.e1, e1)
+        self.to_device(self.g1, pt.g1)
         self.diag_s.zero_()
         self.wtg.zero_()
         cg = self.o.linear_solver != "direct"
@@ -305,13 +327,14 @@ class Engine:
             wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
                       inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
                       outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
-        rhs = -pt.g2 + self.wtg.numpy()
-        data = linear.SchurData(self.diag_s.numpy().copy(), e1, self.piv.numpy().copy(), p.a_c, not p.partial)
+        rhs = -pt.g2 + self.to_host(self.wtg)
+        data = linear.SchurData(self.to_host(self.diag_s).copy(), e1, self.to_host(self.piv).copy(), p.a_c,
+                                not p.partial)
         self.t.prep += time.perf_counter() - t0
         n_lin, ok = 0, True
         if self.o.linear_solver == "direct":
             t0 = time.perf_counter()
-            dy = linear.direct_solve(self.W.numpy(), data, rhs)
+            dy = linear.direct_solve(self.to_host(self.W), data, rhs)
             self.t.direct += time.perf_counter() - t0
             n_lin = 1
         else:
@@ -340,7 +363,7 @@ class Engine:
                     ok = info.converged
                     self._M_iters = info.iterations
         t0 = time.perf_counter()
-        self._put(self.dy_a, dy)
+        self.to_device(self.dy_a, dy)
         if self.lanes:
             self.delta.zero_()
             wp.launch(K.variant(K.schur_row_partial, self._wsrc), dim=(p.n_r, self.lanes),
@@ -360,8 +383,8 @@ class Engine:
         t0 = time.perf_counter()
         wp.launch(K.variant(K.col_topk, self._wsrc), dim=p.n_c, inputs=[self._wsrc, p.n_r, self.piv, self.ctop_val.shape[1]],
                   outputs=[self.ctop_val, self.ctop_idx], device=p.device)
-        P = linear.assemble_sparse_schur(data, self.top_val.numpy(), self.top_idx.numpy(),
-                                         self.ctop_val.numpy(), self.ctop_idx.numpy())
+        P = linear.assemble_sparse_schur(data, self.to_host(self.top_val), self.to_host(self.top_idx),
+                                         self.to_host(self.ctop_val), self.to_host(self.ctop_idx))
         self._M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
         self._M_fresh_needed = False
         self.t.precond += time.perf_counter() - t0
@@ -397,12 +420,13 @@ class Engine:
             k_lin, _ = self.direction(pt, rtol=min(CG_LOOSE, pt.residual))
             n_lin += k_lin
             n_newton += 1
+            self.t.n_newton += 1
             # fraction to s = 0 on each row's pivot entry (its reduced cost moves by d_b exactly), for pivots
             # in phi's 1/x tail (beta s > FTB_MIN_X): there the linear model overshoots (G ~ 1/(beta s)).
             # s = 0 is not a bound (phi is smooth, G < 1): a pivot already near it is left to the line
             # search, otherwise every step would stop 90% of the way and the iteration stall
-            db = self.d_b.numpy()
-            spv = self.s_piv.numpy()
+            db = self.to_host(self.d_b)
+            spv = self.to_host(self.s_piv)
             neg = (db < 0) & (spv * beta > FTB_MIN_X)
             alpha = 1.0
             if np.any(neg):
@@ -433,10 +457,9 @@ class Engine:
     # ------------------------------------------------------------------ duals
     def init_point(self, lam0: np.ndarray, y0: np.ndarray):
         """Set the duals to (lam0 (n_r,), y0 (n_c,)) (normalized units, the engine's orientation)."""
-        d = self.p.device
-        self.lam[0].assign(wp.array(lam0, dtype=wp.float64, device=d))
+        self.to_device(self.lam[0], lam0)
         self.lam[1].zero_()
-        self.y[0].assign(wp.array(y0, dtype=wp.float64, device=d))
+        self.to_device(self.y[0], y0)
         self.y[1].zero_()
 
     def snapshot(self, into: DualSnapshot | None = None) -> DualSnapshot:
@@ -458,8 +481,8 @@ class Engine:
         evaluation; 0 for balanced transport."""
         if not self.p.partial:
             return 0.0
-        m1 = self.row_g.numpy()
-        m2 = self.col_g.numpy()
+        m1 = self.to_host(self.row_g)
+        m2 = self.to_host(self.col_g)
         return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))
 
     def plan(self, beta: float) -> np.ndarray:
@@ -471,7 +494,7 @@ class Engine:
         wp.launch(K.variant(K.plan_kernel, self.csrc), dim=p.n_r,
                   inputs=[self.csrc, p.trans, p.n_c, beta, self.lam[0], self.lam[1], self.y[0],
                           self.y[1]], outputs=[G], device=p.device)
-        return G.numpy()
+        return self.to_host(G)
 
     def plan_top(self, beta: float, topk: int) -> tuple[np.ndarray, np.ndarray]:
         """Each user row's ``topk`` largest plan entries at ``beta`` and the current duals ((N1, topk)
@@ -485,4 +508,4 @@ class Engine:
         wp.launch(K.variant(K.plan_topk, self.csrc), dim=n1,
                   inputs=[self.csrc, p.trans, p.n_r, p.n_c, beta, self.lam[0], self.lam[1], self.y[0],
                           self.y[1], kk], outputs=[val, idx], device=p.device)
-        return val.numpy(), idx.numpy()
+        return self.to_host(val), self.to_host(idx)

@@ -49,8 +49,8 @@ def solve_partial_problem(problem: TransportProblem, options: SolverOptions, *, 
     eng.init_point(lam0, mu0 + x0)
 
     def free_energy(e: Engine, pt, beta):
-        lam = e.lam[0].numpy() + e.lam[1].numpy()
-        mu = e.y[0].numpy() + e.y[1].numpy() - pt.x
+        lam = e.to_host(e.lam[0]) + e.to_host(e.lam[1])
+        mu = e.to_host(e.y[0]) + e.to_host(e.y[1]) - pt.x
         return (-pt.x - 0.5 * float(prob.b_r @ (lam * lam)) - 0.5 * float(prob.a_c @ (mu * mu))
                 - pt.f_sum / beta)
 

@@ -140,10 +140,10 @@ def build_result(eng: Engine, out: AnnealOutcome, total: float, kind: str, *, pa
                               np.arange(0, n1 * kk + 1, kk, dtype=np.int64)), shape=(n1, n2))
     argmax = plan.argmax(axis=1) if plan is not None else top_idx[:, 0].astype(np.int64)
     # the exact marginals of the last evaluation (at the final duals and beta)
-    rg, cg = eng.row_g.numpy() * total, eng.col_g.numpy() * total
+    rg, cg = eng.to_host(eng.row_g) * total, eng.to_host(eng.col_g) * total
     mass1, mass2 = (cg, rg) if p.trans else (rg, cg)
-    lam = (eng.lam[0].numpy() + eng.lam[1].numpy()) * s
-    y = (eng.y[0].numpy() + eng.y[1].numpy()) * s
+    lam = (eng.to_host(eng.lam[0]) + eng.to_host(eng.lam[1])) * s
+    y = (eng.to_host(eng.y[0]) + eng.to_host(eng.y[1])) * s
     x = out.point.x * s if partial else 0.0
     mu = y - x
     if p.trans:
