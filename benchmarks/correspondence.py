@@ -9,7 +9,10 @@ a vertex of Y with
   sampling; signatures are computed on the full meshes, and the correspondence of every vertex of X is that
   of its nearest sample (`Comparer.compare`). One WKS energy grid is fitted to all 76 shapes (§3.2).
 * **wpot-zoomout** (``--methods wpot-zoomout``): the same map refined by `wpot.zoomout` (spectral upsampling,
-  k = 10 to 100 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed).
+  k = 10 to 100 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
+  default ``orient=True`` (the parts found mirrored are sent through the shape's left/right symmetry and
+  refined again; `wpot.orientation`). Its time per pair includes the symmetry detection of a shape the first
+  time the shape is a source (then cached).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
   of its README quickstart: area-normalized, centred meshes, 200 Laplace-Beltrami eigenpairs, 100 WKS
   descriptors (every second one kept), a 30 x 30 functional map fitted with w_descr = 1, w_lap = 0.1,
@@ -156,9 +159,9 @@ class ZoomOutMatcher:
         from wpot.refine import ZOOMOUT_K_END
 
         self.base = base
-        self.tag = base.tag + "+zoomout"
+        self.tag = base.tag + "+zoomout-orient"
         self.setup_seconds: dict[str, float] = {}
-        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5}
+        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": True}
 
     def settings(self) -> dict:
         return {**self.base.settings(), "zoomout": self.options}

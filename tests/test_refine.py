@@ -107,13 +107,14 @@ def test_zoomout_reuses_a_cached_larger_spectrum_else_computes_only_k_end(monkey
     monkeypatch.delenv("WPOT_CACHE_DIR", raising=False)  # memory only, emptied
     spectral.spectrum_cache.clear()
     start = np.random.default_rng(0).integers(0, b.n_vertices, a.n_vertices)
-    zoomout(a, b, start, k_end=30)
+    # orient=False: the orientation step's symmetry detection asks for its own spectrum (tests/test_orientation.py)
+    zoomout(a, b, start, k_end=30, orient=False)
     assert asked == [30, 30]  # nothing cached: only the 30 eigenpairs needed, per mesh
     asked.clear()
     spectral.eigenpairs(a, 300)
     spectral.eigenpairs(b, 320)
     asked.clear()
-    zoomout(a, b, start, k_end=30)
+    zoomout(a, b, start, k_end=30, orient=False)
     assert asked == []  # the larger cached spectra serve
 
 

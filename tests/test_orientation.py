@@ -1,0 +1,152 @@
+"""wpot.orientation: the orientation score's closed cases, symmetry detection on a mirror-symmetric shape, and
+ZoomOut keeping left from right."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+import wpot
+from wpot.mesh import Mesh
+from wpot.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
+                              winding)
+from wpot.refine import zoomout
+
+#: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
+_BUMPS = (((0.7, 0.5, 0.3), 0.8, 0.35), ((0.0, -0.6, 0.8), 0.5, 0.4), ((0.4, -0.3, -0.85), 0.45, 0.3),
+          ((0.0, 0.9, -0.4), 0.3, 0.45))
+
+
+def _sphere(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    f = ConvexHull(u).simplices.astype(np.int64)
+    nrm = np.cross(u[f[:, 1]] - u[f[:, 0]], u[f[:, 2]] - u[f[:, 0]])
+    flip = np.einsum("ij,ij->i", nrm, u[f].sum(axis=1)) < 0
+    f[flip] = f[flip][:, [0, 2, 1]]
+    return u, f
+
+
+def _radius(u: np.ndarray) -> np.ndarray:
+    r = np.ones(len(u))
+    for c, a, w in _BUMPS:
+        for cx in {c[0], -c[0]}:
+            cc = np.array([cx, c[1], c[2]]) / np.linalg.norm(c)
+            r += a * np.exp((u @ cc - 1.0) / w ** 2)
+    return r
+
+
+def mirror_symmetric(n: int = 900, seed: int = 0) -> Mesh:
+    """A closed, outward-wound surface whose only symmetry is the reflection x -> -x (not mirror-symmetric
+    in its triangulation: the sphere points are random)."""
+    u, f = _sphere(n, seed)
+    return Mesh(u * _radius(u)[:, None] * np.array([1.0, 1.3, 0.8]), f)
+
+
+def _nearest(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    d = ((queries[:, None, :] - points[None, :, :]) ** 2).sum(-1)
+    return np.argmin(d, axis=1)
+
+
+def test_winding_reads_outward_inward_and_open():
+    m = wpot.example_mesh(300)
+    assert winding(m) == 1
+    assert winding(Mesh(m.vertices, m.faces[:, [0, 2, 1]])) == -1
+    keep = m.vertices[m.faces].mean(axis=1)[:, 2] > 0.3  # an open cap (a scan) still reads its outside
+    cap = m.faces[keep]
+    used = np.unique(cap)
+    local = np.full(m.n_vertices, -1)
+    local[used] = np.arange(used.size)
+    assert winding(Mesh(m.vertices[used], local[cap])) == 1
+    assert winding(Mesh(m.vertices[used], local[cap][:, [0, 2, 1]])) == -1
+    flat = Mesh(np.c_[m.vertices[used, :2], np.zeros(used.size)], local[cap])  # no volume at all
+    assert winding(flat) == 0
+
+
+def test_score_of_a_map_and_its_mirror():
+    a = wpot.example_mesh(500, seed=3)
+    ident = np.arange(a.n_vertices)
+    s = orientation_score(a, a, ident)
+    assert 0.95 < s <= 1.0
+    # a rotated, relabelled copy with the true map: the same score
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(a.n_vertices)
+    inv = np.argsort(perm)
+    R = Rotation.random(random_state=1).as_matrix()
+    b = Mesh(a.vertices[perm] @ R.T, inv[a.faces])
+    assert orientation_score(a, b, inv) == pytest.approx(s, abs=1e-12)
+    # the mirror image (x -> -x) through the vertex map: orientation reversed, whichever way B winds its faces
+    mirrored = a.vertices * np.array([-1.0, 1.0, 1.0])
+    assert orientation_score(a, Mesh(mirrored, a.faces), ident) == pytest.approx(-s, abs=1e-12)
+    assert orientation_score(a, Mesh(mirrored, a.faces[:, [0, 2, 1]]), ident) == pytest.approx(-s, abs=1e-12)
+    # a random map scores near 0
+    assert abs(orientation_score(a, a, rng.integers(0, a.n_vertices, a.n_vertices))) < 0.2
+
+
+def test_score_warns_on_an_open_surface_and_checks_the_map():
+    m = wpot.example_mesh(200)
+    flat = Mesh(np.c_[m.vertices[:, :2], np.zeros(m.n_vertices)], m.faces)
+    with pytest.warns(OrientationWarning, match="encloses no volume"):
+        assert np.isnan(orientation_score(flat, m, np.arange(m.n_vertices)))
+    with pytest.raises(ValueError, match="outside B"):
+        orientation_score(m, m, np.full(m.n_vertices, m.n_vertices))
+    with pytest.raises(ValueError, match=r"\(N_A,\)"):
+        orientation_score(m, m, np.arange(5))
+
+
+def test_detects_the_reflection_of_a_mirror_symmetric_shape():
+    m = mirror_symmetric()
+    sym = reflection_symmetry(m, cache=False)
+    assert sym is not None and sym.score < -0.8
+    truth = _nearest(m.vertices, m.vertices * np.array([-1.0, 1.0, 1.0]))
+    err = np.linalg.norm(m.vertices[sym.map] - m.vertices[truth], axis=1) / np.sqrt(m.area)
+    assert np.median(err) < 0.03 and np.mean(err < 0.1) > 0.95
+    assert 0 <= sym.residual < 0.1
+    # a flat patch has no outside: nothing to find
+    m = wpot.example_mesh(200)
+    assert reflection_symmetry(Mesh(np.c_[m.vertices[:, :2], np.zeros(200)], m.faces), cache=False) is None
+
+
+def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
+    a = mirror_symmetric(900, seed=0)
+    b = mirror_symmetric(1100, seed=5)  # another triangulation of the same surface
+    truth = _nearest(b.vertices, a.vertices)
+    mirror = _nearest(b.vertices, a.vertices * np.array([-1.0, 1.0, 1.0]))
+    scale = np.sqrt(b.area)
+
+    def error(t):
+        return np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / scale
+
+    # a start map on the mirror side (what WKS transport gives in a third of TOSCA's pairs)
+    rng = np.random.default_rng(2)
+    start = np.where(rng.random(a.n_vertices) < 0.7, mirror, truth)
+    plain = zoomout(a, b, start, k_end=40, orient=False)
+    assert error(plain) > 0.1  # settled on the mirror side
+    oriented = zoomout(a, b, start, k_end=40)
+    assert error(oriented) < 0.03
+    assert orientation_score(a, b, oriented) > 0.5 > -0.5 > orientation_score(a, b, plain)
+    # keep_orientation leaves a map that already keeps orientation untouched
+    t, score, flipped = keep_orientation(a, b, oriented)
+    assert not flipped and np.array_equal(t, oriented) and score > 0.5
+
+
+def test_orient_argument_is_checked():
+    m = wpot.example_mesh(100)
+    with pytest.raises(TypeError, match="orient must be True or False"):
+        zoomout(m, m, np.arange(100), orient="yes")
+
+
+def test_symmetry_is_cached_by_content():
+    from wpot.orientation import symmetry_cache
+
+    m = mirror_symmetric()
+    first = reflection_symmetry(m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = reflection_symmetry(Mesh(m.vertices.copy(), m.faces.copy()))
+    assert first is not None and symmetry_cache.hits >= 1
+    np.testing.assert_array_equal(first.map, again.map)
