@@ -70,6 +70,8 @@ FMAPS_SETTINGS = {
     "w_dcomm": 1.0, "w_orient": 1.0, "zoomout_nit": 16, "zoomout_step": 5,
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
+#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True; plain ZoomOut was "+zoomout")
+ZOOMOUT_SUFFIX = "+zoomout-orient"
 NORMS = ("sqrt_area", "shrec19")
 
 
@@ -159,7 +161,7 @@ class ZoomOutMatcher:
         from wpot.refine import ZOOMOUT_K_END
 
         self.base = base
-        self.tag = base.tag + "+zoomout-orient"
+        self.tag = base.tag + ZOOMOUT_SUFFIX
         self.setup_seconds: dict[str, float] = {}
         self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": True}
 
@@ -481,7 +483,7 @@ def main(argv=None) -> int:
 def method_tags(a) -> dict[str, str]:
     """The store's method tag for each ``--methods`` name at these settings."""
     w = wpot_tag(a.signature, a.transport, a.max_vertices or None, a.scale_invariant, a.pooling)
-    return {"wpot": w, "wpot-zoomout": w + "+zoomout", "fmaps": FMAPS_TAG}
+    return {"wpot": w, "wpot-zoomout": w + ZOOMOUT_SUFFIX, "fmaps": FMAPS_TAG}
 
 
 def run(a, out: Path, store: Store, log) -> None:
