@@ -412,7 +412,8 @@ class HeadDataset:
         return self.meshes[self.names.index(name)]
 
 
-def _geodesic_from(mesh: Mesh, vertex: int) -> np.ndarray:
+def geodesic_from(mesh: Mesh, vertex: int) -> np.ndarray:
+    """(N,) geodesic distances from ``vertex`` to every vertex (heat method, `wpot.evaluate.GeodesicDistances`)."""
     from .evaluate import GeodesicDistances
 
     return GeodesicDistances(mesh).from_sources(np.array([vertex]))[0].astype(np.float64)
@@ -434,9 +435,10 @@ def _transfer_scalar(mesh: Mesh, vts: np.ndarray, values: np.ndarray) -> np.ndar
     return out
 
 
-def _clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
-    """The connected component of ``mask`` holding ``seed``, with holes (components of the complement
-    that do not hold the complement's largest component) filled."""
+def clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
+    """The connected component of ``mask`` (N,) bool holding vertex ``seed``, with holes (components of the
+    complement that do not hold the complement's largest component) filled: a region cut out in one piece, as
+    the HEAD builder and `benchmarks/partial_poses.py` cut parts."""
     adj = mesh.adjacency
 
     def components(keep: np.ndarray) -> np.ndarray:
@@ -445,7 +447,7 @@ def _clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
         return lab
 
     if not mask[seed]:
-        raise ValueError(f"the head landmark (vertex {seed}) is outside the transferred head region")
+        raise ValueError(f"the seed vertex {seed} is outside the region (mask[seed] is False)")
     lab = components(mask)
     region = mask & (lab == lab[seed])
     rest = ~region
@@ -454,7 +456,7 @@ def _clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
     return region | (rest & (lab != big))
 
 
-def _region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> float:
+def region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> float:
     """Smallest radius r whose ball {dist <= r} holds ``fraction`` of the area (vertex areas = 1/3 of faces)."""
     va = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices)
     order = np.argsort(dist)
@@ -506,15 +508,15 @@ def build_head_dataset(
         tip = int(np.argmin(ref_mesh.vertices[:, 1]))
         # the template point closest (on the reference) to the snout tip: the landmark carried to each shape
         t_land = int(np.argmin(np.linalg.norm(ref_mesh.vertices[ref_vts] - ref_mesh.vertices[tip], axis=1)))
-        dist = _geodesic_from(ref_mesh, int(ref_vts[t_land]))
-        r = _region_fraction_radius(ref_mesh, dist, area_fraction)
+        dist = geodesic_from(ref_mesh, int(ref_vts[t_land]))
+        r = region_fraction_radius(ref_mesh, dist, area_fraction)
         f_template = dist[ref_vts]
         landmark[cls], radius[cls] = t_land, r
         for name in members:
             mesh = ref_mesh if name == ref else _load_mesh(folder / f"{name}.off")
             vts = tosca_vts(folder, name)
             f = _transfer_scalar(mesh, vts, f_template)
-            region = _clean_region(mesh, f <= r, int(vts[t_land]))
+            region = clean_region(mesh, f <= r, int(vts[t_land]))
             head, pmap = cut(mesh, region)
             hname = f"{cls}_head{name[len(cls):]}"
             inv = np.full(mesh.n_vertices, -1, dtype=np.int64)
