@@ -164,13 +164,36 @@ def test_dense_and_lanczos_agree_and_are_m_orthonormal():
     assert lb.factorization() is lu
 
 
+def test_sliced_agrees_with_dense_on_degenerate_clusters():
+    # the sphere's eigenvalues come in clusters of 2l + 1: a cut between two runs inside a cluster would give
+    # vectors that are not orthogonal. 8 runs of 16 pairs for 100 eigenpairs (l = 0..9)
+    m = icosphere(3)
+    lb = LaplaceBeltrami(m)
+    d = lb.eigenpairs(100, solver="dense")
+    s = lb.eigenpairs(100, solver="sliced", per_slice=16)
+    assert s.solver == "sliced"
+    np.testing.assert_allclose(s.evals[1:], d.evals[1:], rtol=1e-9)
+    gram = s.evecs.T @ (lb.mass[:, None] * s.evecs)
+    np.testing.assert_allclose(gram, np.eye(100), atol=1e-9)
+    res = lb.W @ s.evecs - (lb.mass[:, None] * s.evecs) * s.evals[None, :]
+    assert np.abs(res).max() < 1e-8 * s.evals.max()
+    ls = np.repeat(np.arange(10), 2 * np.arange(10) + 1)
+    for l in range(10):  # each cluster spans the same space as dense's
+        a, b = d.evecs[:, ls == l], s.evecs[:, ls == l]
+        cos = np.linalg.svd(a.T @ (lb.mass[:, None] * b), compute_uv=False)
+        assert cos.min() > 1 - 1e-8
+    with pytest.raises(ValueError, match="per_slice"):
+        lb.eigenpairs(100, solver="sliced", per_slice=1)
+
+
 def test_choose_solver_rule():
     assert choose_solver(500, 500) == "dense"  # k >= N - 1: ARPACK cannot
     assert choose_solver(200, 20) == "dense"  # small N
     assert choose_solver(1000, 20) == "lanczos"
-    assert choose_solver(3400, 500) == "dense"  # N <= 7k
-    assert choose_solver(5000, 500) == "lanczos"
-    assert choose_solver(5000, 100) == "lanczos"
+    assert choose_solver(2000, 500) == "dense"  # N <= 4k
+    assert choose_solver(3400, 500) == "sliced"
+    assert choose_solver(5000, 500) == "sliced"
+    assert choose_solver(5000, 100) == "lanczos"  # one run of <= SLICE_PAIRS
 
 
 def test_k_larger_than_n_is_an_error():
