@@ -3,6 +3,8 @@
 Meshes (from ../shared/data, never copied):
 * ``tosca_lowres/cat0.mat``: 3,400 vertices (the paper's TOSCA8 resolution);
 * ``tosca_isometric_5k/vtx_5k/cat0.off``: 5,000 vertices;
+* with ``--scan``: the 5,000-vertex cat refined twice by midpoint subdivision, 79,970 vertices (issue 21's
+  scan size: eigenpairs <= 60 s at 60,000 vertices);
 * with ``--refined``: ``cat0.mat`` refined by one √3-subdivision step *without smoothing* (a vertex at each
   face centroid, then every original interior edge flipped to join the two adjacent centroids): 3,400 +
   6,768 = 10,168 vertices, 20,304 triangles, the original vertices unmoved.
@@ -15,7 +17,7 @@ energies; LD-SIFT K = 3, 21 x 21 images):
   (spectrum included): this is the figure held against the goal. Its peer in the same run: plain
   ``scipy.sparse.linalg.eigsh(W, 500, M, sigma=DEFAULT_SHIFT)`` on the same matrices (scipy's own
   factorization, no guard band, random start), i.e. the eigenpairs alone as any scipy user would get them.
-  ``--solvers`` also times the other wpot solver on the same mesh (dense only up to 5,000 vertices).
+  ``--solvers`` also times the other wpot solvers on the same mesh (dense only up to 5,000 vertices).
 * LD-SIFT split into frames / raster / sift (``benchmarks/ldsift_parts.py``'s ``time_ldsift``), then
   ``wpot.ldsift(mesh)`` (the figure held against the goal); its peer in the same run: the vectorized numpy
   z-buffer of ``ldsift_parts.py`` for the raster stage (50 views, extrapolated to all vertices).
@@ -23,7 +25,7 @@ energies; LD-SIFT K = 3, 21 x 21 images):
 Timings are wall-clock and, on a shared 2-core machine, noisy: OpenBLAS threads in particular slow
 down badly when other processes compete for the cores (try ``OPENBLAS_NUM_THREADS=1``).
 
-    python benchmarks/signatures.py [--solvers] [--refined] [--no-ldsift] [--no-peers] [--device cpu] [--data ../shared/data]
+    python benchmarks/signatures.py [--solvers] [--refined] [--scan] [--no-ldsift] [--no-peers] [--device cpu] [--data ../shared/data]
 """
 from __future__ import annotations
 
@@ -70,7 +72,7 @@ def sqrt3_refine(mesh: Mesh) -> Mesh:
     return Mesh(np.vstack([v, centroids]), np.vstack(tris))
 
 
-def meshes(data: Path, *, refined: bool = False) -> list[tuple[str, Mesh]]:
+def meshes(data: Path, *, refined: bool = False, scan: bool = False) -> list[tuple[str, Mesh]]:
     from wpot.io import load_mesh
 
     low = load_mesh(data / "tosca_lowres" / "cat0.mat")
@@ -78,7 +80,22 @@ def meshes(data: Path, *, refined: bool = False) -> list[tuple[str, Mesh]]:
     out = [("tosca_lowres cat0.mat", low), ("tosca 5k cat0.off", five)]
     if refined:
         out.append(("cat0.mat + sqrt3 refine", sqrt3_refine(low)))
+    if scan:
+        out.append(("cat0.off midpoint x2", midpoint_refine(midpoint_refine(five))))
     return out
+
+
+def midpoint_refine(mesh: Mesh) -> Mesh:
+    """Each triangle split into four at its edge midpoints (no smoothing): about 4x the vertices, the surface
+    unchanged; twice on the 5,000-vertex cat, 79,970 vertices (a real scan's size)."""
+    e = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    mid = mesh.n_vertices + inv.reshape(-1, 3)  # (F, 3): midpoints of edges (0,1), (1,2), (2,0)
+    v = np.vstack([mesh.vertices, 0.5 * (mesh.vertices[uniq[:, 0]] + mesh.vertices[uniq[:, 1]])])
+    f = mesh.faces
+    faces = np.vstack([np.c_[f[:, 0], mid[:, 0], mid[:, 2]], np.c_[f[:, 1], mid[:, 1], mid[:, 0]],
+                       np.c_[f[:, 2], mid[:, 2], mid[:, 1]], mid])
+    return Mesh(v, faces)
 
 
 def time_wks(mesh: Mesh, *, n_eigen: int = 500, n_energies: int = 200, solver: str = "auto") -> dict[str, float | str]:
@@ -146,6 +163,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("WPOT_DATA", HERE.parent.parent / "shared" / "data")))
     ap.add_argument("--solvers", action="store_true", help="also time the solver 'auto' did not pick")
     ap.add_argument("--refined", action="store_true", help="also the 10,168-vertex refined cat0")
+    ap.add_argument("--scan", action="store_true",
+                    help="also the 5,000-vertex cat refined twice by midpoint subdivision (79,970 vertices)")
     ap.add_argument("--no-ldsift", action="store_true", help="skip LD-SIFT even if ldsift_parts.py exists")
     ap.add_argument("--no-peers", action="store_true", help="skip the peers (scipy eigsh, numpy z-buffer)")
     ap.add_argument("--device", default=None, help="Warp device for LD-SIFT")
@@ -162,7 +181,7 @@ def main() -> None:
     ldsift = getattr(parts, "time_ldsift", None)
     if ldsift is not None and hasattr(parts, "_warm_up"):
         parts._warm_up(args.device)
-    items = meshes(args.data, refined=args.refined or args.only == 2)
+    items = meshes(args.data, refined=args.refined or args.only == 2, scan=args.scan or args.only == 3)
     if args.only is not None:
         items = [items[args.only]]
 
@@ -171,7 +190,7 @@ def main() -> None:
     if not args.no_peers:
         cols += f" {'scipy eigsh':>11s}"
     if args.solvers:
-        cols += f" | {'other solver':>18s}"
+        cols += f" | {'other solvers':>39s}"
     if ldsift is not None:
         cols += f" | {'frames':>6s} {'raster':>6s} {'sift':>6s} {'parts':>6s} {'wpot.ldsift':>11s}"
         if not args.no_peers:
@@ -189,12 +208,12 @@ def main() -> None:
         if not args.no_peers:
             line += f" {time_scipy_eigsh(mesh, n_eigen=args.n_eigen):11.2f}"
         if args.solvers:
-            other = "lanczos" if r["solver"] == "dense" else "dense"
-            if other == "dense" and mesh.n_vertices > 5000:
-                line += f" | {'(dense skipped)':>18s}"
-            else:
-                o = time_wks(mesh, n_eigen=args.n_eigen, solver=other)
-                line += f" | {o['eigen']:9.2f} ({other:>7s})"
+            for other in (x for x in ("dense", "lanczos", "sliced") if x != r["solver"]):
+                if other == "dense" and mesh.n_vertices > 5000:
+                    line += f" | {'(dense skipped)':>18s}"
+                else:
+                    o = time_wks(mesh, n_eigen=args.n_eigen, solver=other)
+                    line += f" | {o['eigen']:9.2f} ({other:>7s})"
         if ldsift is not None:
             t = ldsift(mesh, device=args.device) if args.device else ldsift(mesh)
             tot = sum(t.get(k, 0.0) for k in ("frames", "raster", "sift"))
@@ -208,8 +227,9 @@ def main() -> None:
                 per_view = parts._peer_numpy_zbuffer(mesh, local_frames(mesh), 21)
                 line += f" {per_view * mesh.n_vertices:12.1f}"
         print(line, flush=True)
-    print(f"load average {os.getloadavg()[0]:.1f} at end; 'auto' rule: dense iff N <= max(300, 7k) or k >= N-1 "
-          f"(e.g. N=5000, k={args.n_eigen}: {choose_solver(5000, args.n_eigen)})")
+    print(f"load average {os.getloadavg()[0]:.1f} at end; 'auto' picks (N=3400 / 5000 / 80000, k={args.n_eigen}): "
+          f"{choose_solver(3400, args.n_eigen)} / {choose_solver(5000, args.n_eigen)} / "
+          f"{choose_solver(80000, args.n_eigen)}")
     print("goal per shape, cold: " + "; ".join(verdicts))
 
 
