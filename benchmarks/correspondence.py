@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 import warnings
@@ -63,6 +62,9 @@ from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling jsonl_store module
+from jsonl_store import JsonlStore  # noqa: E402
 
 #: pyfmaps settings (its README quickstart), recorded with every result
 FMAPS_SETTINGS = {
@@ -245,36 +247,11 @@ def evaluate_pair(geo, pred_all: np.ndarray, src: np.ndarray, dst: np.ndarray, s
     return rec, {"predicted": pred.astype(np.int32), "raw": raw.astype(np.float32)}
 
 
-class Store:
-    """Append-only results: ``pairs.jsonl`` plus one npz per (method, pair); a record is written only after
-    its npz, so every recorded pair is complete."""
+class Store(JsonlStore):
+    """Append-only results: ``pairs.jsonl`` plus one npz per (method, pair) (`jsonl_store.JsonlStore`)."""
 
     def __init__(self, out: Path) -> None:
-        self.out = out
-        self.path = out / "pairs.jsonl"
-        self.records: list[dict] = []
-        if self.path.is_file():
-            for line in self.path.read_text().splitlines():
-                if line.strip():
-                    try:
-                        self.records.append(json.loads(line))
-                    except json.JSONDecodeError:  # a line cut by a kill: that pair is redone
-                        pass
-        self.done = {(r["method"], r["source"], r["target"]) for r in self.records}
-
-    def npz_path(self, method: str, x: str, y: str) -> Path:
-        return self.out / "maps" / method / f"{x}__{y}.npz"
-
-    def add(self, rec: dict, arrays: dict) -> None:
-        p = self.npz_path(rec["method"], rec["source"], rec["target"])
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(p.stem + ".tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, p)
-        with open(self.path, "a") as fh:
-            fh.write(json.dumps(rec) + "\n")
-        self.records.append(rec)
-        self.done.add((rec["method"], rec["source"], rec["target"]))
+        super().__init__(out, keys=("source", "target"), folder="maps")
 
 
 # ----------------------------------------------------------------------------- report

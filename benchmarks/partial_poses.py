@@ -75,7 +75,6 @@ import argparse
 import hashlib
 import json
 import math
-import os
 import re
 import sys
 import time
@@ -85,6 +84,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling jsonl_store module
+from jsonl_store import JsonlStore  # noqa: E402
 import scipy.sparse as sp
 
 KINDS = ("head", "limb", "cut", "holes")
@@ -540,37 +542,11 @@ class Matchers:
 
 
 # ----------------------------------------------------------------------------- store
-class Store:
-    """Append-only ``pairs.jsonl`` plus one npz of errors per (method, part, same-class target); a record is
-    written only after its npz, so every recorded pair is complete."""
+class Store(JsonlStore):
+    """Append-only results: ``pairs.jsonl`` plus one npz of errors per (method, part, same-class target) (`jsonl_store.JsonlStore`)."""
 
     def __init__(self, out: Path) -> None:
-        self.out = out
-        self.path = out / "pairs.jsonl"
-        self.records: list[dict] = []
-        if self.path.is_file():
-            for line in self.path.read_text().splitlines():
-                if line.strip():
-                    try:
-                        self.records.append(json.loads(line))
-                    except json.JSONDecodeError:  # a line cut by a kill: that pair is redone
-                        pass
-        self.done = {(r["method"], r["part"], r["target"]) for r in self.records}
-
-    def npz_path(self, method: str, part: str, target: str) -> Path:
-        return self.out / "errors" / method / f"{part}__{target}.npz"
-
-    def add(self, rec: dict, arrays: dict | None) -> None:
-        if arrays is not None:
-            p = self.npz_path(rec["method"], rec["part"], rec["target"])
-            p.parent.mkdir(parents=True, exist_ok=True)
-            tmp = p.with_name(p.stem + ".tmp.npz")
-            np.savez(tmp, **arrays)
-            os.replace(tmp, p)
-        with open(self.path, "a") as fh:
-            fh.write(json.dumps(rec) + "\n")
-        self.records.append(rec)
-        self.done.add((rec["method"], rec["part"], rec["target"]))
+        super().__init__(out, keys=("part", "target"), folder="errors")
 
 
 def record_parts(out: Path, parts: list[Part]) -> None:

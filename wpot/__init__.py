@@ -102,6 +102,8 @@ _EXPORTS: dict[str, str] = {
     "PENALTY_SCALES": "wpot.comparison",
     # refining a correspondence
     "zoomout": "wpot.refine",
+    "orientation_score": "wpot.orientation",
+    "reflection_symmetry": "wpot.orientation",
     # dataset runs
     "run_all_vs_all": "wpot.pipeline",
     "RunStore": "wpot.pipeline",

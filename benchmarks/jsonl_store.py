@@ -1,0 +1,51 @@
+"""A resumable, append-only result store for the benchmarks (`correspondence.py`, `partial_poses.py`).
+
+``pairs.jsonl`` holds one JSON record per computed item, and ``<folder>/<method>/<a>__<b>.npz`` its arrays;
+a record is appended only after its npz is in place (written to a temporary name, then renamed), so every
+recorded item is complete, and a line cut by a kill is skipped on reading (that item is computed again).
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+class JsonlStore:
+    """Records keyed by ``(rec["method"], rec[keys[0]], rec[keys[1]])``, arrays under ``out / folder``."""
+
+    def __init__(self, out: Path, *, keys: tuple[str, str], folder: str) -> None:
+        self.out = out
+        self.keys = keys
+        self.folder = folder
+        self.path = out / "pairs.jsonl"
+        self.records: list[dict] = []
+        if self.path.is_file():
+            for line in self.path.read_text().splitlines():
+                if line.strip():
+                    try:
+                        self.records.append(json.loads(line))
+                    except json.JSONDecodeError:  # a line cut by a kill: that item is redone
+                        pass
+        self.done = {self._key(r) for r in self.records}
+
+    def _key(self, rec: dict) -> tuple[str, str, str]:
+        return rec["method"], rec[self.keys[0]], rec[self.keys[1]]
+
+    def npz_path(self, method: str, a: str, b: str) -> Path:
+        return self.out / self.folder / method / f"{a}__{b}.npz"
+
+    def add(self, rec: dict, arrays: dict | None) -> None:
+        """Store ``arrays`` (if any) and then append ``rec``."""
+        if arrays is not None:
+            p = self.npz_path(*self._key(rec))
+            p.parent.mkdir(parents=True, exist_ok=True)
+            tmp = p.with_name(p.stem + ".tmp.npz")
+            np.savez(tmp, **arrays)
+            os.replace(tmp, p)
+        with open(self.path, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+        self.records.append(rec)
+        self.done.add(self._key(rec))
