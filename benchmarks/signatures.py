@@ -170,7 +170,7 @@ def main() -> None:
     ap.add_argument("--device", default=None, help="Warp device for LD-SIFT")
     ap.add_argument("--n-eigen", type=int, default=500)
     ap.add_argument("--goal", type=float, default=10.0, help="seconds per shape and signature to compare against")
-    ap.add_argument("--only", type=int, default=None, help="only the i-th mesh (0, 1, 2)")
+    ap.add_argument("--only", type=int, default=None, help="only the i-th mesh (0, 1, 2 = --refined, 3 = --scan)")
     args = ap.parse_args()
     if not args.data.is_dir():
         sys.exit(f"data folder not found: {args.data} (set --data or WPOT_DATA)")
@@ -182,8 +182,9 @@ def main() -> None:
     if ldsift is not None and hasattr(parts, "_warm_up"):
         parts._warm_up(args.device)
     items = meshes(args.data, refined=args.refined or args.only == 2, scan=args.scan or args.only == 3)
-    if args.only is not None:
-        items = [items[args.only]]
+    if args.only is not None:  # 0, 1: the two TOSCA meshes; 2: the refined one; 3: the scan-size one
+        items = [items[0], items[1], items[-1]][min(args.only, 2)] if args.only >= 2 else items[args.only]
+        items = [items]
 
     cols = (f"{'mesh':24s} {'N':>6s} | {'laplacian':>9s} {'eigen (solver)':>18s} {'wks':>6s} {'parts':>6s}"
             f" {'wpot.wks':>8s}")

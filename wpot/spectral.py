@@ -456,15 +456,10 @@ class LaplaceBeltrami:
 
 
 def _splu_symmetric(A: sp.csc_matrix):
-    """SuperLU of a symmetric matrix in symmetric mode, no pivoting: minimum degree on A + Aᵀ up to
-    `COLAMD_ABOVE` rows, COLAMD above (on 80,000 vertices minimum degree takes 7.6 s and gives 80 ms solves,
-    COLAMD 1.4 s and 51 ms; on 20,000, 0.20 s / 5.5 ms against 0.22 s / 6.9 ms)."""
-    order = "COLAMD" if A.shape[0] > COLAMD_ABOVE else "MMD_AT_PLUS_A"
-    return sla.splu(A, permc_spec=order, diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-
-
-#: `_splu_symmetric` orders by COLAMD above this many rows (between the sizes measured: 20,000 and 80,000)
-COLAMD_ABOVE = 40_000
+    """SuperLU of a symmetric matrix in symmetric mode, no pivoting (minimum degree on A + Aᵀ). COLAMD was
+    tried above 40,000 rows (faster alone on 80,000 vertices: 1.4 s and 51 ms solves against 7.6 s and 80 ms)
+    but 500 eigenpairs took as long (141 s against 124 s, beside another job), so one ordering serves."""
+    return sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
 
 
 #: eigenpairs per shift-invert run of the "sliced" solver (timed on a 5,000-vertex TOSCA mesh, k = 500)
