@@ -427,6 +427,21 @@ def received_share(mass2: np.ndarray, sub_b, region: np.ndarray) -> float:
     return float((m * frac).sum())
 
 
+def trust_scores(comp, truth: Truth, errors: np.ndarray, areas: np.ndarray) -> dict:
+    """What a `Comparison` says about its own matches: the mean error of the half of the evaluated points with
+    the higher ``confidence`` against the other half, and the precision and recall (by area) of
+    ``region()`` against the true region."""
+    conf = np.asarray(comp.confidence)[truth.src]
+    order = np.argsort(-conf, kind="stable")
+    half = len(order) // 2
+    found = comp.region()
+    inter = float(areas[found & truth.region].sum())
+    return {"top_half_mean": float(errors[order[:half]].mean()) if half else float("nan"),
+            "bottom_half_mean": float(errors[order[half:]].mean()) if half else float("nan"),
+            "region_precision": inter / max(float(areas[found].sum()), 1e-300),
+            "region_recall": inter / max(float(areas[truth.region].sum()), 1e-300)}
+
+
 def score_map(geo, pred_all: np.ndarray, truth: Truth) -> tuple[dict, dict]:
     """Errors of a map (``pred_all``: vertex of T per vertex of P) at the evaluated template points."""
     from wpot.evaluate import correspondence_error, symmetric_flip
@@ -695,6 +710,14 @@ def report(store: Store, out: Path, log, tags: dict[str, str] | None, keep_parts
                          f"{row['auc']:.3f} | {row['sym_mean']:.3f} | {row['sym_share']:.1%} | {row['sym_auc']:.3f} | "
                          f"{row['flipped']:.1%} | {row['mass']:.3f} | {row['uniform']:.3f} | "
                          f"{row['retrieval']:.1%} ({row['n_retrieval']}) | {row['sec_median']:.2f} |")
+        trusted = [r["trust"] for r in recs if "trust" in r]
+        if trusted:
+            t = {k: float(np.mean([x[k] for x in trusted])) for k in trusted[0]}
+            summary[m]["trust"] = t
+            lines.append(f"\nconfidence ({len(trusted)} pairs): mean ε of the more confident half of each pair's "
+                         f"points {t['top_half_mean']:.3f}, of the other half {t['bottom_half_mean']:.3f}; "
+                         f"`region()` against the true region, by area: precision {t['region_precision']:.3f}, "
+                         f"recall {t['region_recall']:.3f}")
         other = [r for r in by_method[m].values() if r["relation"] == "other"]
         if other:
             lines.append(f"\nother-class comparisons (for retrieval): {len(other)}, median "
@@ -919,7 +942,7 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
             tag = mt.tags[m]
             if (tag, p.name, t) in store.done:
                 continue
-            mass2, sub_b = None, None
+            mass2, sub_b, comp = None, None, None
             if m == "wpot":
                 pred, dt, info, comp = mt.wpot(p.mesh, tm)
                 mass2, sub_b = comp.mass2, comp.sample_b
@@ -937,6 +960,8 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
                 else:  # nn-vertex: every vertex of the part sends the same mass to its nearest vertex
                     mass = float(truth.region[pred].mean())
                 rec.update(scores, mass=mass, uniform=truth.uniform, eval_seconds=time.perf_counter() - t_eval)
+                if comp is not None:
+                    rec.update(trust=trust_scores(comp, truth, arrays["errors"], vertex_areas(tm)))
                 msg.append(f"{m}: ε {scores['mean']:.3f} AUC {scores['auc']:.3f} sym {scores['sym_auc']:.3f} "
                            f"mass {mass:.2f}/{truth.uniform:.2f} {dt:.1f}s")
             else:

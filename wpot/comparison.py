@@ -243,6 +243,12 @@ class Comparison:
     self_energies : (U(A, A), U(B, B)) for partial transport, else None
     history : (n_β, 2) float64, columns β and D(β): U_β (balanced) or SU_β (partial) at each annealing β
     sample_a, sample_b : the `Subsample` of each mesh, or None when not subsampled
+    confidence : (N_A,) float64 in [0, 1], per vertex of A (through its sample): the share of its sample's
+        reference mass that the plan sends to the matched vertex, ``G(k, j*) / ρ_k`` (ρ: A's masses scaled to
+        the plan's total; capped at 1). Near 1: the sample goes whole to one place; near 0: it is spread out,
+        or (partial transport) left unmatched. It ranks the correspondence's matches by trust
+    received : (N_B,) float64, per vertex of B (through its sample): the mass its sample receives over its
+        reference mass (1 everywhere for balanced transport); `region` thresholds it
     """
 
     distance: float
@@ -259,6 +265,16 @@ class Comparison:
     history: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     sample_a: Subsample | None = None
     sample_b: Subsample | None = None
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    received: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def region(self, threshold: float = 0.5) -> np.ndarray:
+        """(N_B,) bool, the vertices of B that A matched: those whose sample receives at least ``threshold``
+        times its reference mass (`received`). With partial transport of a part into a whole, the part's place
+        in the whole; with balanced transport, all of B."""
+        if not (isinstance(threshold, (int, float)) and np.isfinite(threshold) and threshold >= 0):
+            raise ValueError(f"threshold must be a finite number >= 0, got {threshold!r}")
+        return self.received >= threshold
 
     def __repr__(self) -> str:
         # a summary for notebooks: the dataclass default would print every array, the OT result's included
@@ -605,7 +621,8 @@ class Comparer:
             distance = float(debiased(distance, uaa, ubb))
             self_e = (uaa, ubb)
             hist = debias_history(hist, haa, hbb)
-        return _assemble(res, pa.subsample, pb.subsample, mesh_a, mesh_b, distance, self_e, hist, self.config)
+        return _assemble(res, pa.subsample, pb.subsample, mesh_a, mesh_b, distance, self_e, hist, self.config,
+                         (pa.masses, pb.masses))
 
 
 def _matched_pairs(res: Any, m1: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -623,10 +640,21 @@ def _matched_pairs(res: Any, m1: np.ndarray, ratio: float) -> tuple[np.ndarray, 
     return ii[order], jj[order], vv[order]
 
 
-def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config: ComparisonConfig) -> Comparison:
+def _reference(masses: np.ndarray | None, n: int, total: float) -> np.ndarray:
+    """(n,) reference masses (uniform when ``masses`` is None) scaled to sum to ``total``."""
+    m = np.ones(n) if masses is None else np.asarray(masses, dtype=np.float64)
+    return m * (total / m.sum())
+
+
+def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config: ComparisonConfig,
+              masses: tuple[np.ndarray | None, np.ndarray | None]) -> Comparison:
     m1 = np.asarray(res.mass1, dtype=np.float64)
     m2 = np.asarray(res.mass2, dtype=np.float64)
     rows_best = np.asarray(res.argmax, dtype=np.int64)
+    total = float(m1.sum())
+    best = np.asarray(res.plan_top.max(axis=1).toarray()).ravel()  # each row's largest entry, G(k, j*)
+    conf = np.minimum(best / _reference(masses[0], len(m1), total), 1.0)
+    recv = m2 / _reference(masses[1], len(m2), total)
     n_b = len(m2)
     ia = np.arange(len(m1)) if sub_a is None else sub_a.indices
     jb = np.arange(n_b) if sub_b is None else sub_b.indices
@@ -659,6 +687,8 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
         history=hist,
         sample_a=sub_a,
         sample_b=sub_b,
+        confidence=conf if sub_a is None else sub_a.extend(conf),
+        received=recv if sub_b is None else sub_b.extend(recv),
     )
 
 
