@@ -62,6 +62,8 @@ def test_compare_two_files(dataset, tmp_path):
     assert info["history"][-1][1] == pytest.approx(info["distance"], rel=1e-6)
     z = np.load(tmp_path / "c" / "correspondence.npz")
     assert z["correspondence"].shape == z["mass1"].shape and z["correspondence"].max() < len(z["mass2"])
+    assert z["confidence"].shape == z["correspondence"].shape and z["region"].shape == z["mass2"].shape
+    assert 0 <= z["confidence"].min() <= z["confidence"].max() <= 1 and z["region"].all()  # balanced: all of B
     assert (tmp_path / "c" / "correspondence.png").is_file()
     # the interior-point start reaches the same distance (and its history starts later)
     r2 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--ot-method", "ipm",

@@ -271,6 +271,9 @@ def test_a_defective_mesh_is_refused_with_advice_to_repair_and_repaired_with_rep
     # the repaired mesh is the clean one: the same map, on the file's vertex numbering (-1: removed vertices)
     np.testing.assert_array_equal(fixed["correspondence"], np.r_[clean["correspondence"], [-1, -1, -1]])
     np.testing.assert_array_equal(fixed["index_map_a"], np.arange(n))
+    # per-vertex confidence (A) and matched region (B) on the files' numbering too: NaN / False where removed
+    np.testing.assert_array_equal(fixed["confidence"], np.r_[clean["confidence"], [np.nan] * 3])
+    np.testing.assert_array_equal(fixed["region"], clean["region"])
     info = json.loads((tmp_path / "fixed" / "comparison.json").read_text())
     assert info["repair"] is True
     assert info["distance"] == json.loads((tmp_path / "clean" / "comparison.json").read_text())["distance"]

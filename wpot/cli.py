@@ -560,10 +560,14 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
 
-    def on_input(corr: np.ndarray) -> np.ndarray:
-        full = np.full(a.n_input, -1, dtype=np.int64)
-        full[a.to_input(np.arange(a.mesh.n_vertices))] = b.to_input(corr)
+    def per_input(m, values: np.ndarray, fill) -> np.ndarray:
+        """Per-vertex values of a (repaired) mesh, indexed by the input file's vertices (``fill`` where dropped)."""
+        full = np.full(m.n_input, fill, dtype=np.asarray(values).dtype)
+        full[m.to_input(np.arange(m.mesh.n_vertices))] = values
         return full
+
+    def on_input(corr: np.ndarray) -> np.ndarray:
+        return per_input(a, b.to_input(corr).astype(np.int64), -1)
 
     arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined)}
     for name, m in (("index_map_a", a), ("index_map_b", b)):
@@ -571,7 +575,8 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
             arrays[name] = m.index_map
     matched = np.stack([a.to_input(c.matched[:, 0]), b.to_input(c.matched[:, 1])], axis=1) if len(c.matched) else c.matched
     np.savez(files[1], correspondence=on_input(c.correspondence), matched=matched, matched_weight=c.matched_weight,
-             mass1=c.mass1, mass2=c.mass2, **arrays)
+             mass1=c.mass1, mass2=c.mass2, confidence=per_input(a, c.confidence, np.nan),
+             region=per_input(b, c.region(), False), **arrays)
     mb = b.mesh
     title_b = "B"
     if c.registration is not None:  # draw B in A's pose: undo the fitted similarity
