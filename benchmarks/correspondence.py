@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling jsonl_store module
-from jsonl_store import JsonlStore  # noqa: E402
+from jsonl_store import JsonlStore, results_folder  # noqa: E402
 
 #: pyfmaps settings (its README quickstart), recorded with every result
 FMAPS_SETTINGS = {
@@ -430,17 +430,7 @@ def main(argv=None) -> int:
 
     from wpot.evaluate import DEFAULT_MAX_THRESHOLD
 
-    repo = Path(__file__).resolve().parents[1]
-    out = a.out.resolve()
-    if out == repo or repo in out.parents:
-        raise SystemExit(f"--out must be outside the repository ({repo}), got {out}")
-    out.mkdir(parents=True, exist_ok=True)
-    logf = open(out / "run.log", "a")
-
-    def log(msg: str) -> None:
-        print(msg, flush=True)
-        logf.write(msg + "\n")
-        logf.flush()
+    out, log = results_folder(a.out)
 
     tmax = {"sqrt_area": a.sqrt_area_max or DEFAULT_MAX_THRESHOLD["sqrt_area"],
             "shrec19": a.shrec_max or DEFAULT_MAX_THRESHOLD["shrec19"]}

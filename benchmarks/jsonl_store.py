@@ -49,3 +49,21 @@ class JsonlStore:
             fh.write(json.dumps(rec) + "\n")
         self.records.append(rec)
         self.done.add(self._key(rec))
+
+
+def results_folder(out: Path):
+    """``out`` resolved and created (it must lie outside the repository), and a logger that prints a line and
+    appends it to ``out/run.log``."""
+    repo = Path(__file__).resolve().parents[1]
+    out = out.resolve()
+    if out == repo or repo in out.parents:
+        raise SystemExit(f"--out must be outside the repository ({repo}), got {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    logf = open(out / "run.log", "a")
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+        logf.write(msg + "\n")
+        logf.flush()
+
+    return out, log

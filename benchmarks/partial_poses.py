@@ -86,7 +86,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling jsonl_store module
-from jsonl_store import JsonlStore  # noqa: E402
+from jsonl_store import JsonlStore, results_folder  # noqa: E402
 import scipy.sparse as sp
 
 KINDS = ("head", "limb", "cut", "holes")
@@ -843,17 +843,7 @@ def main(argv=None) -> int:
     ap.add_argument("--report-all", action="store_true", help="report every method stored in --out")
     a = ap.parse_args(argv)
     a.vertices_per_sample = a.vertices_per_sample or None
-    repo = Path(__file__).resolve().parents[1]
-    out = a.out.resolve()
-    if out == repo or repo in out.parents:
-        raise SystemExit(f"--out must be outside the repository ({repo}), got {out}")
-    out.mkdir(parents=True, exist_ok=True)
-    logf = open(out / "run.log", "a")
-
-    def log(msg: str) -> None:
-        print(msg, flush=True)
-        logf.write(msg + "\n")
-        logf.flush()
+    out, log = results_folder(a.out)
 
     store = Store(out)
     members = class_members(a.tosca)
