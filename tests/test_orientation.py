@@ -136,7 +136,7 @@ def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
 
 def test_orient_argument_is_checked():
     m = wpot.example_mesh(100)
-    with pytest.raises(TypeError, match="orient must be True or False"):
+    with pytest.raises(ValueError, match="orient must be True or False"):
         zoomout(m, m, np.arange(100), orient="yes")
 
 

@@ -6,9 +6,13 @@ and the value received. ``name`` is the caller's name for the argument (a keywor
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
-__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "boolean"]
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "boolean",
+           "vertex_map"]
 
 
 def _number(value: Any) -> float | None:
@@ -67,3 +71,23 @@ def boolean(name: str, value: Any) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name} must be True or False, got {value!r}")
     return bool(value)
+
+
+def vertex_map(name: str, value: Any, n_a: int, n_b: int) -> "np.ndarray":
+    """``value`` as an (n_a,) int64 map from the vertices of a mesh A to those of a mesh B: integers (or floats
+    with integer values) in [0, n_b)."""
+    import numpy as np
+
+    t = np.asarray(value)
+    if t.shape != (n_a,):
+        raise ValueError(f"{name} must have shape (N_A,) = ({n_a},), one vertex of B per vertex of A; "
+                         f"got shape {t.shape}")
+    if t.size and not np.issubdtype(t.dtype, np.integer):
+        if not (np.issubdtype(t.dtype, np.floating) and np.all(np.isfinite(t)) and np.all(t == np.round(t))):
+            raise ValueError(f"{name} must hold vertex indices (integers), got dtype {t.dtype}")
+    t = t.astype(np.int64)
+    bad = np.nonzero((t < 0) | (t >= n_b))[0]
+    if bad.size:
+        raise ValueError(f"{name} holds {bad.size} indices outside B's vertices [0, {n_b}), e.g. "
+                         f"{name}[{bad[0]}] = {t[bad[0]]}")
+    return t

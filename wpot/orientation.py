@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
+from wpot._validate import vertex_map
 from wpot.cache import Cache
 from wpot.mesh import Mesh
 
@@ -75,16 +76,6 @@ def winding(mesh: Mesh) -> int:
     return 1 if vol > 0 else -1
 
 
-def _check_map(t: ArrayLike, n_a: int, n_b: int, name: str = "correspondence") -> np.ndarray:
-    t = np.asarray(t)
-    if t.shape != (n_a,) or (t.size and not np.issubdtype(t.dtype, np.integer)):
-        raise ValueError(f"{name} must be an (N_A,) = ({n_a},) integer array of B's vertices, got shape "
-                         f"{t.shape} and dtype {t.dtype}")
-    if t.size and (t.min() < 0 or t.max() >= n_b):
-        raise ValueError(f"{name} holds indices outside B's {n_b} vertices")
-    return t.astype(np.int64)
-
-
 def orientation_score(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike) -> float:
     """How much the vertex map A -> B keeps orientation, in [-1, 1] (see the module docstring).
 
@@ -98,30 +89,44 @@ def orientation_score(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike) -> 
     for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
         if not isinstance(m, Mesh):
             raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
-    t = _check_map(correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
-    wa, wb = winding(mesh_a), winding(mesh_b)
-    if wa == 0 or wb == 0:
-        warnings.warn("the orientation of a map cannot be scored: "
-                      f"{'mesh_a' if wa == 0 else 'mesh_b'} encloses no volume to tell its outside from its inside "
-                      "(an open or flat surface)", OrientationWarning, stacklevel=2)
+    t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
+    terms = _terms(mesh_a, mesh_b, t)
+    if terms is None:
+        side = "mesh_a" if winding(mesh_a) == 0 else "mesh_b"
+        warnings.warn(f"the orientation of a map cannot be scored: {side} encloses no volume to tell its outside "
+                      "from its inside (an open or flat surface)", OrientationWarning, stacklevel=2)
         return float("nan")
-    num, den = _face_terms(mesh_a, mesh_b, t)
-    total = float(den.sum())
-    if total == 0.0:
+    score = _mean(*terms)
+    if np.isnan(score):
         warnings.warn("the orientation of a map cannot be scored: every face of mesh_a maps to a degenerate "
                       "triangle", OrientationWarning, stacklevel=2)
-        return float("nan")
-    return wa * wb * float(num.sum()) / total
+    return score
 
 
-def _face_terms(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per face of A: <n, nB> and |n| for its image triangle (see `orientation_score`), (F,) each."""
+def _terms(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per face of A, (F,) each: ``<n, nB>`` times both meshes' `winding`, and ``|n|``, for its image triangle
+    (see `orientation_score`); None when a winding cannot be read."""
+    sign = winding(mesh_a) * winding(mesh_b)
+    if sign == 0:
+        return None
     img = t[mesh_a.faces]  # (F, 3) vertices of B
     pb = mesh_b.vertices
     n = np.cross(pb[img[:, 1]] - pb[img[:, 0]], pb[img[:, 2]] - pb[img[:, 0]])
     nb = mesh_b.vertex_normals[img].sum(axis=1)
     nb /= np.maximum(np.linalg.norm(nb, axis=1, keepdims=True), 1e-300)
-    return np.einsum("ij,ij->i", n, nb), np.linalg.norm(n, axis=1)
+    return sign * np.einsum("ij,ij->i", n, nb), np.linalg.norm(n, axis=1)
+
+
+def _mean(num: np.ndarray, den: np.ndarray) -> float:
+    """The area-weighted mean sign: sum num / sum den (NaN when every image is degenerate)."""
+    total = float(den.sum())
+    return float(num.sum()) / total if total > 0 else float("nan")
+
+
+def _score(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> float:
+    """`orientation_score` without its warnings (NaN when it cannot be read), for the callers that act on it."""
+    terms = _terms(mesh_a, mesh_b, t)
+    return float("nan") if terms is None else _mean(*terms)
 
 
 def local_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike, *, radius: float = LOCAL_RADIUS
@@ -131,11 +136,15 @@ def local_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike, *, 
     faces at each vertex and spread over about ``radius`` sqrt(area) of A by repeated one-ring averaging.
     A ZoomOut map is often mirrored on some symmetric part only (both legs, say): its global score is then
     near 0 and this one is negative there."""
-    t = _check_map(correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
-    sign = winding(mesh_a) * winding(mesh_b)
-    if sign == 0:
+    t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
+    terms = _terms(mesh_a, mesh_b, t)
+    if terms is None:
         return np.full(mesh_a.n_vertices, np.nan)
-    num, den = _face_terms(mesh_a, mesh_b, t)
+    return _spread(mesh_a, *terms, radius)
+
+
+def _spread(mesh_a: Mesh, num: np.ndarray, den: np.ndarray, radius: float) -> np.ndarray:
+    """Face terms summed at each vertex of A and averaged over about ``radius`` sqrt(area): (N_A,) num / den."""
     f = mesh_a.faces
     n = mesh_a.n_vertices
     vnum = np.bincount(f.reshape(-1), np.repeat(num, 3), minlength=n)
@@ -146,7 +155,7 @@ def local_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike, *, 
     for _ in range(steps):
         vnum, vden = avg @ vnum, avg @ vden
     with np.errstate(invalid="ignore", divide="ignore"):
-        return sign * np.where(vden > 0, vnum / vden, np.nan)
+        return np.where(vden > 0, vnum / vden, np.nan)
 
 
 @dataclass(frozen=True)
@@ -249,9 +258,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int = 100, min_score: float = MI
         spec = _spectrum(mesh, n_eigen)
         cand = _mirror_candidates(mesh, _signature(spec), exclusion)
         sym = zoomout(mesh, mesh, cand, orient=False)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", OrientationWarning)
-            score = orientation_score(mesh, mesh, sym)
+        score = _score(mesh, mesh, sym)
         disp = float(np.linalg.norm(mesh.vertices[sym] - mesh.vertices, axis=1).mean() / np.sqrt(mesh.area))
         if score < -min_score and disp > 0.5 * exclusion:
             found = Symmetry(sym, score, disp, _commutator_residual(mesh, spec, sym))
@@ -277,13 +284,12 @@ def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     -------
     (map (N_A,) int64, its orientation score, whether it was changed).
     """
-    t = _check_map(correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OrientationWarning)
-        score = orientation_score(mesh_a, mesh_b, t)
+    t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
+    terms = _terms(mesh_a, mesh_b, t)  # once: the score and where the map is mirrored
+    score = float("nan") if terms is None else _mean(*terms)
     if np.isnan(score):
         return t, score, False
-    wrong = local_orientation(mesh_a, mesh_b, t) < 0
+    wrong = _spread(mesh_a, *terms, LOCAL_RADIUS) < 0
     if not wrong.any():
         return t, score, False
     sym = reflection_symmetry(mesh_a)
@@ -296,9 +302,7 @@ def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
         flipped = np.where(wrong, sym.map[t], t)
     if refine is not None:
         flipped = np.asarray(refine(flipped), dtype=np.int64)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OrientationWarning)
-        score2 = orientation_score(mesh_a, mesh_b, flipped)
+    score2 = _score(mesh_a, mesh_b, flipped)
     if score2 > score:
         return flipped, score2, True
     return t, score, False
