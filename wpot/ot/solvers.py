@@ -15,12 +15,13 @@ from typing import Any, Callable, ClassVar, Mapping, Protocol, runtime_checkable
 from wpot._validate import integer_at_least, positive_finite
 from wpot.ot import kernels as K
 from wpot.ot.balanced import solve_balanced_problem
+from wpot.ot.exact import solve_exact_problem
 from wpot.ot.options import SolverOptions
 from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
 from wpot.ot.result import BetaStep, OTResult
 
-__all__ = ["AUTO_IPM_POINTS", "SOLVERS", "AnnealSolver", "AutoSolver", "InteriorPointSolver", "TransportSolver",
+__all__ = ["AUTO_IPM_POINTS", "SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
            "make_solver", "solve_balanced", "solve_partial"]
 
 #: "auto" starts balanced transport between two point sets of at least this many points each with the
@@ -242,8 +243,37 @@ class AutoSolver(_Solver):
         return max(anneal, InteriorPointSolver(self.options).memory_bytes(n1, n2, dim=dim))
 
 
+@dataclass(frozen=True)
+class ExactSolver(_Solver):
+    """The transport LP itself (beta = infinity) by column generation: HiGHS's dual simplex on a sparse
+    support that Warp pricing passes over all N1 N2 entries grow until none has a negative reduced cost; the
+    last pass certifies the optimum (`wpot.ot.exact`). Balanced transport, stored cost or `FeatureCost`.
+    ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
+    ``tol``, ``atol`` (the certified gap), ``dense_plan``, ``plan_topk`` and ``verbose``."""
+
+    name: ClassVar[str] = "exact"
+
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
+        """Solve ``problem`` (see `TransportSolver.solve`); ValueError for partial problems."""
+        return solve_exact_problem(_check_problem(problem), self.options, on_beta=on_beta)
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes of a solve: the device copy of C (stored mode) or the features, the dense plan when it
+        is formed, the pricing pass's per-row lists and the sparse support with HiGHS's model of it
+        (`wpot.ot.exact.support_bytes`)."""
+        from wpot.ot.exact import support_bytes
+
+        n1, n2, dim = _check_size(n1, n2, dim)
+        nn = _F64 * n1 * n2
+        plan = nn if _dense_plan(self.options, matrix_free) else 0
+        stored = 0 if matrix_free else nn
+        features = _F64 * (n1 + n2) * dim if matrix_free else 0
+        return stored + plan + features + support_bytes(n1, n2)
+
+
 #: the solvers by name (`make_solver`'s ``method``)
-SOLVERS: Mapping[str, type] = {"anneal": AnnealSolver, "ipm": InteriorPointSolver, "auto": AutoSolver}
+SOLVERS: Mapping[str, type] = {"anneal": AnnealSolver, "ipm": InteriorPointSolver, "auto": AutoSolver,
+                               "exact": ExactSolver}
 
 
 def _options(options: SolverOptions | None, option_keywords: Mapping[str, Any], caller: str) -> SolverOptions:
