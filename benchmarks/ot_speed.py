@@ -97,7 +97,7 @@ def main():
         t_emd = (time.perf_counter() - t) / 3
         t = time.perf_counter()
         for _ in range(3):
-            r = wo.solve_balanced(C, device=args.device)
+            r = wo.solve_balanced(C, device=args.device, method="anneal")
         tw = (time.perf_counter() - t) / 3
         print(f"N = {n} (mean of 3 calls): wpot {tw:.3f} s (gap {(r.cost - u0) / u0:.1e}, newton={r.n_newton}"
               f" cg={r.n_linear}), ot.emd {t_emd:.3f} s")
@@ -134,7 +134,7 @@ def main():
             print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
         if args.direct and n <= 2000:
             t = time.perf_counter()
-            rd = wo.solve_balanced(C, a, b, device=args.device, linear_solver="direct")
+            rd = wo.solve_balanced(C, a, b, device=args.device, linear_solver="direct", method="anneal")
             td = time.perf_counter() - t
             gap, merr = report("direct", rd.plan, td)
             row(f"wpot solve_balanced direct ({args.device})", td, gap, merr, f"newton={rd.n_newton}")

@@ -11,7 +11,7 @@ method. The three methods solve the same problem, so the table also gives each w
 
 Methods: ``stored`` (solve_balanced on the dense C: O(N^2) memory for C and the Hessian weights), ``stored-ipm``
 (the same with method="ipm": two more N x N arrays, the primal plan and the reduced costs), ``matrix-free``
-(solve_balanced(wpot.ot.FeatureCost(X, Y, "l2")): C recomputed inside the kernels, O(N d) memory; skipped with a note
+(solve_balanced(wpot.ot.FeatureCost(X, Y, "l2"), method="anneal"): C recomputed inside the kernels, O(N d) memory; skipped with a note
 when this wpot has no FeatureCost) and ``emd`` (POT's exact network simplex on the dense C, numItermax raised so that
 it reaches optimality). Timings on a shared machine are noisy; memory is exact.
 """

@@ -65,13 +65,17 @@ def test_compare_two_files(dataset, tmp_path):
     assert z["confidence"].shape == z["correspondence"].shape and z["region"].shape == z["mass2"].shape
     assert 0 <= z["confidence"].min() <= z["confidence"].max() <= 1 and z["region"].all()  # balanced: all of B
     assert (tmp_path / "c" / "correspondence.png").is_file()
-    # the interior-point start reaches the same distance (and its history starts later)
-    r2 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--ot-method", "ipm",
-              "--out", str(tmp_path / "c2"))
-    assert r2.returncode == 0, r2.stderr
-    info2 = json.loads((tmp_path / "c2" / "comparison.json").read_text())
-    assert info2["distance"] == pytest.approx(info["distance"], rel=1e-6)
-    assert len(info2["history"]) < len(info["history"])
+    # the default is the exact LP: its one step is beta = infinity (null in the JSON, which has no infinity)
+    assert info["beta"] is None and info["history"] == [[None, info["distance"]]]
+    # the interior-point start and annealing reach the same distance, and record D(beta) along the way
+    infos = {}
+    for m in ("ipm", "anneal"):
+        r2 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--ot-method", m,
+                  "--out", str(tmp_path / m))
+        assert r2.returncode == 0, r2.stderr
+        infos[m] = json.loads((tmp_path / m / "comparison.json").read_text())
+        assert infos[m]["distance"] == pytest.approx(info["distance"], rel=1e-6)
+    assert 1 < len(infos["ipm"]["history"]) < len(infos["anneal"]["history"])
     # a lower --match-ratio can only match more pairs; the summary says which ratio, and why no registration
     matched = lambda out, ratio: int(re.search(rf"matched pairs \(G > {ratio} m1\): (\d+) of", out).group(1))
     r3 = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--match-ratio", "0.3")
@@ -100,7 +104,8 @@ def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path
 
 def test_all_vs_all_classify_report(dataset, tmp_path):
     run = tmp_path / "run"
-    r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress", *FAST_CLI)
+    r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress",
+             "--ot-method", "anneal", *FAST_CLI)  # D(beta) along the annealing
     assert r.returncode == 0, r.stderr
     assert "6 of 6 pairs" in r.stdout
     r = wpot("classify", str(run), "--trials", "200")

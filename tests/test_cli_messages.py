@@ -130,13 +130,19 @@ def test_a_terminal_also_sees_the_annealing_betas(pair):
     a, b = (wpot.load_mesh(p) for p in pair)
     out = Terminal()
     c = wpot.Comparer(n_eigen=30, n_energies=30, max_vertices=60, device="cpu", cache_dir=False,
-                      progress=Progress(out, clock=Clock())).compare(a, b)
+                      solver_options={"method": "anneal"}, progress=Progress(out, clock=Clock())).compare(a, b)
     text = out.getvalue()
     assert "annealing:" in text and "beta/s" in text
     # the bar (redrawn at most every 0.1 s) shows a solved beta's U, as the result's history records it
     assert any(f"beta {st.beta:.3g}, U {st.cost:.9g}" in text for st in c.result.history)
     # the stage's time comes on a line of its own once the bar has been drawn
     assert "balanced transport on farthest-point samples, 60 x 60: 1.0 s" in text.splitlines()
+    # the exact solver (the default for balanced transport) has no betas to count: no bar
+    out = Terminal()
+    wpot.Comparer(n_eigen=30, n_energies=30, max_vertices=60, device="cpu", cache_dir=False,
+                  progress=Progress(out, clock=Clock())).compare(a, b)
+    assert "annealing:" not in out.getvalue()
+    assert "balanced transport on farthest-point samples, 60 x 60 ... 1.0 s" in out.getvalue().splitlines()
 
 
 def test_a_stage_that_fails_says_so():

@@ -523,27 +523,19 @@ def transport_energy_of(c):
     return float(c.result.objective)
 
 
-def test_large_balanced_pairs_start_with_the_interior_point_method(comparer, pair):
-    # Full-resolution pairs anneal an order of magnitude slower than the interior-point start (TOSCA cat0-cat1:
-    # 1,529 Newton steps against 116), so the default solver ("auto") starts balanced pairs of >= ipm_points
-    # (AUTO_IPM_POINTS) points each with the interior-point method unless a method is named; the distance is
-    # the same optimum either way.
-    from wpot.ot import AUTO_IPM_POINTS
-    from wpot.ot.solvers import AutoSolver
-
+def test_balanced_pairs_get_the_exact_lp_and_named_methods_the_annealing(comparer, pair):
+    # The default solver ("auto") solves balanced pairs exactly (the annealing's limit); "anneal" and "ipm"
+    # give D(beta) along the way. The same optimum every way, within the annealing's certified gap.
     problem = comparer.transport_problem(comparer.points(pair.source), comparer.points(pair.target))
-    assert comparer.solver.name == "auto" and comparer.solver.ipm_points == AUTO_IPM_POINTS
-    assert comparer.solver.method_for(problem) == "anneal"  # 300 points each < 2000
-    small = comparer.transport_plan(pair.source, pair.target)
-    low = AutoSolver(comparer.solver.options, ipm_points=300)
-    assert low.method_for(problem) == "ipm"
-    big = low.solve(problem)
-    forced = comparer.with_options(solver_options={"method": "anneal"})
-    assert forced.solver.name == "anneal"
-    forced = forced.transport_plan(pair.source, pair.target)
-    assert big.converged and small.converged
-    assert abs(big.cost - small.cost) <= small.history[-1].gap_bound + big.history[-1].gap_bound
-    assert forced.cost == small.cost and big.history[0].beta > small.history[0].beta  # ipm's history starts later
+    assert comparer.solver.name == "auto" and comparer.solver.method_for(problem) == "exact"
+    exact = comparer.transport_plan(pair.source, pair.target)
+    results = {m: comparer.with_options(solver_options={"method": m}).transport_plan(pair.source, pair.target)
+               for m in ("anneal", "ipm")}
+    assert exact.converged and exact.beta == np.inf and len(exact.history) == 1
+    for m, r in results.items():
+        assert r.converged and len(r.history) > 1, m
+        assert 0 <= r.cost - exact.cost <= r.history[-1].gap_bound + exact.history[0].gap_bound, m
+    assert results["ipm"].history[0].beta > results["anneal"].history[0].beta  # ipm's history starts later
 
 
 def test_ldsift_slab_is_part_of_the_run_key_and_the_signature_cache_key():

@@ -150,10 +150,12 @@ def test_killed_worker_loses_only_its_pair_and_the_cli_runs_on_the_cluster(clust
 
     # the worker computing pair (0, 2) died; another process computed the pair again and it was committed
     killed = _pids(marks / "pair-0-2.pids")
-    assert len(killed) == 2 and killed[0] != killed[1]  # once killed, once completed (no task queued behind it)
+    # once killed, then completed; Dask computes it once more when the worker holding the finished result dies
+    # (the poisoned pair may kill it) before the result reaches the client
+    assert len(killed) >= 2 and killed[0] != killed[1]
     assert not _alive(killed[0])
     row = next(r for r in store.pair_rows() if (r["i"], r["j"]) == (0, 2))
-    assert int(row["worker"].split("@")[0].rsplit(":", 1)[1]) == killed[1]
+    assert int(row["worker"].split("@")[0].rsplit(":", 1)[1]) in killed[1:]
     assert row["worker"].endswith("@cpu")  # the worker's own device choice: no GPU here
 
     # pair (1, 3) killed a worker at each of its 2 attempts (allowed-failures = 1): recorded, the run went on

@@ -91,14 +91,14 @@ def test_transport_problem():
 
 # --------------------------------------------------------------------------- solvers
 def test_registry_and_make_solver():
-    assert set(wo.SOLVERS) == {"anneal", "ipm", "auto"}
+    assert set(wo.SOLVERS) == {"anneal", "ipm", "auto", "exact"}
     for name, cls in wo.SOLVERS.items():
         s = wo.make_solver(name, tol=1e-7)
         assert isinstance(s, cls) and isinstance(s, wo.TransportSolver) and s.name == name
         assert s.options == wo.SolverOptions(tol=1e-7)
     base = wo.SolverOptions(tol=1e-7, topk=2)
     assert wo.make_solver("anneal", base, topk=3).options == wo.SolverOptions(tol=1e-7, topk=3)
-    with pytest.raises(ValueError, match=r"method must be one of \('anneal', 'ipm', 'auto'\), got 'simplex'"):
+    with pytest.raises(ValueError, match=r"method must be one of \('anneal', 'ipm', 'auto', 'exact'\), got 'simplex'"):
         wo.make_solver("simplex")
     with pytest.raises(TypeError, match="'bogus'"):
         wo.make_solver("anneal", bogus=1)
@@ -109,7 +109,7 @@ def test_registry_and_make_solver():
 def test_function_forms_refuse_unknown_keywords():
     C = _points_cost(6, 7)
     with pytest.raises(TypeError, match=r"solve_balanced\(\) got an unexpected keyword argument 'tolerance'"):
-        wo.solve_balanced(C, device="cpu", tolerance=1e-3)
+        wo.solve_balanced(C, device="cpu", tolerance=1e-3, method="anneal")
     with pytest.raises(TypeError, match=r"solve_partial\(\) got an unexpected keyword argument 'method'"):
         wo.solve_partial(C, device="cpu", method="ipm")
 
@@ -125,13 +125,14 @@ def test_solvers_give_the_function_forms_results_bit_for_bit():
     C = _points_cost(30, 45, seed=3)
     a, b = _masses(30, 1), _masses(45, 2)
     opts = wo.SolverOptions(tol=1e-7, topk=3)
-    rb = wo.solve_balanced(C, a, b, device="cpu", tol=1e-7, topk=3)
+    rb = wo.solve_balanced(C, a, b, device="cpu", tol=1e-7, topk=3, method="anneal")
     _same(wo.make_solver("anneal", opts).solve(wo.TransportProblem(C, a, b, device="cpu")), rb)
-    _same(wo.solve_balanced(C, a, b, device="cpu", options=opts), rb)
-    _same(wo.solve_balanced(C, a, b, device="cpu", options=wo.SolverOptions(topk=3), tol=1e-7), rb)
+    _same(wo.solve_balanced(C, a, b, device="cpu", options=opts, method="anneal"), rb)
+    _same(wo.solve_balanced(C, a, b, device="cpu", options=wo.SolverOptions(topk=3), tol=1e-7, method="anneal"), rb)
     ri = wo.solve_balanced(C, a, b, method="ipm", device="cpu")
     _same(wo.make_solver("ipm").solve(wo.TransportProblem(C, a, b, device="cpu")), ri)
     _same(wo.make_solver("auto").solve(wo.TransportProblem(C, a, b, device="cpu")), wo.solve_balanced(C, a, b, device="cpu"))
+    _same(wo.make_solver("exact").solve(wo.TransportProblem(C, a, b, device="cpu")), wo.solve_balanced(C, a, b, device="cpu"))
     rp = wo.solve_partial(C, a, b, mass_penalty=0.3, device="cpu")
     _same(wo.make_solver("anneal").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), rp)
     _same(wo.make_solver("auto").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), rp)
@@ -149,30 +150,28 @@ def test_ipm_refuses_partial_and_matrix_free_problems():
         wo.make_solver("anneal").solve(C)
 
 
-def test_auto_picks_the_interior_point_start_for_large_balanced_stored_problems():
+def test_auto_picks_the_exact_lp_for_balanced_and_the_annealing_for_partial_transport():
     auto = wo.make_solver("auto")
-    n = wo.AUTO_IPM_POINTS
-    assert n == 2000
-    big = np.zeros((n, n + 5))  # zero pages: only the shape is read
-    assert auto.method_for(wo.TransportProblem(big)) == "ipm"
-    assert auto.method_for(wo.TransportProblem(big[:, : n - 1])) == "anneal"
+    big = np.zeros((2000, 2005))  # zero pages: only the shape is read
+    assert auto.method_for(wo.TransportProblem(big)) == "exact"
     assert auto.method_for(wo.TransportProblem(big, mass_penalty=1.0)) == "anneal"
-    fc = wo.FeatureCost(np.zeros((n, 1)), np.zeros((n, 1)), "l1", device="cpu")
-    assert auto.method_for(wo.TransportProblem(fc)) == "anneal"
+    fc = wo.FeatureCost(np.zeros((20, 1)), np.zeros((20, 1)), "l1", device="cpu")
+    assert auto.method_for(wo.TransportProblem(fc)) == "exact"
+    assert auto.method_for(wo.TransportProblem(fc, mass_penalty=1.0)) == "anneal"
 
 
 # --------------------------------------------------------------------------- memory_bytes
 def test_memory_bytes_counts_the_quadratic_arrays():
     n1, n2 = 3000, 2000
     nn = 8 * n1 * n2
-    anneal, ipm, auto = (wo.make_solver(m) for m in ("anneal", "ipm", "auto"))
+    anneal, ipm, auto, exact = (wo.make_solver(m) for m in ("anneal", "ipm", "auto", "exact"))
     no_plan = wo.make_solver("anneal", dense_plan=False).memory_bytes(n1, n2)
     assert no_plan > 2 * nn  # C's device copy and W, + the vectors and the preconditioner
     assert anneal.memory_bytes(n1, n2) == no_plan + nn  # + the dense plan
     assert ipm.memory_bytes(n1, n2) > no_plan + 2 * nn  # + the primal plan and the reduced costs
-    assert auto.memory_bytes(n1, n2) == ipm.memory_bytes(n1, n2)
-    assert auto.memory_bytes(100, 100) == anneal.memory_bytes(100, 100)
-    assert auto.memory_bytes(n1, n2, matrix_free=True, dim=10) == anneal.memory_bytes(n1, n2, matrix_free=True, dim=10)
+    assert exact.memory_bytes(n1, n2) < no_plan + nn  # C and the plan, no W
+    for kw in ({}, {"matrix_free": True, "dim": 10}):  # auto: whichever of its two solvers needs more
+        assert auto.memory_bytes(n1, n2, **kw) == max(anneal.memory_bytes(n1, n2, **kw), exact.memory_bytes(n1, n2, **kw))
     # matrix-free: no (N1, N2) term unless the dense plan is asked for; the features count
     mf = anneal.memory_bytes(n1, n2, matrix_free=True, dim=100)
     assert 8 * (n1 + n2) * 100 < mf < nn
@@ -190,7 +189,7 @@ def test_memory_bytes_counts_the_quadratic_arrays():
 # --------------------------------------------------------------------------- results
 def test_energy_history_is_beta_and_objective_per_step():
     C = _points_cost(20, 25, seed=2)
-    r = wo.solve_balanced(C, device="cpu")
+    r = wo.solve_balanced(C, device="cpu", method="anneal")
     e = r.energy_history
     assert e.shape == (len(r.history), 2) and e.dtype == np.float64
     np.testing.assert_array_equal(e[:, 0], [h.beta for h in r.history])
@@ -200,7 +199,8 @@ def test_energy_history_is_beta_and_objective_per_step():
     assert p.energy_history[-1, 1] == pytest.approx(p.objective, rel=1e-12)
 
 
-@pytest.mark.parametrize("method, penalty", [("anneal", None), ("ipm", None), ("auto", None), ("anneal", 0.05)])
+@pytest.mark.parametrize("method, penalty", [("anneal", None), ("ipm", None), ("auto", None), ("exact", None),
+                                             ("auto", 0.05), ("anneal", 0.05)])
 def test_on_beta_reports_each_solved_beta_as_the_history_records_it(method, penalty):
     rng = np.random.default_rng(3)
     C = rng.random((40, 30))
@@ -208,6 +208,7 @@ def test_on_beta_reports_each_solved_beta_as_the_history_records_it(method, pena
     solver = wo.make_solver(method)
     problem = wo.TransportProblem(C, mass_penalty=penalty, device="cpu")
     r = solver.solve(problem, on_beta=seen.append)
-    assert r.converged and len(seen) == len(r.history) >= 2
+    exact = method == "exact" or (method == "auto" and penalty is None)  # the LP: beta = inf alone
+    assert r.converged and len(seen) == len(r.history) and (len(seen) == 1 if exact else len(seen) >= 2)
     assert tuple(seen) == r.history  # the same BetaStep values, in the user's units, in order
     assert solver.solve(problem).cost == r.cost  # reporting changes nothing

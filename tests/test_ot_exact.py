@@ -151,3 +151,13 @@ def test_exact_refuses_partial_transport_and_sizes_its_memory():
     free = s.memory_bytes(5000, 5000, matrix_free=True, dim=100)
     assert stored >= 2 * 8 * 5000 * 5000  # C and the dense plan
     assert free < 8 * 5000 * 5000  # no N1 x N2 array
+
+
+def test_exact_says_when_max_iter_stops_it_before_the_optimum():
+    C, a, b = _problem(300, 300, True, seed=4)
+    with pytest.warns(RuntimeWarning, match="max_iter=1 pricing rounds"):
+        r = wo.solve_balanced(C, a, b, method="exact", max_iter=1, device="cpu")
+    assert not r.converged and r.history[0].gap_bound > 0
+    # the certified bound holds: the optimum lies within it
+    u = _emd(C, a, b)
+    assert r.cost - r.history[0].gap_bound <= u * (1 + 1e-12) and r.cost >= u * (1 - 1e-12)

@@ -77,9 +77,9 @@ def test_balanced_matrix_free_equals_stored(metric, shape, device):
     a = np.random.default_rng(3).random(n1) + 0.5
     b = np.random.default_rng(4).random(n2) + 0.5
     b *= a.sum() / b.sum()
-    rs = wo.solve_balanced(cost_matrix(X, Y, metric=metric, device=device), a, b, device=device)
+    rs = wo.solve_balanced(cost_matrix(X, Y, metric=metric, device=device), a, b, device=device, method="anneal")
     rl = wo.solve_balanced(wo.FeatureCost(X, Y, metric, device=device), a, b, device=device, dense_plan=True,
-                           plan_topk=5)
+                           plan_topk=5, method="anneal")
     _assert_same(rl, rs)
     np.testing.assert_allclose(rl.plan, rs.plan, rtol=1e-10, atol=1e-12 * rs.plan.max())
     _check_sparse_plan(rs, rs.plan, 8)
@@ -88,7 +88,7 @@ def test_balanced_matrix_free_equals_stored(metric, shape, device):
     np.testing.assert_allclose(rl.mass1, a, rtol=1e-6)
     # default: no dense plan in matrix-free mode, the same sparse one (bit for bit on the CPU; on CUDA the
     # atomic column sums add in a varying order, so two runs agree to rounding: 9 of 9 differed on an H100)
-    r0 = wo.solve_balanced(wo.FeatureCost(X, Y, metric, device=device), a, b, device=device, plan_topk=5)
+    r0 = wo.solve_balanced(wo.FeatureCost(X, Y, metric, device=device), a, b, device=device, plan_topk=5, method="anneal")
     assert r0.plan is None
     _assert_same_sparse(r0, rl, exact=device == "cpu")
 
@@ -111,8 +111,8 @@ def test_partial_matrix_free_equals_stored(metric, shape, device):
 def test_larger_problem_l1_stays_equal():
     """N ~ 120, d = 16: more Newton steps and preconditioner rebuilds, still the same iterates."""
     X, Y = _features(120, 100, 16, seed=11, metric="l1")
-    rs = wo.solve_balanced(cost_matrix(X, Y, metric="l1"), device="cpu")
-    rl = wo.solve_balanced(wo.FeatureCost(X, Y, "l1", device="cpu"), device="cpu")
+    rs = wo.solve_balanced(cost_matrix(X, Y, metric="l1"), device="cpu", method="anneal")
+    rl = wo.solve_balanced(wo.FeatureCost(X, Y, "l1", device="cpu"), device="cpu", method="anneal")
     _assert_same(rl, rs)
     assert rl.plan is None and rl.plan_top.shape == (120, 100)
     # the sparse plan's top entries are the stored mode's plan entries
@@ -157,13 +157,13 @@ def test_bad_input_is_named(device):
         wo.FeatureCost(X, Y, "cosine", device=device)
     fc = wo.FeatureCost(X, Y, "wks", device=device)
     with pytest.raises(ValueError, match="linear_solver='direct'.*matrix-free"):
-        wo.solve_balanced(fc, device=device, linear_solver="direct")
+        wo.solve_balanced(fc, device=device, linear_solver="direct", method="anneal")
     with pytest.raises(ValueError, match="linear_solver='direct'"):
         wo.solve_partial(fc, device=device, linear_solver="direct")
     with pytest.raises(ValueError, match="plan_topk"):
-        wo.solve_balanced(fc, device=device, plan_topk=0)
+        wo.solve_balanced(fc, device=device, plan_topk=0, method="anneal")
     with pytest.raises(ValueError, match="dense_plan"):
-        wo.solve_balanced(fc, device=device, dense_plan="yes")
+        wo.solve_balanced(fc, device=device, dense_plan="yes", method="anneal")
     with pytest.raises(AttributeError, match="immutable"):
         fc.metric = "l2"
     assert fc.shape == (20, 30)
@@ -175,7 +175,7 @@ def test_dense_plan_that_does_not_fit_is_refused():
     X = np.zeros((200_000, 1))
     fc = wo.FeatureCost(X, X, "l1", device="cpu")
     with pytest.raises(ValueError, match=r"dense_plan=True needs .*\(200000, 200000\).* GiB"):
-        wo.solve_balanced(fc, device="cpu", dense_plan=True)
+        wo.solve_balanced(fc, device="cpu", dense_plan=True, method="anneal")
 
 
 def test_feature_cost_on_another_device_is_named():
@@ -185,13 +185,13 @@ def test_feature_cost_on_another_device_is_named():
     X, Y = _features(10, 12, 3, seed=0, metric="l2")
     fc = wo.FeatureCost(X, Y, "l2", device="cpu")
     with pytest.raises(ValueError, match="FeatureCost is on device cpu"):
-        wo.solve_balanced(fc, device="cuda")
+        wo.solve_balanced(fc, device="cuda", method="anneal")
 
 
 def test_stored_mode_dense_plan_false_keeps_sparse_outputs():
     X, Y = _features(30, 40, 4, seed=9, metric="l2")
     C = cost_matrix(X, Y, metric="l2")
-    r = wo.solve_balanced(C, device="cpu")
-    r0 = wo.solve_balanced(C, device="cpu", dense_plan=False)
+    r = wo.solve_balanced(C, device="cpu", method="anneal")
+    r0 = wo.solve_balanced(C, device="cpu", dense_plan=False, method="anneal")
     assert r0.plan is None and (r0.plan_top != r.plan_top).nnz == 0 and np.array_equal(r0.argmax, r.argmax)
     assert r0.cost == r.cost

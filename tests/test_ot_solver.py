@@ -106,17 +106,17 @@ def test_balanced_square_uniform_matches_emd(device):
     C = _points_cost(40, 40)
     n = 40
     a = np.full(n, 1 / n)
-    res = wo.solve_balanced(C, device=device)
+    res = wo.solve_balanced(C, device=device, method="anneal")
     _check_balanced(C, a, a, res)
 
 
 def test_balanced_rectangular_nonuniform_matches_emd():
     C = _points_cost(30, 45, seed=3) * 7.5  # arbitrary scale
     a, b = _masses(30, 1), _masses(45, 2)
-    res = wo.solve_balanced(C, a, b, device="cpu")
+    res = wo.solve_balanced(C, a, b, device="cpu", method="anneal")
     _check_balanced(C, a, b, res)
     # the same with the roles swapped (the solver eliminates the larger side either way)
-    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu")
+    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu", method="anneal")
     np.testing.assert_allclose(rt.plan, res.plan.T, atol=1e-9 * res.plan.max())
     assert abs(rt.cost - res.cost) <= 1e-9 * res.cost
 
@@ -127,7 +127,7 @@ def test_balanced_planted_permutation_closed_form():
     perm = rng.permutation(n)
     C = 1.0 + rng.random((n, n))
     C[np.arange(n), perm] = 0.2 * rng.random(n)  # the planted permutation is the unique optimum
-    res = wo.solve_balanced(C, device="cpu")
+    res = wo.solve_balanced(C, device="cpu", method="anneal")
     u_star = C[np.arange(n), perm].sum() / n
     assert abs(res.cost - u_star) <= 1e-6 * u_star
     assert np.array_equal(res.plan.argmax(axis=1), perm)
@@ -136,28 +136,28 @@ def test_balanced_planted_permutation_closed_form():
 def test_balanced_invariances():
     C = _points_cost(20, 20, seed=7)
     a, b = _masses(20, 8), _masses(20, 9)
-    r = wo.solve_balanced(C, a, b, device="cpu")
+    r = wo.solve_balanced(C, a, b, device="cpu", method="anneal")
     p1, p2 = np.random.default_rng(0).permutation(20), np.random.default_rng(1).permutation(20)
-    rp = wo.solve_balanced(C[p1][:, p2], a[p1], b[p2], device="cpu")
+    rp = wo.solve_balanced(C[p1][:, p2], a[p1], b[p2], device="cpu", method="anneal")
     assert abs(rp.cost - r.cost) <= 1e-9 * r.cost
     np.testing.assert_allclose(rp.plan, r.plan[p1][:, p2], atol=1e-9 * r.plan.max())
-    rs = wo.solve_balanced(C * 1e5, a, b, device="cpu")
+    rs = wo.solve_balanced(C * 1e5, a, b, device="cpu", method="anneal")
     assert abs(rs.cost - 1e5 * r.cost) <= 1e-9 * rs.cost
     assert abs(rs.beta * 1e5 - r.beta) <= 1e-9 * r.beta
-    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu")
+    rt = wo.solve_balanced(C.T.copy(), b, a, device="cpu", method="anneal")
     assert abs(rt.cost - r.cost) <= 1e-9 * r.cost
 
 
 def test_direct_and_cg_agree_and_warp_input_is_used_in_place():
     C = _points_cost(15, 22, seed=4)
-    rc = wo.solve_balanced(C, device="cpu")
-    rd = wo.solve_balanced(C, device="cpu", linear_solver="direct")
+    rc = wo.solve_balanced(C, device="cpu", method="anneal")
+    rd = wo.solve_balanced(C, device="cpu", linear_solver="direct", method="anneal")
     assert abs(rc.cost - rd.cost) <= 1e-9 * rc.cost
     # a much cruder preconditioner (reused across steps until CG slows) changes the path, not the answer
-    r2 = wo.solve_balanced(C, device="cpu", topk=2)
+    r2 = wo.solve_balanced(C, device="cpu", topk=2, method="anneal")
     assert r2.converged and abs(r2.cost - rd.cost) <= 1e-9 * rc.cost
     Cw = wp.array(C, dtype=wp.float64, device="cpu")
-    rw = wo.solve_balanced(Cw, device="cpu")
+    rw = wo.solve_balanced(Cw, device="cpu", method="anneal")
     assert rw.cost == rc.cost
     np.testing.assert_array_equal(Cw.numpy(), C)
 
@@ -165,7 +165,7 @@ def test_direct_and_cg_agree_and_warp_input_is_used_in_place():
 def test_balanced_self_transport_has_zero_cost_and_stops():
     X = np.random.default_rng(2).random((20, 3))
     C = np.linalg.norm(X[:, None] - X[None], axis=-1)
-    res = wo.solve_balanced(C, device="cpu")
+    res = wo.solve_balanced(C, device="cpu", method="anneal")
     assert res.converged
     assert res.cost <= 1e-9 * C.max()
     assert np.array_equal(res.plan.argmax(axis=1), np.arange(20))
@@ -176,8 +176,8 @@ def test_cpu_and_cuda_agree(device):
     if device == "cpu":
         pytest.skip("needs a CUDA device to compare with")
     C = _points_cost(30, 24, seed=11)
-    rc = wo.solve_balanced(C, device="cpu")
-    rg = wo.solve_balanced(C, device=device)
+    rc = wo.solve_balanced(C, device="cpu", method="anneal")
+    rg = wo.solve_balanced(C, device=device, method="anneal")
     assert abs(rc.cost - rg.cost) <= 1e-10 * rc.cost
     np.testing.assert_allclose(rg.plan, rc.plan, atol=1e-10 * rc.plan.max())
     pc = wo.solve_partial(C, device="cpu")
@@ -225,7 +225,7 @@ def test_partial_matches_independent_qp(mp):
 
 def test_partial_huge_penalty_recovers_balanced():
     C = _points_cost(16, 16, seed=5)
-    rb = wo.solve_balanced(C, device="cpu")
+    rb = wo.solve_balanced(C, device="cpu", method="anneal")
     rp = wo.solve_partial(C, mass_penalty=1e6, device="cpu")
     # uniform rho: masses -> rho^2 / sum rho^2 = uniform, so the transport part -> balanced U*
     np.testing.assert_allclose(rp.mass1, 1 / 16, atol=1e-5)
@@ -251,7 +251,7 @@ def test_balanced_uneven_masses_match_emd(spread, seed):
     # Regression: Newton used to stall at the first beta on such masses (residual stuck at 0.5; converged
     # False and U off by ~100%)
     C, a, b = _uneven_problem(40, spread, seed)
-    _check_balanced(C, a, b, wo.solve_balanced(C, a, b, device="cpu"))  # asserts converged and emd's optimum
+    _check_balanced(C, a, b, wo.solve_balanced(C, a, b, device="cpu", method="anneal"))  # asserts converged and emd's optimum
 
 
 @pytest.mark.parametrize("seed", [0, 2])
@@ -286,7 +286,7 @@ def test_a_newton_failure_after_a_solved_beta_returns_that_beta_s_solution(monke
 
     monkeypatch.setattr(newton.Engine, "newton", flaky)
     with pytest.warns(RuntimeWarning, match="failed at beta=.*the result is that of the last solved beta"):
-        r = wo.solve_balanced(C, a, b, device="cpu")
+        r = wo.solve_balanced(C, a, b, device="cpu", method="anneal")
     assert not r.converged and len(r.history) == 3
     assert r.beta == pytest.approx(r.history[-1].beta) and r.cost == pytest.approx(r.history[-1].cost)
     assert abs(r.cost - exact) <= r.history[-1].gap_bound + 1e-9 * exact
@@ -307,7 +307,7 @@ def test_a_beta_step_too_long_for_max_newton_is_split_and_still_reaches_the_opti
     exact = ot.emd2(a, a, C)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no warning: every beta solved
-        r = wo.solve_balanced(C, device="cpu", max_newton=8)
+        r = wo.solve_balanced(C, device="cpu", max_newton=8, method="anneal")
     assert r.converged
     assert abs(r.cost - exact) <= r.history[-1].gap_bound + 1e-9 * exact
     betas = np.array([h.beta for h in r.history])
@@ -322,23 +322,23 @@ def test_bad_inputs_raise_value_errors_naming_the_problem():
     bad = C.copy()
     bad[1, 2] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
-        wo.solve_balanced(bad, device="cpu")
+        wo.solve_balanced(bad, device="cpu", method="anneal")
     with pytest.raises(ValueError, match="non-negative"):
-        wo.solve_balanced(C - 0.5, device="cpu")
+        wo.solve_balanced(C - 0.5, device="cpu", method="anneal")
     with pytest.raises(ValueError, match="negative entries"):
-        wo.solve_balanced(C, np.array([0.5, -0.1, 0.2, 0.2, 0.2]), device="cpu")
+        wo.solve_balanced(C, np.array([0.5, -0.1, 0.2, 0.2, 0.2]), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="equal total masses"):
-        wo.solve_balanced(C, np.full(5, 0.2), np.full(6, 0.2), device="cpu")
+        wo.solve_balanced(C, np.full(5, 0.2), np.full(6, 0.2), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="length 4"):
-        wo.solve_balanced(C, np.full(4, 0.25), device="cpu")
+        wo.solve_balanced(C, np.full(4, 0.25), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="2-D"):
-        wo.solve_balanced(np.ones(5), device="cpu")
+        wo.solve_balanced(np.ones(5), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="empty"):
-        wo.solve_balanced(np.zeros((0, 3)), device="cpu")
+        wo.solve_balanced(np.zeros((0, 3)), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="float64"):
-        wo.solve_balanced(wp.array(C, dtype=wp.float32, device="cpu"), device="cpu")
+        wo.solve_balanced(wp.array(C, dtype=wp.float32, device="cpu"), device="cpu", method="anneal")
     with pytest.raises(ValueError, match="linear_solver"):
-        wo.solve_balanced(C, device="cpu", linear_solver="lu")
+        wo.solve_balanced(C, device="cpu", linear_solver="lu", method="anneal")
     with pytest.raises(ValueError, match="mass_penalty"):
         wo.solve_partial(C, mass_penalty=0.0, device="cpu")
     with pytest.raises(ValueError, match="zero entries"):
@@ -350,7 +350,7 @@ def test_bad_inputs_raise_value_errors_naming_the_problem():
 def test_non_convergence_is_reported():
     C = _points_cost(10, 10)
     with pytest.warns(RuntimeWarning, match="max_iter"):
-        res = wo.solve_balanced(C, device="cpu", max_iter=1)
+        res = wo.solve_balanced(C, device="cpu", max_iter=1, method="anneal")
     assert not res.converged and len(res.history) == 1
     with pytest.warns(RuntimeWarning, match="Newton"):
         res = wo.solve_partial(C, device="cpu", max_newton=1)
@@ -373,7 +373,7 @@ def test_strided_gpu_kernels_give_the_row_kernels_solution(mode):
     a, b = a / a.sum(), b / b.sum()
     if mode == "matrix-free":
         def solve(**kw):
-            return wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2", device="cpu"), a, b, device="cpu", **kw)
+            return wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2", device="cpu"), a, b, device="cpu", **kw, method="anneal")
     else:
         C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
         if mode in ("balanced", "ipm"):

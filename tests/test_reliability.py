@@ -219,7 +219,7 @@ def test_a_failing_pair_is_recorded_named_and_retried(data, tmp_path, reference)
 
 def test_non_converged_pairs_are_flagged_in_the_store_and_the_report(data, tmp_path):
     run = tmp_path / "run"
-    with run_all_vs_all(data, run, progress=False, solver_options={"max_iter": 1}, **TINY) as s:
+    with run_all_vs_all(data, run, progress=False, solver_options={"max_iter": 1, "method": "anneal"}, **TINY) as s:
         n = len(s.tasks())
         assert s.con.execute("SELECT COUNT(*) FROM pairs WHERE converged = 0").fetchone()[0] == n
         assert not s.converged_matrix()[0, 1]

@@ -523,6 +523,12 @@ def _run_state(run: str, config: Any) -> tuple[dict[str, Any], int, list[str]]:
     return state, n, [w for (k, _, _), w in zip(diffs, words) if k not in own]
 
 
+def _json_beta(beta: float) -> float | None:
+    """β for comparison.json: None (null) for the exact solver's β = ∞, which JSON cannot write."""
+    beta = float(beta)
+    return beta if np.isfinite(beta) else None
+
+
 def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
                      refined: np.ndarray | None = None) -> list[Path]:
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given) and
@@ -538,12 +544,12 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         "signature": c.signature,
         "transport": c.transport,
         "converged": bool(c.result.converged),
-        "beta": float(c.result.beta),
+        "beta": _json_beta(c.result.beta),
         "n_matched": int(len(c.matched)),
         "n_points": [int(len(c.mass1)), int(len(c.mass2))],
         "n_vertices": [int(a.mesh.n_vertices), int(b.mesh.n_vertices)],
         "self_energies": c.self_energies,
-        "history": c.history.tolist(),
+        "history": [[_json_beta(b), float(d)] for b, d in c.history],
         "registration": None
         if c.registration is None
         else {

@@ -306,9 +306,10 @@ class Comparer:
         a fraction f of its points costs κ (1/f − 1) mean costs, whatever the cost's unit and the number of
         points (`solver_mass_penalty`); default `DEFAULT_MASS_PENALTY`. ``penalty_scale="paper"``:
         ``α(k) = mass_penalty / ρ(k)²``, exactly Eq. 17 for ``mass_penalty=1``.
-    solver_options : the transport solver: ``method`` ("auto", default: the interior-point start for balanced
-        problems of at least `wpot.ot.AUTO_IPM_POINTS` points a side, annealing otherwise; "anneal";
-        "ipm") and any `wpot.ot.SolverOptions` (``tol``, ``max_newton``, ...)
+    solver_options : the transport solver: ``method`` ("auto", default: the exact transport LP for balanced
+        transport, whose history is D(∞) alone, and annealing for partial transport; "exact"; "anneal" and
+        "ipm", which also record D(β) along the annealing) and any `wpot.ot.SolverOptions` (``tol``,
+        ``max_newton``, ...)
     match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)
     **signature options : those of the chosen signature, e.g. ``n_eigen``, ``n_energies``,
         ``scale_invariant`` (WKS, HKS), ``ldsift_K``, ``ldsift_resolution``, ``ldsift_slab`` (LD-SIFT),
@@ -580,7 +581,8 @@ class Comparer:
     def _solve_reported(self, problem: Any) -> Any:
         """Solve ``problem``; with progress shown live (a terminal, a notebook), a bar counts the solved betas and
         shows the last β and U."""
-        if not self.progress.live:
+        method = self.solver.method_for(problem) if hasattr(self.solver, "method_for") else self.solver.name
+        if not self.progress.live or method == "exact":  # the exact LP has one beta (infinity): nothing to count
             return self.solver.solve(problem)
         self.progress.break_line()  # the transport stage's line: the bar goes below it
         bar = self.progress.bar(None, "annealing", "beta")

@@ -32,8 +32,8 @@ PENALTY_SCALES = ("relative", "paper")
 #: receives a part's mass has the part's size (benchmarks/head_partial.py); κ ≥ 1 is nearly balanced and
 #: κ ≤ 0.003 collapses the plan onto a few pairs.
 DEFAULT_MASS_PENALTY = 0.01
-#: the comparison's default transport solver: the interior-point start for large balanced problems, else
-#: annealing (`wpot.ot.SOLVERS`)
+#: the comparison's default transport solver: the exact LP for balanced transport, annealing for partial
+#: transport (`wpot.ot.SOLVERS`)
 DEFAULT_METHOD = "auto"
 
 #: keywords of `ComparisonConfig.from_keywords` that are not a stage's own
@@ -51,7 +51,7 @@ class ComparisonConfig:
     transport : "balanced" (paper Eq. 6–16) or "partial" (Eq. 17–26, χ² mass penalty)
     sampler : `wpot.sampling.SamplerOptions` (every vertex by default)
     mass_penalty, penalty_scale : partial transport's penalty (`wpot.comparison.solver_mass_penalty`)
-    method : the transport solver (`wpot.ot.SOLVERS`: "auto", "anneal", "ipm")
+    method : the transport solver (`wpot.ot.SOLVERS`: "auto", "exact", "anneal", "ipm")
     solver_options : keyword overrides of `wpot.ot.SolverOptions` (``tol``, ``max_newton``, ...), kept as
         given so that the run key names only what was changed
     match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)

@@ -619,9 +619,10 @@ def decade_grid(betas: np.ndarray) -> np.ndarray:
 
 
 def _unique_logs(b: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
+    """The distinct finite β of ``b``, increasing (β = ∞, the exact solver's one step, is D(∞) itself)."""
+    b = np.sort(b[np.isfinite(b)])
     if b.size == 0:
         return b
-    b = np.sort(b)
     keep = np.r_[True, np.diff(np.log(b)) > rtol]
     return b[keep]
 

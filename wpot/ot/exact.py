@@ -38,7 +38,7 @@ from wpot.ot.result import BetaStep, OTResult
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "MAX_ROUNDS", "ColumnGeneration", "solve_exact_problem"]
+__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ColumnGeneration", "solve_exact_problem"]
 
 #: columns per row in the first support (each row's cheapest)
 INIT_K = 8
@@ -47,8 +47,6 @@ PRICE_K = 8
 #: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C): ten times HiGHS's
 #: dual feasibility tolerance (`_HIGHS_OPTIONS`), so that the LP's own rounding never adds a column
 PRICE_TOL = 1e-9
-#: pricing rounds allowed (measured: 3-4 at N = 1,000-10,000)
-MAX_ROUNDS = 100
 #: presolve off: on the transport LP it costs seconds (3 s at N = 1,000) and the simplex itself 0.1 s
 _HIGHS_OPTIONS = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10, "presolve": "off"}
 _BIG = 1.0e300
@@ -265,7 +263,7 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     nw_r, nw_c = northwest_corner(a, b)
     cg.add(np.concatenate([r0, nw_r]), np.concatenate([c0, nw_c]))
     converged = False
-    for _ in range(MAX_ROUNDS):
+    for _ in range(options.max_iter):
         t0 = time.perf_counter()
         x, u, v, obj = cg.solve_lp()
         t1 = time.perf_counter()
@@ -281,14 +279,15 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
             converged = nviol == 0
             break
     # the certificate over every entry, from the last pass
-    primal = float(cg.c @ x)
+    n_x = len(x)  # the support the last LP was solved on (a last round may have added columns after it)
+    primal = float(cg.c[:n_x] @ x)
     lower = float(a @ (u + np.minimum(rmin, 0.0)) + b @ v)
     gap = max(primal - lower, 0.0)
     # tol relative to U, atol a fraction of max C per unit of mass (as the annealing's)
     converged = converged and gap <= options.tol * abs(primal) + options.atol * a.sum()
     unit = cost.scale / f  # normalized objective -> user units
     keep = x > 0
-    rows, cols, vals = cg.rows[keep], cg.cols[keep], x[keep] / f
+    rows, cols, vals = cg.rows[:n_x][keep], cg.cols[:n_x][keep], x[keep] / f
     mass1 = np.bincount(rows, weights=vals, minlength=n1)
     mass2 = np.bincount(cols, weights=vals, minlength=n2)
     resid = 0.5 * (np.abs(mass1 - a_).sum() + np.abs(mass2 - b_).sum()) / total
@@ -300,8 +299,8 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     if not converged:
         import warnings
 
-        warnings.warn(f"{kind}: the exact solve stopped after {MAX_ROUNDS} pricing rounds with a certified gap of "
-                      f"{gap * unit:.3g} (cost units), above tol; please report this problem", RuntimeWarning,
+        warnings.warn(f"{kind}: the exact solve stopped after max_iter={options.max_iter} pricing rounds with a "
+                      f"certified gap of {gap * unit:.3g} (cost units), above tol; increase max_iter", RuntimeWarning,
                       stacklevel=3)
     order = np.lexsort((-vals, rows))
     rows, cols, vals = rows[order], cols[order], vals[order]

@@ -4,8 +4,11 @@ the function forms `solve_balanced` / `solve_partial`.
 - "anneal": Algorithm 1 from beta0 (balanced or partial, stored or matrix-free cost).
 - "ipm": a primal-dual interior-point start up to the first grid beta whose gap bound is <= 1e-3 U, then
   Algorithm 1 (balanced transport with a stored cost only; `wpot.ot.ipm`).
-- "auto": "ipm" for balanced transport with a stored cost and min(N1, N2) >= `AUTO_IPM_POINTS`,
-  "anneal" otherwise.
+- "exact": the transport LP itself (beta = infinity) by column generation (balanced transport; `wpot.ot.exact`).
+- "auto": "exact" for balanced transport, "anneal" for partial transport.
+
+The annealing solvers record D(beta), the paper's distance along beta (every recorded beta is that beta's saddle
+point); "exact" records beta = infinity only, 3-30x faster than the annealing (`benchmarks/ot_speed.py`).
 """
 from __future__ import annotations
 
@@ -21,14 +24,8 @@ from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
 from wpot.ot.result import BetaStep, OTResult
 
-__all__ = ["AUTO_IPM_POINTS", "SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
+__all__ = ["SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
            "make_solver", "solve_balanced", "solve_partial"]
-
-#: "auto" starts balanced transport between two point sets of at least this many points each with the
-#: interior-point method: the annealing's Newton solves at the betas where the plan turns from spread out to
-#: a near-permutation grow with N (TOSCA cat0-cat1 at full resolution: 1,529 Newton steps against 116 with
-#: the interior-point start); smaller problems keep plain annealing, whose history has every grid beta
-AUTO_IPM_POINTS = 2000
 
 _F64 = 8
 _I32 = 4
@@ -207,40 +204,6 @@ class InteriorPointSolver(_Solver):
         return 4 * nn + direct + ipm_vectors + _linear_bytes(n1, n2, self.options, False, dim)
 
 
-@dataclass(frozen=True)
-class AutoSolver(_Solver):
-    """The interior-point start (`InteriorPointSolver`) for balanced transport with a stored cost between
-    point sets of at least ``ipm_points`` (default `AUTO_IPM_POINTS`) points each, annealing (`AnnealSolver`)
-    otherwise."""
-
-    name: ClassVar[str] = "auto"
-    #: the interior-point start for balanced stored problems with at least this many points a side
-    ipm_points: int = AUTO_IPM_POINTS
-
-    def __post_init__(self):
-        super().__post_init__()
-        object.__setattr__(self, "ipm_points", integer_at_least("ipm_points", self.ipm_points, 1))
-
-    def method_for(self, problem: TransportProblem) -> str:
-        """The registry name of the solver ``problem`` gets ("ipm" or "anneal")."""
-        problem = _check_problem(problem)
-        if problem.partial or problem.matrix_free or len(problem.shape) != 2:
-            return "anneal"
-        return "ipm" if min(problem.shape) >= self.ipm_points else "anneal"
-
-    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
-        """Solve ``problem`` with the solver `method_for` picks."""
-        return SOLVERS[self.method_for(problem)](self.options).solve(problem, on_beta=on_beta)
-
-    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
-        """Peak bytes of the solver this size gets (see `AnnealSolver.memory_bytes`); for stored costs of
-        at least `AUTO_IPM_POINTS` points a side, the interior-point start's (the larger: partial transport
-        there is annealed)."""
-        n1, n2, dim = _check_size(n1, n2, dim)
-        anneal = AnnealSolver(self.options).memory_bytes(n1, n2, matrix_free=matrix_free, dim=dim)
-        if matrix_free or min(n1, n2) < self.ipm_points:
-            return anneal
-        return max(anneal, InteriorPointSolver(self.options).memory_bytes(n1, n2, dim=dim))
 
 
 @dataclass(frozen=True)
@@ -249,7 +212,8 @@ class ExactSolver(_Solver):
     support that Warp pricing passes over all N1 N2 entries grow until none has a negative reduced cost; the
     last pass certifies the optimum (`wpot.ot.exact`). Balanced transport, stored cost or `FeatureCost`.
     ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
-    ``tol``, ``atol`` (the certified gap), ``dense_plan``, ``plan_topk`` and ``verbose``."""
+    ``tol``, ``atol`` (the certified gap), ``max_iter`` (pricing rounds; 3-7 are measured), ``dense_plan``,
+    ``plan_topk`` and ``verbose``."""
 
     name: ClassVar[str] = "exact"
 
@@ -269,6 +233,28 @@ class ExactSolver(_Solver):
         stored = 0 if matrix_free else nn
         features = _F64 * (n1 + n2) * dim if matrix_free else 0
         return stored + plan + features + support_bytes(n1, n2)
+
+
+@dataclass(frozen=True)
+class AutoSolver(_Solver):
+    """The exact LP (`ExactSolver`) for balanced transport, the annealing (`AnnealSolver`) for partial
+    transport. D(beta) along the annealing needs ``method="anneal"`` or ``"ipm"``."""
+
+    name: ClassVar[str] = "auto"
+
+    def method_for(self, problem: TransportProblem) -> str:
+        """The registry name of the solver ``problem`` gets ("exact" or "anneal")."""
+        return "anneal" if _check_problem(problem).partial else "exact"
+
+    def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
+        """Solve ``problem`` with the solver `method_for` picks."""
+        return SOLVERS[self.method_for(problem)](self.options).solve(problem, on_beta=on_beta)
+
+    def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
+        """Peak bytes of a solve of this size, balanced or partial: the larger of the annealing's
+        (`AnnealSolver.memory_bytes`) and the exact LP's (`ExactSolver.memory_bytes`)."""
+        return max(s(self.options).memory_bytes(n1, n2, matrix_free=matrix_free, dim=dim)
+                   for s in (AnnealSolver, ExactSolver))
 
 
 #: the solvers by name (`make_solver`'s ``method``)
@@ -299,21 +285,23 @@ def make_solver(method: str = "anneal", options: SolverOptions | None = None, **
     return SOLVERS[method](_options(options, option_keywords, "make_solver"))
 
 
-def solve_balanced(C, a=None, b=None, *, method: str = "anneal", device: str | None = None,
+def solve_balanced(C, a=None, b=None, *, method: str = "auto", device: str | None = None,
                    options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
-    """Balanced optimal transport min_G sum C G, G >= 0, G 1 = a, G^T 1 = b (Eq. 6-7), by annealing
-    (Algorithm 1; `wpot.ot.balanced`).
+    """Balanced optimal transport min_G sum C G, G >= 0, G 1 = a, G^T 1 = b (Eq. 6-7): by default the exact
+    optimum (the annealing's limit beta -> infinity, by column generation; `wpot.ot.exact`), or by annealing
+    (Algorithm 1; `wpot.ot.balanced`), which also gives U(beta) along the way.
 
     Parameters
     ----------
     C : (N1, N2) float64 numpy array or 2-D float64 ``wp.array`` (used without a copy when on ``device``);
         finite, >= 0; or a `FeatureCost` (signatures and a metric: the matrix-free mode, C recomputed inside
-        the kernels, memory O((N1 + N2) D + N topk); same results). Results are in C's units.
+        the kernels, memory O((N1 + N2) D); same results). Results are in C's units.
     a, b : (N1,), (N2,) positive masses with equal sums (default uniform, 1/N). The plan is computed for
         masses normalized to sum 1 and multiplied back by the total.
-    method : a solver of `SOLVERS`: "anneal" (default: Algorithm 1 from beta0, every grid beta solved),
-        "ipm" (an interior-point start, then Algorithm 1; stored cost only; `InteriorPointSolver`) or
-        "auto" (`AutoSolver`).
+    method : a solver of `SOLVERS`: "auto" (default; "exact" for balanced transport), "exact" (the transport
+        LP, certified over every entry; ``history`` holds beta = inf only), "anneal" (Algorithm 1 from beta0,
+        every grid beta solved and recorded) or "ipm" (an interior-point start, then Algorithm 1; stored cost
+        only; `InteriorPointSolver`).
     device : Warp device (None: Warp's default).
     options, **option_keywords : a `SolverOptions` (default: the defaults) and keyword overrides of its
         fields (``tol=1e-8``, ``linear_solver="direct"``, ...), documented there. An unknown keyword is a
@@ -322,7 +310,7 @@ def solve_balanced(C, a=None, b=None, *, method: str = "anneal", device: str | N
     Returns
     -------
     OTResult (``x`` = 0, ``objective`` = ``cost``). ``converged`` is False, with a RuntimeWarning, when
-    the annealing or a Newton solve did not reach its tolerance.
+    a tolerance was not met (the annealing's, a Newton solve's, or the exact solve's certified gap).
     """
     solver = make_solver(method, _options(options, option_keywords, "solve_balanced"))
     return solver.solve(TransportProblem(C, a, b, device=device))
