@@ -3,14 +3,16 @@
 Problem: C = Euclidean distances between uniform random points in R^8, normalized to max 1; uniform masses, or
 with ``--mass-spread s`` log-normal ones (exp(s z), z ~ N(0, 1): max/min ~ 10^3 at s = 1.5, N = 500; unequal
 masses as cell-pooled samples give, where an earlier Newton variant stalled).
-Solvers: wpot.ot.solve_balanced (Warp; method="anneal" and method="ipm", default CG and optionally the dense
-direct solve), POT's exact ot.emd, POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
+Solvers: wpot.ot.solve_balanced (Warp; method="exact", the default: the LP by column generation; "anneal" and
+"ipm", default CG and optionally the dense direct solve), POT's exact ot.emd (numItermax 1e9, its warning checked), POT's stabilized Sinkhorn (reg 1e-3, tau=1e8) and ot.unbalanced.sinkhorn_unbalanced.
 Printed: wall time, relative gap of <C, plan> to ot.emd's optimum, L1 marginal error (relative to the
 total mass), wpot's Newton/CG counts, where its time goes, and its host-device transfers per Newton step and
 per CG iteration (device-to-host reads are synchronisations on a GPU; the counts are those a GPU run makes,
 whatever the device). Timings on a shared machine are noisy.
 
     python benchmarks/ot_speed.py                 # N = 500, 1000, 3400
+    python benchmarks/ot_speed.py --sizes 3400 10000 --methods exact --quick
+    python benchmarks/ot_speed.py --tosca 5 --methods exact ipm --quick   # full-resolution TOSCA pairs (WKS)
     python benchmarks/ot_speed.py --sizes 500 1000 --quick
     python benchmarks/ot_speed.py --sizes 500 1000 --quick --mass-spread 1.5
 """
@@ -59,8 +61,11 @@ def main():
     ap.add_argument("--quick", action="store_true", help="skip the slow peers (Sinkhorns, direct solve)")
     ap.add_argument("--direct", action="store_true", help="also run wpot with linear_solver='direct'")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--methods", nargs="+", default=["anneal", "ipm"], choices=["anneal", "ipm"],
-                    help="wpot solve_balanced methods to time (default both)")
+    ap.add_argument("--methods", nargs="+", default=["exact", "anneal", "ipm"], choices=["exact", "anneal", "ipm"],
+                    help="wpot solve_balanced methods to time (default all three)")
+    ap.add_argument("--tosca", type=int, default=0,
+                    help="also time this many full-resolution TOSCA pairs (tosca_isometric_5k, 5,000 vertices, "
+                    "WKS cost of wpot's defaults) beside ot.emd")
     ap.add_argument("--mass-spread", type=float, default=0.0,
                     help="log-normal masses with this log-std (default 0: uniform)")
     ap.add_argument("--small", type=int, nargs="*", default=[],
@@ -72,7 +77,7 @@ def main():
     import wpot.ot as wo
     from wpot.ot import balanced as wbalanced
 
-    for m in ("anneal", "ipm"):  # compile the kernels outside the timings
+    for m in ("exact", "anneal", "ipm"):  # compile the kernels outside the timings
         wo.solve_balanced(problem(60), device=args.device, method=m)
 
     # capture the engine's timers (kept on the Engine that the annealing loop drives)
@@ -97,9 +102,9 @@ def main():
         t_emd = (time.perf_counter() - t) / 3
         t = time.perf_counter()
         for _ in range(3):
-            r = wo.solve_balanced(C, device=args.device, method="anneal")
+            r = wo.solve_balanced(C, device=args.device)
         tw = (time.perf_counter() - t) / 3
-        print(f"N = {n} (mean of 3 calls): wpot {tw:.3f} s (gap {(r.cost - u0) / u0:.1e}, newton={r.n_newton}"
+        print(f"N = {n} (mean of 3 calls): wpot default ({r.beta:.3g}) {tw:.3f} s (gap {(r.cost - u0) / u0:.1e}, newton={r.n_newton}"
               f" cg={r.n_linear}), ot.emd {t_emd:.3f} s")
 
     for n in args.sizes:
@@ -107,52 +112,105 @@ def main():
         a, b = masses(n, args.mass_spread)
         print(f"\nN = {n}  (C {n}x{n}, float64 {C.nbytes / 2**20:.0f} MiB; masses max/min {a.max() / a.min():.3g},"
               f" {b.max() / b.min():.3g})")
-        t = time.perf_counter()
-        G0 = ot.emd(a, b, C, numItermax=10**9)
-        t_emd = time.perf_counter() - t
-        u0 = float((G0 * C).sum())
-        row("POT ot.emd (exact)", t_emd, 0.0, np.abs(G0.sum(1) - a).sum() + np.abs(G0.sum(0) - b).sum())
+        compare_on(C, a, b, args, timers, f"N = {n}")
 
-        def report(name, G, t):
-            gap = ((G * C).sum() - u0) / u0
-            merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - b).sum()
-            return gap, merr
+    for name, C in tosca_costs(args.tosca):
+        n1, n2 = C.shape
+        print(f"\nTOSCA {name}  (WKS cost {n1}x{n2})")
+        compare_on(C, np.full(n1, 1.0 / n1), np.full(n2, 1.0 / n2), args, timers, name)
 
-        for method in args.methods:
+
+def tosca_costs(n_pairs: int):
+    """(name, WKS cost) of ``n_pairs`` full-resolution TOSCA pairs (consecutive shapes of tosca_isometric_5k,
+    every vertex, the signature's defaults and one energy grid per pair); skipped with a reason if absent."""
+    if n_pairs <= 0:
+        return
+    from pathlib import Path
+
+    import wpot
+    from wpot.cost import cost_matrix
+
+    folder = Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca_isometric_5k" / "vtx_5k"
+    if not folder.is_dir():
+        print(f"\n(TOSCA pairs skipped: {folder} not found)")
+        return
+    files = sorted(folder.glob("*.off"))
+    for f1, f2 in list(zip(files[0::2], files[1::2]))[:n_pairs]:
+        comparer = wpot.Comparer(device="cpu")
+        a, b = wpot.load_mesh(f1), wpot.load_mesh(f2)
+        comparer.fit([a, b])
+        X, Y = comparer.points(a).signatures, comparer.points(b).signatures
+        yield f"{f1.stem}-{f2.stem}", cost_matrix(X, Y, metric="wks")
+
+
+def compare_on(C, a, b, args, timers, label):
+    """ot.emd and each of wpot's methods on one cost, one line each (time, gap to ot.emd, marginal error)."""
+    import ot
+
+    import wpot.ot as wo
+    from wpot.ot.exact import solve_exact_problem
+
+    t = time.perf_counter()
+    G0, log = ot.emd(a, b, C, numItermax=10**9, log=True)
+    t_emd = time.perf_counter() - t
+    u0 = float((G0 * C).sum())
+    row("POT ot.emd (exact)", t_emd, 0.0, np.abs(G0.sum(1) - a).sum() + np.abs(G0.sum(0) - b).sum(),
+        f"warning: {log['warning']}" if log["warning"] else "")
+
+    def report(name, G, t):
+        gap = ((G * C).sum() - u0) / u0
+        merr = np.abs(G.sum(1) - a).sum() + np.abs(G.sum(0) - b).sum()
+        return gap, merr
+
+    for method in args.methods:
+        if method == "exact":
+            rounds = []
             t = time.perf_counter()
-            r = wo.solve_balanced(C, a, b, device=args.device, method=method)
+            r = solve_exact_problem(wo.TransportProblem(C, a, b, device=args.device), wo.SolverOptions(),
+                                    on_round=rounds.append)
             tw = time.perf_counter() - t
             gap, merr = report("wpot", r.plan, tw)
-            tm = {k: v for k, v in timers.items()}
-            row(f"wpot solve_balanced {method} ({args.device})", tw, gap, merr,
-                f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}")
-            print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
-                  + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
-                  + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
-                  f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
-            print("      " + transfers(tm))
-            print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
-        if args.direct and n <= 2000:
-            t = time.perf_counter()
-            rd = wo.solve_balanced(C, a, b, device=args.device, linear_solver="direct", method="anneal")
-            td = time.perf_counter() - t
-            gap, merr = report("direct", rd.plan, td)
-            row(f"wpot solve_balanced direct ({args.device})", td, gap, merr, f"newton={rd.n_newton}")
-        if args.quick:
+            row(f"wpot solve_balanced exact ({args.device})", tw, gap, merr,
+                f"conv={r.converged} certified gap {r.history[0].gap_bound / r.cost:.1e}  ({tw / t_emd:.2f}x ot.emd)")
+            print(f"      {len(rounds)} pricing rounds (passes over all N1 N2 entries: {len(rounds) + 1}); "
+                  f"LP {sum(x.t_lp for x in rounds):.2f} s, passes {sum(x.t_price for x in rounds):.2f} s; "
+                  f"support {rounds[-1].support} entries ({rounds[-1].support / len(a):.1f} a row); "
+                  f"priced out per round: {' '.join(str(x.violations) for x in rounds)}")
             continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            t = time.perf_counter()
-            Gs = ot.bregman.sinkhorn_stabilized(a, b, C, 1e-3, tau=1e8, numItermax=100000, stopThr=1e-9)
-            ts = time.perf_counter() - t
-            gap, merr = report("sink", Gs, ts)
-            row("POT sinkhorn_stabilized reg=1e-3", ts, gap, merr)
-            t = time.perf_counter()
-            Gu = ot.unbalanced.sinkhorn_unbalanced(a, b, C, 1e-3, 10.0, method="sinkhorn_stabilized",
-                                                   numItermax=100000, stopThr=1e-9, tau=1e8)
-            tu = time.perf_counter() - t
-            gap, merr = report("unb", Gu, tu)
-            row("POT sinkhorn_unbalanced reg=1e-3 m=10", tu, gap, merr, "(unbalanced: marginals not enforced)")
+        t = time.perf_counter()
+        r = wo.solve_balanced(C, a, b, device=args.device, method=method)
+        tw = time.perf_counter() - t
+        gap, merr = report("wpot", r.plan, tw)
+        tm = {k: v for k, v in timers.items()}
+        row(f"wpot solve_balanced {method} ({args.device})", tw, gap, merr,
+            f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}  ({tw / t_emd:.2f}x ot.emd)")
+        print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
+              + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
+              + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
+              f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
+        print("      " + transfers(tm))
+        print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
+    if args.direct and len(a) <= 2000:
+        t = time.perf_counter()
+        rd = wo.solve_balanced(C, a, b, device=args.device, linear_solver="direct", method="anneal")
+        td = time.perf_counter() - t
+        gap, merr = report("direct", rd.plan, td)
+        row(f"wpot solve_balanced direct ({args.device})", td, gap, merr, f"newton={rd.n_newton}")
+    if args.quick:
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t = time.perf_counter()
+        Gs = ot.bregman.sinkhorn_stabilized(a, b, C, 1e-3, tau=1e8, numItermax=100000, stopThr=1e-9)
+        ts = time.perf_counter() - t
+        gap, merr = report("sink", Gs, ts)
+        row("POT sinkhorn_stabilized reg=1e-3", ts, gap, merr)
+        t = time.perf_counter()
+        Gu = ot.unbalanced.sinkhorn_unbalanced(a, b, C, 1e-3, 10.0, method="sinkhorn_stabilized",
+                                               numItermax=100000, stopThr=1e-9, tau=1e8)
+        tu = time.perf_counter() - t
+        gap, merr = report("unb", Gu, tu)
+        row("POT sinkhorn_unbalanced reg=1e-3 m=10", tu, gap, merr, "(unbalanced: marginals not enforced)")
 
 
 if __name__ == "__main__":
