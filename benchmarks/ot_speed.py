@@ -19,10 +19,15 @@ whatever the device). Timings on a shared machine are noisy.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 import warnings
 
+from pathlib import Path
+
 import numpy as np
+
+HERE = Path(__file__).resolve().parent
 
 
 def problem(n: int, seed: int = 0):
@@ -66,6 +71,8 @@ def main():
     ap.add_argument("--tosca", type=int, default=0,
                     help="also time this many full-resolution TOSCA pairs (tosca_isometric_5k, 5,000 vertices, "
                     "WKS cost of wpot's defaults) beside ot.emd")
+    ap.add_argument("--data", type=Path, default=Path(os.environ.get("WPOT_DATA", HERE.parent.parent / "shared" / "data")),
+                    help="the shared data folder (default ../shared/data or $WPOT_DATA)")
     ap.add_argument("--mass-spread", type=float, default=0.0,
                     help="log-normal masses with this log-std (default 0: uniform)")
     ap.add_argument("--small", type=int, nargs="*", default=[],
@@ -114,23 +121,21 @@ def main():
               f" {b.max() / b.min():.3g})")
         compare_on(C, a, b, args, timers, f"N = {n}")
 
-    for name, C in tosca_costs(args.tosca):
+    for name, C in tosca_costs(args.tosca, args.data):
         n1, n2 = C.shape
         print(f"\nTOSCA {name}  (WKS cost {n1}x{n2})")
         compare_on(C, np.full(n1, 1.0 / n1), np.full(n2, 1.0 / n2), args, timers, name)
 
 
-def tosca_costs(n_pairs: int):
+def tosca_costs(n_pairs: int, data: "Path"):
     """(name, WKS cost) of ``n_pairs`` full-resolution TOSCA pairs (consecutive shapes of tosca_isometric_5k,
     every vertex, the signature's defaults and one energy grid per pair); skipped with a reason if absent."""
     if n_pairs <= 0:
         return
-    from pathlib import Path
-
     import wpot
     from wpot.cost import cost_matrix
 
-    folder = Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca_isometric_5k" / "vtx_5k"
+    folder = data / "tosca_isometric_5k" / "vtx_5k"
     if not folder.is_dir():
         print(f"\n(TOSCA pairs skipped: {folder} not found)")
         return
