@@ -11,16 +11,19 @@ Nothing here reads ../shared (it does not travel to that machine): the meshes ar
 Sections, each printed as a table and saved to ``DIR/gpu_suite.json`` when ``--out`` is given:
 
 1. environment: Warp's version and devices;
-2. agreement: the same problems solved on ``--device`` and on "cpu" (balanced annealing, the interior-point
-   start, partial transport, the matrix-free mode): relative difference of U and the largest marginal difference
-   (the kernels use no fused multiply-add, so the two devices agree to rounding);
+2. agreement: the same problems solved on ``--device`` and on "cpu" (the exact LP, stored and matrix-free,
+   balanced annealing, the interior-point start, partial transport, the matrix-free annealing): relative
+   difference of U and the largest marginal difference (the kernels use no fused multiply-add, so the two
+   devices agree to rounding);
 3. a TOSCA-sized pair (two generated shapes of 5,000 vertices, or 800 with ``--small``; WKS cost): wpot's default
-   solver beside ``ot.emd`` on the same cost, with the gap;
-4. a large matrix-free problem (random L2 costs in R^100, N = 20,000 on a GPU, 300 with ``--small``; the first 12
-   or 4 betas): time and certified gap bound at the last (the dual bound is over all N^2 entries);
-5. host-device transfers of each run above on ``--device``, per Newton step and per CG iteration: device-to-host
-   reads (each a synchronisation on a GPU) and host-to-device writes, as the engine counts them
-   (`wpot.ot.newton.Timers`: the same counts on every device, up to the end of the annealing);
+   solver (the exact LP) and the interior-point annealing beside ``ot.emd`` on the same cost, with the gaps;
+4. large matrix-free problems (random L2 costs in R^100, N = 20,000 and 50,000 on a GPU, 300 with ``--small``):
+   the exact LP to the end, with its certified gap (the dual bound over all N^2 entries), and the annealing
+   for its first 12 (4) betas;
+5. host-device transfers of each run above on ``--device``: for the annealing per Newton step and per CG
+   iteration, as the engine counts them (`wpot.ot.newton.Timers`: the same counts on every device, up to the
+   end of the annealing); for the exact LP per pricing round (`wpot.ot.exact.Round`). Device-to-host reads
+   are the synchronisations on a GPU;
 6. what the solver cannot yet be asked (issue 19): a batch of pairs in the same kernel launches; printed as not
    available so that the table says what is missing.
 """
@@ -78,12 +81,33 @@ def engine_timers():
         balanced.anneal, partial.anneal = originals
 
 
-def transfers(tm: dict) -> dict:
-    """Host-device transfers of one solve (its engine timers) in all and per Newton step and CG iteration."""
+def transfers(tm: dict | None) -> dict:
+    """Host-device transfers of one annealing solve (its engine timers) in all and per Newton step and CG
+    iteration (zeros when the solve had no annealing)."""
+    if tm is None:
+        tm = {"n_newton": 0, "n_matvec": 0, "n_d2h": 0, "n_h2d": 0}
     nn, nm = max(tm["n_newton"], 1), max(tm["n_matvec"], 1)
     return {"n_newton": tm["n_newton"], "n_cg": tm["n_matvec"], "n_d2h": tm["n_d2h"], "n_h2d": tm["n_h2d"],
             "d2h_per_newton": tm["n_d2h"] / nn, "h2d_per_newton": tm["n_h2d"] / nn,
             "d2h_per_cg": tm["n_d2h"] / nm, "h2d_per_cg": tm["n_h2d"] / nm}
+
+
+def exact_solve(C, device: str) -> tuple:
+    """wpot's exact LP on ``C`` (a matrix or a FeatureCost): (result, seconds, its pricing rounds)."""
+    import wpot.ot as wo
+    from wpot.ot.exact import solve_exact_problem
+
+    rounds: list = []
+    t = time.perf_counter()
+    r = solve_exact_problem(wo.TransportProblem(C, device=device), wo.SolverOptions(), on_round=rounds.append)
+    return r, time.perf_counter() - t, rounds
+
+
+def round_transfers(rounds: list) -> dict:
+    """Host-device transfers of an exact solve, in all and per pricing round."""
+    n = max(len(rounds), 1)
+    d2h, h2d = sum(x.n_d2h for x in rounds), sum(x.n_h2d for x in rounds)
+    return {"n_rounds": len(rounds), "n_d2h": d2h, "n_h2d": h2d, "d2h_per_round": d2h / n, "h2d_per_round": h2d / n}
 
 
 def environment(device: str) -> dict:
@@ -106,6 +130,9 @@ def agreement(device: str, n: int) -> list[dict]:
     x, y = _random_problem(n, 8, 1)
     C = cost_matrix(x, y, metric="l2", device="cpu")
     cases = {
+        "balanced, exact": lambda d: wo.solve_balanced(C, device=d, method="exact"),
+        "balanced, exact matrix-free": lambda d: wo.solve_balanced(wo.FeatureCost(x, y, "l2", device=d), device=d,
+                                                                  method="exact"),
         "balanced, anneal": lambda d: wo.solve_balanced(C, device=d, method="anneal"),
         "balanced, ipm": lambda d: wo.solve_balanced(C, device=d, method="ipm"),
         "partial (mass_penalty 0.05)": lambda d: wo.solve_partial(C, mass_penalty=0.05, device=d),
@@ -124,7 +151,7 @@ def agreement(device: str, n: int) -> list[dict]:
             "rel_diff_U": abs(r.cost - ref.cost) / abs(ref.cost),
             "max_marginal_diff": float(max(np.abs(r.mass1 - ref.mass1).max(), np.abs(r.mass2 - ref.mass2).max())),
             "seconds": secs,
-            "transfers": transfers(tms[-1]),
+            "transfers": transfers(tms[-1] if tms else None),
         })
     return rows
 
@@ -139,20 +166,34 @@ def tosca_sized_pair(device: str, n: int) -> dict:
     comparer.fit([pair.source, pair.target])
     pa, pb = comparer.points(pair.source), comparer.points(pair.target)
     C = cost_matrix(pa.signatures, pb.signatures, metric="wks", device="cpu")
-    problem = comparer.transport_problem(pa, pb)
-    for method in ("anneal", "ipm"):  # compile the kernels outside the timing
+    for method in ("exact", "ipm"):  # compile the kernels outside the timing
         wpot.ot.solve_balanced(C[:60, :60], device=device, method=method)
+    r, secs, rounds = exact_solve(C, device)
+    row = {"problem": f"WKS pair, {n} x {n} vertices (exact, the default)", "seconds": secs, "U": r.cost,
+           "converged": bool(r.converged), "gap_bound_rel": r.history[0].gap_bound / r.cost,
+           "round_transfers": round_transfers(rounds)}
     t = time.perf_counter()
     with engine_timers() as tms:
-        r = comparer.solver.solve(problem)
-    secs = time.perf_counter() - t
-    row = {"problem": f"WKS pair, {n} x {n} vertices ({comparer.solver.method_for(problem)})", "seconds": secs,
-           "U": r.cost, "converged": bool(r.converged), "n_newton": r.n_newton, "transfers": transfers(tms[-1])}
+        ri = wpot.ot.solve_balanced(C, device=device, method="ipm")
+    row.update(ipm_seconds=time.perf_counter() - t, ipm_U=ri.cost, n_newton=ri.n_newton,
+               transfers=transfers(tms[-1]))
     a = np.full(n, 1.0 / n)
     emd = _emd(a, a, C)
     if emd is not None:
-        row.update(emd_U=emd[0], emd_seconds=emd[1], gap=(r.cost - emd[0]) / emd[0])
+        row.update(emd_U=emd[0], emd_seconds=emd[1], gap=(r.cost - emd[0]) / emd[0], ipm_gap=(ri.cost - emd[0]) / emd[0])
     return row
+
+
+def large_exact(device: str, n: int) -> dict:
+    """Random L2 costs in R^100, cost recomputed in the kernels (no N x N array), the exact LP to the end."""
+    import wpot.ot as wo
+
+    x, y = _random_problem(n, 100, 2)
+    r, secs, rounds = exact_solve(wo.FeatureCost(x, y, "l2", device=device), device)
+    return {"problem": f"exact LP, matrix-free L2 in R^100, N = {n}", "seconds": secs, "converged": bool(r.converged),
+            "gap_bound_rel": r.history[0].gap_bound / r.cost, "rounds": len(rounds),
+            "t_lp": sum(x.t_lp for x in rounds), "t_pass": sum(x.t_price for x in rounds),
+            "support": rounds[-1].support, "round_transfers": round_transfers(rounds)}
 
 
 def large_matrix_free(device: str, n: int, max_iter: int) -> dict:
@@ -179,6 +220,7 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="folder for gpu_suite.json")
     a = ap.parse_args()
     n_agree, n_pair, n_large, max_iter = (200, 800, 300, 4) if a.small else (1000, 5000, 20000, 12)
+    n_exact = (300,) if a.small else (20000, 50000)
     report: dict = {"environment": environment(a.device)}
     print("environment:", report["environment"])
 
@@ -189,10 +231,16 @@ def main() -> None:
               f"{r['seconds']:>8.2f}")
 
     r = report["pair"] = tosca_sized_pair(a.device, n_pair)
-    peer = (f"ot.emd {r['emd_seconds']:.2f} s, gap {r['gap']:.1e}" if "emd_seconds" in r
-            else "ot.emd: POT not installed here")
-    print(f"\n{r['problem']}: {r['seconds']:.2f} s, converged {r['converged']}, {r['n_newton']} Newton steps; {peer}")
+    peer = (f"ot.emd {r['emd_seconds']:.2f} s; gaps {r['gap']:.1e} (exact), {r['ipm_gap']:.1e} (ipm)"
+            if "emd_seconds" in r else "ot.emd: POT not installed here")
+    print(f"\n{r['problem']}: {r['seconds']:.2f} s, converged {r['converged']}, certified gap "
+          f"{r['gap_bound_rel']:.1e}; ipm {r['ipm_seconds']:.2f} s ({r['n_newton']} Newton steps); {peer}")
 
+    report["large_exact"] = [large_exact(a.device, n) for n in n_exact]
+    for r in report["large_exact"]:
+        print(f"{r['problem']}: {r['seconds']:.1f} s ({r['rounds']} rounds: LP {r['t_lp']:.1f} s, passes "
+              f"{r['t_pass']:.1f} s; support {r['support']}), certified gap {r['gap_bound_rel']:.1e} of U, "
+              f"converged {r['converged']}")
     r = report["large"] = large_matrix_free(a.device, n_large, max_iter)
     print(f"{r['problem']}: {r['seconds']:.1f} s for {r['betas']} betas (max_iter {max_iter}), gap bound "
           f"{r['gap_bound_rel']:.1e} of U, converged {r['converged']}")
@@ -203,9 +251,14 @@ def main() -> None:
         tr = r["transfers"]
         print(f"{r['problem']:<44} {tr['n_newton']:>6} {tr['n_cg']:>6} {tr['d2h_per_newton']:>10.1f} "
               f"{tr['h2d_per_newton']:>10.1f} {tr['d2h_per_cg']:>7.2f} {tr['h2d_per_cg']:>7.2f}")
+    print(f"\n{'exact LP on ' + a.device + ' (d2h: syncs)':<44} {'rounds':>6} {'d2h/round':>10} {'h2d/round':>10}")
+    for r in [report["pair"], *report["large_exact"]]:
+        tr = r["round_transfers"]
+        print(f"{r['problem']:<44} {tr['n_rounds']:>6} {tr['d2h_per_round']:>10.1f} {tr['h2d_per_round']:>10.1f}")
 
     report["not_available"] = {
         "batch of pairs in shared kernel launches": "not implemented (issue 19)",
+        "annealing Newton/CG loop without a host round trip per CG iteration": "not implemented (issue 19)",
         "MDOT-TNT peer": "not run (not installed)",
     }
     for k, v in report["not_available"].items():

@@ -62,7 +62,7 @@ def transfers(tm: dict) -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 3400])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[500, 1000, 3400], help="random problems of these N (none: only --tosca)")
     ap.add_argument("--quick", action="store_true", help="skip the slow peers (Sinkhorns, direct solve)")
     ap.add_argument("--direct", action="store_true", help="also run wpot with linear_solver='direct'")
     ap.add_argument("--device", default="cpu")

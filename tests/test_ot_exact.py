@@ -161,3 +161,18 @@ def test_exact_says_when_max_iter_stops_it_before_the_optimum():
     # the certified bound holds: the optimum lies within it
     u = _emd(C, a, b)
     assert r.cost - r.history[0].gap_bound <= u * (1 + 1e-12) and r.cost >= u * (1 - 1e-12)
+
+
+def test_each_pricing_round_costs_a_few_transfers():
+    """The pass's results and the new entries' costs come back to the host once a round (a GPU's
+    synchronisations): at most 4 device-to-host reads a round, 7 in the first (it includes the first
+    support's pass)."""
+    from wpot.ot.exact import solve_exact_problem
+
+    C, a, b = _problem(400, 300, False, seed=7)
+    rounds = []
+    r = solve_exact_problem(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), on_round=rounds.append)
+    assert r.converged and len(rounds) >= 2 and rounds[-1].violations == 0
+    assert rounds[0].n_d2h == 7 and all(x.n_d2h == 4 for x in rounds[1:])
+    assert all(x.n_h2d == x.n_d2h + 1 for x in rounds[1:])  # the duals, and the new entries' rows and columns
+    assert [x.support for x in rounds] == sorted(x.support for x in rounds)  # the support only grows

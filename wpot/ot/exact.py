@@ -137,7 +137,9 @@ def support_bytes(n1: int, n2: int) -> int:
 class Round:
     """One pricing round: the LP's objective on the support (normalized units), the support's size, the
     entries priced out (below -PRICE_TOL), the least reduced cost over all N1 N2 entries, seconds in the LP
-    and in the pass."""
+    and in the pass, and the host-device transfers since the previous round (device-to-host reads are the
+    synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device writes: the
+    duals and the new entries' indices)."""
 
     objective: float
     support: int
@@ -145,6 +147,8 @@ class Round:
     min_reduced: float
     t_lp: float
     t_price: float
+    n_d2h: int = 0
+    n_h2d: int = 0
 
 
 class ColumnGeneration:
@@ -171,6 +175,7 @@ class ColumnGeneration:
         self.rows = np.zeros(0, np.int64)
         self.cols = np.zeros(0, np.int64)
         self.c = np.zeros(0, np.float64)  # C' on the support
+        self.n_d2h = self.n_h2d = 0  # host-device transfers (see `Round`)
         self._known = np.zeros(0, np.int64)  # sorted keys row * n2 + col of the support
 
     # ------------------------------------------------------------------ the pass over all entries
@@ -185,6 +190,8 @@ class ColumnGeneration:
         wp.launch(self.kernel, dim=n1, device=d,
                   inputs=[self.src, self.n2, wp.array(u, dtype=wp.float64, device=d),
                           wp.array(v, dtype=wp.float64, device=d), wp.float64(thresh), m, neg, idx, rmin, rcnt])
+        self.n_h2d += 2
+        self.n_d2h += 3
         cols = idx.numpy()
         ok = cols >= 0
         rows = np.broadcast_to(np.arange(n1)[:, None], cols.shape)[ok]
@@ -197,6 +204,8 @@ class ColumnGeneration:
         wp.launch(_GATHER[self.src._cls], dim=len(rows), device=d,
                   inputs=[self.src, wp.array(rows.astype(np.int32), dtype=wp.int32, device=d),
                           wp.array(cols.astype(np.int32), dtype=wp.int32, device=d), out])
+        self.n_h2d += 2
+        self.n_d2h += 1
         return out.numpy()
 
     # ------------------------------------------------------------------ the LP on the support
@@ -263,13 +272,16 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     nw_r, nw_c = northwest_corner(a, b)
     cg.add(np.concatenate([r0, nw_r]), np.concatenate([c0, nw_c]))
     converged = False
+    seen = (0, 0)
     for _ in range(options.max_iter):
         t0 = time.perf_counter()
         x, u, v, obj = cg.solve_lp()
         t1 = time.perf_counter()
         rr, cc, rmin, nviol = cg.price(u, v, -PRICE_TOL, PRICE_K)
         t2 = time.perf_counter()
-        rnd = Round(obj, len(cg.rows), nviol, float(rmin.min()), t1 - t0, t2 - t1)
+        rnd = Round(obj, len(cg.rows), nviol, float(rmin.min()), t1 - t0, t2 - t1,
+                    cg.n_d2h - seen[0], cg.n_h2d - seen[1])
+        seen = (cg.n_d2h, cg.n_h2d)
         if on_round is not None:
             on_round(rnd)
         if options.verbose:
