@@ -177,3 +177,14 @@ def test_each_pricing_round_costs_a_few_transfers():
     # the duals, and the new entries' rows and columns
     assert rounds[0].n_h2d == 6 and all(x.n_h2d == 4 for x in rounds[1:])
     assert [x.support for x in rounds] == sorted(x.support for x in rounds)  # the support only grows
+
+
+def test_exact_prints_nothing(capfd):
+    """HiGHS logs a banner on its first model unless told not to before it is built; a library call is silent."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, wpot.ot as wo; "
+            "wo.solve_balanced(np.random.default_rng(0).random((30, 40)), method='exact', device='cpu')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "HiGHS" not in out.stdout + out.stderr

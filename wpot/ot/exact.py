@@ -151,6 +151,16 @@ class Round:
     n_h2d: int = 0
 
 
+def _quiet_highs(highspy):
+    """A HiGHS model that prints nothing. highspy's constructor enables its callbacks, which logs the HiGHS
+    banner before any option can be set; the solver here uses no callback, so the core is built alone and its
+    output turned off first."""
+    h = highspy.Highs.__new__(highspy.Highs)
+    super(highspy.Highs, h).__init__()
+    h.setOptionValue("output_flag", False)
+    return h
+
+
 class ColumnGeneration:
     """The column-generation state of one problem: the device arrays of the pricing pass and the HiGHS model
     (its basis carries over from round to round). ``cost`` from `prepare_cost`; ``a``, ``b`` masses scaled
@@ -164,8 +174,7 @@ class ColumnGeneration:
         self.src = cost_source(cost)
         self.kernel = _PRICE[self.src._cls]
         self._highspy = highspy
-        h = highspy.Highs()
-        h.setOptionValue("output_flag", False)
+        h = _quiet_highs(highspy)
         for key, val in _HIGHS_OPTIONS.items():
             h.setOptionValue(key, val)
         rhs = np.concatenate([a, b])
