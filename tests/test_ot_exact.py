@@ -179,7 +179,7 @@ def test_each_pricing_round_costs_a_few_transfers():
     assert [x.support for x in rounds] == sorted(x.support for x in rounds)  # the support only grows
 
 
-def test_exact_prints_nothing(capfd):
+def test_exact_prints_nothing():
     """HiGHS logs a banner on its first model unless told not to before it is built; a library call is silent."""
     import subprocess
     import sys
