@@ -1,13 +1,13 @@
 """Exact balanced transport by column generation (``method="exact"``, `wpot.ot.solvers.ExactSolver`).
 
 The annealing's limit beta -> infinity is the transport LP (Eq. 6-7): U(beta) - U* ~ N1 N2 / beta. Its
-optimal plan has at most N1 + N2 - 1 nonzeros, so the LP is solved on a sparse support S by the dual
-simplex method of HiGHS (`highspy`), and S grows until no entry of the whole N1 x N2 cost has a negative
-reduced cost:
+optimal plan has at most N1 + N2 - 1 nonzeros, so the LP is solved on a sparse support S by the network
+simplex method (POT's, on the bipartite graph of S: `ot.emd` with a sparse cost), and S grows until no entry
+of the whole N1 x N2 cost has a negative reduced cost:
 
-1. S0 is each row's `INIT_K` cheapest columns (one Warp pass over C), with the north-west-corner plan's
-   N1 + N2 - 1 entries, which make the LP on S0 feasible whatever the masses.
-2. The LP on S is solved, warm-started from the previous round's basis: the plan x on S and the duals u, v.
+1. S0 is each row's and each column's `INIT_K` cheapest entries (two Warp passes over C), with the
+   north-west-corner plan's N1 + N2 - 1 entries, which make the LP on S0 feasible whatever the masses.
+2. The LP on S is solved, warm-started from the previous round's duals: the plan x on S and the duals u, v.
 3. One Warp pass over all N1 N2 entries (`price_rows`) computes r(k, l) = C(k, l) - u(k) - v(l), each row's
    least r, and its `PRICE_K` most negative entries below -`PRICE_TOL`, which join S. None: stop.
 
@@ -17,12 +17,13 @@ U - L, and the solve has converged when it is <= ``tol`` U + ``atol`` max C.
 
 Costs are computed where the pass needs them (`wpot.ot.kernels.cost_at`), so a `FeatureCost` needs no
 N1 x N2 array anywhere: memory is the features and the support, O((N1 + N2) (D + k)). Internally the cost is
-C / max C and the masses are scaled to a mean of 1, the units HiGHS's tolerances are meant for.
+C / max C and the masses sum to 1.
 """
 from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -40,15 +41,15 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 __all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ColumnGeneration", "solve_exact_problem"]
 
-#: columns per row in the first support (each row's cheapest)
+#: entries per row and per column in the first support (each row's and column's cheapest)
 INIT_K = 8
 #: most negative entries per row that join the support in each pricing round
 PRICE_K = 8
-#: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C): ten times HiGHS's
-#: dual feasibility tolerance (`_HIGHS_OPTIONS`), so that the LP's own rounding never adds a column
-PRICE_TOL = 1e-9
-#: presolve off: on the transport LP it costs seconds (3 s at N = 1,000) and the simplex itself 0.1 s
-_HIGHS_OPTIONS = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10, "presolve": "off"}
+#: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C, duals of the
+#: network simplex, exact to rounding: ~1e-16 of the duals' size)
+PRICE_TOL = 1e-11
+#: network simplex iterations allowed per LP (POT's default of 1e5 stops early from N ~ 3,400)
+_LP_MAX_ITER = 10**9
 _BIG = 1.0e300
 
 
@@ -94,15 +95,17 @@ _PRICE = {c: wp.overload(price_rows, {"csrc": c}) for c in (K.DenseCost, K.LazyC
 _GATHER = {c: wp.overload(gather_cost, {"csrc": c}) for c in (K.DenseCost, K.LazyCost)}
 
 
-def cost_source(cost: CostInput):
-    """The Warp struct that gives C'(k, l) = C(k, l) / max C in the user's orientation (rows = N1)."""
+def cost_source(cost: CostInput, transposed: bool = False):
+    """The Warp struct that gives C'(k, l) = C(k, l) / max C in the user's orientation (rows = N1), or with
+    ``transposed`` C'(l, k) (rows = N2; the metrics are symmetric, so the features just swap)."""
     if cost.lazy:
         fc = cost.features
         src = K.LazyCost()
-        src.A, src.B, src.metric = fc.X, fc.Y, METRIC_CODES[fc.metric]
+        src.A, src.B = (fc.Y, fc.X) if transposed else (fc.X, fc.Y)
+        src.metric = METRIC_CODES[fc.metric]
     else:
         src = K.DenseCost()
-        src.C, src.trans = cost.C, 0
+        src.C, src.trans = cost.C, int(transposed)
     src.inv_scale = wp.float64(1.0 / cost.scale)
     return src
 
@@ -120,17 +123,17 @@ def northwest_corner(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return rows, cols
 
 
-#: bytes per support entry: its row, column and cost here, and HiGHS's column (bounds, cost, two nonzeros,
-#: basis status, solution and dual values, and the simplex's work copies)
+#: bytes per support entry: its row, column, cost and key here, the sparse cost handed to the network simplex
+#: (COO) and its graph (arcs with their source, target, cost, flow and state, and the search's work arrays)
 _BYTES_PER_ENTRY = 160
 
 
 def support_bytes(n1: int, n2: int) -> int:
     """Bytes of the column generation apart from C and the plan: the pricing pass's lists and the support,
-    taken as the first support (INIT_K a row, the north-west corner) and two full rounds of PRICE_K a row (the
-    first round adds about PRICE_K a row, the later ones a few in all: 17.4 a row at N = 10,000)."""
-    entries = (INIT_K + 2 * PRICE_K) * n1 + n1 + n2
-    return _BYTES_PER_ENTRY * entries + 12 * (max(INIT_K, PRICE_K) + 2) * n1 + 64 * (n1 + n2)
+    taken as the first support (INIT_K a row and a column, the north-west corner) and two full rounds of
+    PRICE_K a row (the first round adds about PRICE_K a row, the later ones a few in all)."""
+    entries = (INIT_K + 2 * PRICE_K) * n1 + INIT_K * n2 + n1 + n2
+    return _BYTES_PER_ENTRY * entries + 12 * (max(INIT_K, PRICE_K) + 2) * max(n1, n2) + 64 * (n1 + n2)
 
 
 @dataclass(frozen=True)
@@ -151,60 +154,47 @@ class Round:
     n_h2d: int = 0
 
 
-def _quiet_highs(highspy):
-    """A HiGHS model that prints nothing. highspy's constructor enables its callbacks, which logs the HiGHS
-    banner before any option can be set; the solver here uses no callback, so the core is built alone and its
-    output turned off first."""
-    h = highspy.Highs.__new__(highspy.Highs)
-    super(highspy.Highs, h).__init__()
-    h.setOptionValue("output_flag", False)
-    return h
-
-
 class ColumnGeneration:
-    """The column-generation state of one problem: the device arrays of the pricing pass and the HiGHS model
-    (its basis carries over from round to round). ``cost`` from `prepare_cost`; ``a``, ``b`` masses scaled
-    to a mean of 1 and equal sums."""
+    """The column-generation state of one problem: the support and the device arrays of the pricing pass.
+    ``cost`` from `prepare_cost`; ``a``, ``b`` masses with equal sums."""
 
     def __init__(self, cost: CostInput, a: np.ndarray, b: np.ndarray, device: str):
-        import highspy
-
         self.cost, self.a, self.b, self.device = cost, a, b, device
         self.n1, self.n2 = cost.n1, cost.n2
         self.src = cost_source(cost)
-        self.kernel = _PRICE[self.src._cls]
-        self._highspy = highspy
-        h = _quiet_highs(highspy)
-        for key, val in _HIGHS_OPTIONS.items():
-            h.setOptionValue(key, val)
-        rhs = np.concatenate([a, b])
-        empty_i, empty_f = np.zeros(0, np.int32), np.zeros(0, np.float64)
-        h.addRows(self.n1 + self.n2, rhs, rhs, 0, empty_i, empty_i, empty_f)
-        self.h = h
+        self.src_t = cost_source(cost, transposed=True)
         self.rows = np.zeros(0, np.int64)
         self.cols = np.zeros(0, np.int64)
         self.c = np.zeros(0, np.float64)  # C' on the support
-        self.n_d2h = self.n_h2d = 0  # host-device transfers (see `Round`)
         self._known = np.zeros(0, np.int64)  # sorted keys row * n2 + col of the support
+        self._duals: tuple[np.ndarray, np.ndarray] | None = None  # the last LP's, its warm start
+        self.n_d2h = self.n_h2d = 0  # host-device transfers (see `Round`)
 
     # ------------------------------------------------------------------ the pass over all entries
-    def price(self, u: np.ndarray, v: np.ndarray, thresh: float, m: int):
-        """(candidate rows, candidate columns, row minima, count below thresh) of a pass at duals u, v."""
+    def price(self, u: np.ndarray, v: np.ndarray, thresh: float, m: int, *, transposed: bool = False):
+        """One pass at duals u (a row's), v (a column's): (candidate rows, candidate columns, row minima, count
+        below ``thresh``), each row's ``m`` most negative reduced costs below ``thresh``. ``transposed``: the
+        pass over the columns instead (u, v swapped; the candidates are still returned as (row, column))."""
         d = self.device
-        n1, m = self.n1, max(1, min(m, self.n2))
-        neg = wp.empty((n1, m), dtype=wp.float64, device=d)
-        idx = wp.empty((n1, m), dtype=wp.int32, device=d)
-        rmin = wp.empty(n1, dtype=wp.float64, device=d)
-        rcnt = wp.empty(n1, dtype=wp.int32, device=d)
-        wp.launch(self.kernel, dim=n1, device=d,
-                  inputs=[self.src, self.n2, wp.array(u, dtype=wp.float64, device=d),
-                          wp.array(v, dtype=wp.float64, device=d), wp.float64(thresh), m, neg, idx, rmin, rcnt])
+        n_rows, n_cols = (self.n2, self.n1) if transposed else (self.n1, self.n2)
+        m = max(1, min(m, n_cols))
+        neg = wp.empty((n_rows, m), dtype=wp.float64, device=d)
+        idx = wp.empty((n_rows, m), dtype=wp.int32, device=d)
+        rmin = wp.empty(n_rows, dtype=wp.float64, device=d)
+        rcnt = wp.empty(n_rows, dtype=wp.int32, device=d)
+        src = self.src_t if transposed else self.src
+        wp.launch(_PRICE[src._cls], dim=n_rows, device=d,
+                  inputs=[src, n_cols, wp.array(u, dtype=wp.float64, device=d), wp.array(v, dtype=wp.float64, device=d),
+                          wp.float64(thresh), m, neg, idx, rmin, rcnt])
         self.n_h2d += 2
         self.n_d2h += 3
         cols = idx.numpy()
         ok = cols >= 0
-        rows = np.broadcast_to(np.arange(n1)[:, None], cols.shape)[ok]
-        return rows.astype(np.int64), cols[ok].astype(np.int64), rmin.numpy(), int(rcnt.numpy().sum())
+        rows = np.broadcast_to(np.arange(n_rows)[:, None], cols.shape)[ok].astype(np.int64)
+        cols = cols[ok].astype(np.int64)
+        if transposed:
+            rows, cols = cols, rows
+        return rows, cols, rmin.numpy(), int(rcnt.numpy().sum())
 
     def cost_of(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """C'(k, l) of the listed entries (normalized units), computed by the kernels' own cost function."""
@@ -219,37 +209,36 @@ class ColumnGeneration:
 
     # ------------------------------------------------------------------ the LP on the support
     def add(self, rows: np.ndarray, cols: np.ndarray) -> int:
-        """Add the entries not yet in the support as LP columns; returns how many were new."""
+        """Add the entries not yet in the support; returns how many were new."""
         key = np.unique(rows * self.n2 + cols)
         key = key[~np.isin(key, self._known, assume_unique=True)]
         if len(key) == 0:
             return 0
         r, c = key // self.n2, key % self.n2
-        m = len(key)
-        starts = np.arange(0, 2 * m, 2, dtype=np.int32)
-        index = np.empty(2 * m, np.int32)
-        index[0::2], index[1::2] = r, self.n1 + c
-        inf = self._highspy.kHighsInf
-        c_rc = self.cost_of(r, c)
-        self.h.addCols(m, c_rc, np.zeros(m), np.full(m, inf), 2 * m, starts, index, np.ones(2 * m))
         self.rows = np.concatenate([self.rows, r])
         self.cols = np.concatenate([self.cols, c])
-        self.c = np.concatenate([self.c, c_rc])
+        self.c = np.concatenate([self.c, self.cost_of(r, c)])
         self._known = np.union1d(self._known, key)
-        return m
+        return len(key)
 
-    def solve_lp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Solve the LP on the support: (x on the support, u (N1,), v (N2,), objective)."""
-        h = self.h
-        h.run()
-        status = h.getModelStatus()
-        if status != self._highspy.HighsModelStatus.kOptimal:
-            raise RuntimeError(f"the transport LP on the sparse support ended with HiGHS status "
-                               f"{h.modelStatusToString(status)}; please report this problem")
-        sol = h.getSolution()
-        x = np.maximum(np.asarray(sol.col_value, dtype=np.float64), 0.0)
-        dual = np.asarray(sol.row_dual, dtype=np.float64)
-        return x, dual[:self.n1], dual[self.n1:], float(h.getInfo().objective_function_value)
+    def solve_lp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """Solve the LP on the support by POT's network simplex on its bipartite graph, warm-started from the
+        previous duals: (plan rows, columns, values (its nonzeros), u (N1,), v (N2,), objective)."""
+        import ot
+
+        M = sp.coo_matrix((self.c, (self.rows, self.cols)), shape=(self.n1, self.n2))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # reported below, as an error
+            G, log = ot.emd(self.a, self.b, M, numItermax=_LP_MAX_ITER, log=True, potentials_init=self._duals)
+        if log.get("warning"):
+            raise RuntimeError(f"the transport LP on the sparse support failed ({log['warning']}); please report "
+                               "this problem")
+        G = sp.coo_matrix(G)
+        u, v = np.asarray(log["u"], dtype=np.float64), np.asarray(log["v"], dtype=np.float64)
+        self._duals = (u, v)
+        keep = G.data > 0
+        return (G.row[keep].astype(np.int64), G.col[keep].astype(np.int64), np.asarray(G.data[keep], np.float64),
+                u, v, float(log["cost"]))
 
 
 def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, kind: str = "solve_balanced",
@@ -271,20 +260,20 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     a_ = prepare_masses(problem.a, n1, "a")
     b_ = prepare_masses(problem.b, n2, "b")
     total = check_balanced(a_, b_)
-    f = max(n1, n2) / total  # masses with mean ~1 (HiGHS's tolerances are absolute)
-    a, b = a_ * f, b_ * f
+    a, b = a_ / total, b_ / total
     b *= a.sum() / b.sum()
 
     cg = ColumnGeneration(cost, a, b, dev)
     zero1, zero2 = np.zeros(n1), np.zeros(n2)
     r0, c0, _, _ = cg.price(zero1, zero2, math.inf, INIT_K)
+    r1, c1, _, _ = cg.price(zero2, zero1, math.inf, INIT_K, transposed=True)
     nw_r, nw_c = northwest_corner(a, b)
-    cg.add(np.concatenate([r0, nw_r]), np.concatenate([c0, nw_c]))
+    cg.add(np.concatenate([r0, r1, nw_r]), np.concatenate([c0, c1, nw_c]))
     converged = False
     seen = (0, 0)
     for _ in range(options.max_iter):
         t0 = time.perf_counter()
-        x, u, v, obj = cg.solve_lp()
+        rows, cols, vals, u, v, obj = cg.solve_lp()
         t1 = time.perf_counter()
         rr, cc, rmin, nviol = cg.price(u, v, -PRICE_TOL, PRICE_K)
         t2 = time.perf_counter()
@@ -299,16 +288,15 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
         if nviol == 0 or cg.add(rr, cc) == 0:
             converged = nviol == 0
             break
-    # the certificate over every entry, from the last pass
-    n_x = len(x)  # the support the last LP was solved on (a last round may have added columns after it)
-    primal = float(cg.c[:n_x] @ x)
+    # the certificate over every entry, from the last pass: the primal cost of the plan (its entries' costs
+    # recomputed, as every cost here, by the kernels' function) against the dual bound
+    primal = float(cg.cost_of(rows, cols) @ vals)
     lower = float(a @ (u + np.minimum(rmin, 0.0)) + b @ v)
     gap = max(primal - lower, 0.0)
     # tol relative to U, atol a fraction of max C per unit of mass (as the annealing's)
-    converged = converged and gap <= options.tol * abs(primal) + options.atol * a.sum()
-    unit = cost.scale / f  # normalized objective -> user units
-    keep = x > 0
-    rows, cols, vals = cg.rows[:n_x][keep], cg.cols[:n_x][keep], x[keep] / f
+    converged = converged and gap <= options.tol * abs(primal) + options.atol
+    unit = cost.scale * total  # normalized objective -> user units
+    vals = vals * total
     mass1 = np.bincount(rows, weights=vals, minlength=n1)
     mass2 = np.bincount(cols, weights=vals, minlength=n2)
     resid = 0.5 * (np.abs(mass1 - a_).sum() + np.abs(mass2 - b_).sum()) / total
@@ -318,8 +306,6 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     if on_beta is not None:
         on_beta(step)
     if not converged:
-        import warnings
-
         warnings.warn(f"{kind}: the exact solve stopped after max_iter={options.max_iter} pricing rounds with a "
                       f"certified gap of {gap * unit:.3g} (cost units), above tol; increase max_iter", RuntimeWarning,
                       stacklevel=3)

@@ -208,7 +208,7 @@ class InteriorPointSolver(_Solver):
 
 @dataclass(frozen=True)
 class ExactSolver(_Solver):
-    """The transport LP itself (beta = infinity) by column generation: HiGHS's dual simplex on a sparse
+    """The transport LP itself (beta = infinity) by column generation: POT's network simplex on a sparse
     support that Warp pricing passes over all N1 N2 entries grow until none has a negative reduced cost; the
     last pass certifies the optimum (`wpot.ot.exact`). Balanced transport, stored cost or `FeatureCost`.
     ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
@@ -223,8 +223,8 @@ class ExactSolver(_Solver):
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
         """Peak bytes of a solve: the device copy of C (stored mode) or the features, the dense plan when it
-        is formed, the pricing pass's per-row lists and the sparse support with HiGHS's model of it
-        (`wpot.ot.exact.support_bytes`)."""
+        is formed, the pricing pass's per-row lists and the sparse support with the network simplex's graph
+        of it (`wpot.ot.exact.support_bytes`)."""
         from wpot.ot.exact import support_bytes
 
         n1, n2, dim = _check_size(n1, n2, dim)
