@@ -71,6 +71,8 @@ def main():
     ap.add_argument("--tosca", type=int, default=0,
                     help="also time this many full-resolution TOSCA pairs (tosca_isometric_5k, 5,000 vertices, "
                     "WKS cost of wpot's defaults) beside ot.emd")
+    ap.add_argument("--tosca-samples", type=int, default=None,
+                    help="with --tosca: that many farthest-point samples a shape instead of every vertex")
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("WPOT_DATA", HERE.parent.parent / "shared" / "data")),
                     help="the shared data folder (default ../shared/data or $WPOT_DATA)")
     ap.add_argument("--mass-spread", type=float, default=0.0,
@@ -121,15 +123,16 @@ def main():
               f" {b.max() / b.min():.3g})")
         compare_on(C, a, b, args, timers, f"N = {n}")
 
-    for name, C in tosca_costs(args.tosca, args.data):
+    for name, C in tosca_costs(args.tosca, args.data, args.tosca_samples):
         n1, n2 = C.shape
-        print(f"\nTOSCA {name}  (WKS cost {n1}x{n2})")
+        print(f"\nTOSCA {name}  (WKS cost {n1}x{n2}{'' if args.tosca_samples is None else ', farthest-point samples'})")
         compare_on(C, np.full(n1, 1.0 / n1), np.full(n2, 1.0 / n2), args, timers, name)
 
 
-def tosca_costs(n_pairs: int, data: "Path"):
-    """(name, WKS cost) of ``n_pairs`` full-resolution TOSCA pairs (consecutive shapes of tosca_isometric_5k,
-    every vertex, the signature's defaults and one energy grid per pair); skipped with a reason if absent."""
+def tosca_costs(n_pairs: int, data: Path, samples: int | None = None):
+    """(name, WKS cost) of ``n_pairs`` TOSCA pairs (consecutive shapes of tosca_isometric_5k, every vertex or
+    ``samples`` farthest-point samples, the signature's defaults and one energy grid per pair); skipped with a
+    reason if absent."""
     if n_pairs <= 0:
         return
     import wpot
@@ -141,7 +144,7 @@ def tosca_costs(n_pairs: int, data: "Path"):
         return
     files = sorted(folder.glob("*.off"))
     for f1, f2 in list(zip(files[0::2], files[1::2]))[:n_pairs]:
-        comparer = wpot.Comparer(device="cpu")
+        comparer = wpot.Comparer(device="cpu", max_vertices=samples)
         a, b = wpot.load_mesh(f1), wpot.load_mesh(f2)
         comparer.fit([a, b])
         X, Y = comparer.points(a).signatures, comparer.points(b).signatures
