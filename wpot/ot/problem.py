@@ -171,7 +171,8 @@ def prepare_cost(C, device: str) -> CostInput:
             raise ValueError(f"cost matrix must be a numeric (N1, N2) array, got {type(C).__name__}") from exc
         if Cn.ndim != 2:
             raise ValueError(f"cost matrix must be 2-D (N1, N2), got shape {Cn.shape}")
-        Cw = wp.array(np.ascontiguousarray(Cn), dtype=wp.float64, device=device)
+        # on the CPU the solver reads the caller's array in place (it never writes C): no second N1 x N2 copy
+        Cw = wp.array(np.ascontiguousarray(Cn), dtype=wp.float64, device=device, copy=not device.startswith("cpu"))
     n1, n2 = int(Cw.shape[0]), int(Cw.shape[1])
     if n1 == 0 or n2 == 0:
         raise ValueError(f"cost matrix is empty, got shape {(n1, n2)}")

@@ -142,8 +142,8 @@ class AnnealSolver(_Solver):
         """Peak bytes of a solve of an ``n1 x n2`` problem (``matrix_free``: a `FeatureCost` of ``dim``
         features per point), on the CPU, where the device's and the host's arrays share the memory.
 
-        Stored cost: the device copy of C (a cost passed as a float64 ``wp.array`` on the device is used in
-        place, one (N1, N2) array fewer), the Hessian weights W, and then the dense plan when it is formed
+        Stored cost: the device copy of C (counted always; a float64 ``wp.array`` on the device, or on the CPU
+        a C-contiguous float64 NumPy array, is used in place, one (N1, N2) array fewer), the Hessian weights W, and then the dense plan when it is formed
         (``dense_plan``): three (N1, N2) float64 arrays; with ``linear_solver="direct"``, the dense Schur
         solve's arrays instead of the plan when larger (`_direct_bytes`). Matrix-free: the features
         (N1 + N2) x dim, the plan only with ``dense_plan=True``. Both: the engine's O(N1 + N2) device arrays
@@ -222,7 +222,8 @@ class ExactSolver(_Solver):
         return solve_exact_problem(_check_problem(problem), self.options, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
-        """Peak bytes of a solve: the device copy of C (stored mode) or the features, the dense plan when it
+        """Peak bytes of a solve: the device copy of C (stored mode; counted always, although the CPU reads a
+        C-contiguous float64 array in place) or the features, the dense plan when it
         is formed, the pricing pass's per-row lists and the sparse support with the network simplex's graph
         of it (`wpot.ot.exact.support_bytes`)."""
         from wpot.ot.exact import support_bytes
