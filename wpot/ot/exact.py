@@ -211,14 +211,18 @@ class ColumnGeneration:
     def add(self, rows: np.ndarray, cols: np.ndarray) -> int:
         """Add the entries not yet in the support; returns how many were new."""
         key = np.unique(rows * self.n2 + cols)
-        key = key[~np.isin(key, self._known, assume_unique=True)]
+        known = self._known  # the support's keys, kept sorted: O(m log S) membership
+        pos = np.searchsorted(known, key)
+        new = np.ones(len(key), bool) if len(known) == 0 else \
+            (pos == len(known)) | (known[np.minimum(pos, len(known) - 1)] != key)
+        key, pos = key[new], pos[new]
         if len(key) == 0:
             return 0
         r, c = key // self.n2, key % self.n2
         self.rows = np.concatenate([self.rows, r])
         self.cols = np.concatenate([self.cols, c])
         self.c = np.concatenate([self.c, self.cost_of(r, c)])
-        self._known = np.union1d(self._known, key)
+        self._known = np.insert(self._known, pos, key)
         return len(key)
 
     def solve_lp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
