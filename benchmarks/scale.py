@@ -8,8 +8,11 @@ method. The three methods solve the same problem, so the table also gives each w
     python benchmarks/scale.py                               # N = 500 ... 5000 on "cpu"
     python benchmarks/scale.py --sizes 1000 2000 --methods stored emd
     python benchmarks/scale.py --device cuda --sizes 3400 10000 50000 --methods matrix-free stored
+    python benchmarks/scale.py --sizes 5000 10000 20000 50000 --methods exact-matrix-free exact emd
 
-Methods: ``stored`` (solve_balanced on the dense C: O(N^2) memory for C and the Hessian weights), ``stored-ipm``
+Methods: ``exact`` (solve_balanced's default on the dense C: the transport LP by column generation, exact and
+certified), ``exact-matrix-free`` (the same on a FeatureCost: the pricing passes recompute C in the kernels, no
+N x N array), ``stored`` (solve_balanced(method="anneal") on the dense C: O(N^2) memory for C and the Hessian weights), ``stored-ipm``
 (the same with method="ipm": two more N x N arrays, the primal plan and the reduced costs), ``matrix-free``
 (solve_balanced(wpot.ot.FeatureCost(X, Y, "l2"), method="anneal"): C recomputed inside the kernels, O(N d) memory; skipped with a note
 when this wpot has no FeatureCost) and ``emd`` (POT's exact network simplex on the dense C, numItermax raised so that
@@ -25,7 +28,10 @@ import subprocess
 import sys
 import time
 
-METHODS = ("stored", "stored-ipm", "matrix-free", "emd")
+METHODS = ("exact", "exact-matrix-free", "stored", "stored-ipm", "matrix-free", "emd")
+#: (N x N float64 arrays, O(N d)) each method holds at its peak: refused up front, with the figure, when they do
+#: not fit in the memory available (a run that the OS kills for memory could take other jobs with it)
+DENSE_ARRAYS = {"exact": 2, "stored": 3, "stored-ipm": 4, "emd": 2, "exact-matrix-free": 0, "matrix-free": 0}
 
 
 def features(n: int, d: int, seed: int):
@@ -55,7 +61,7 @@ def child(method: str, n: int, d: int, device: str) -> dict:
     else:
         import wpot.ot as wo
 
-        if method == "matrix-free":
+        if method in ("matrix-free", "exact-matrix-free"):
             if not hasattr(wo, "FeatureCost"):
                 return {"method": method, "n": n, "skipped": "this wpot has no matrix-free mode (wpot.ot.FeatureCost)"}
             cost = wo.FeatureCost(X, Y, metric="l2", device=device)
@@ -63,17 +69,21 @@ def child(method: str, n: int, d: int, device: str) -> dict:
             from wpot.cost import cost_matrix
 
             cost = None
-        for m in ("anneal", "ipm"):  # compile outside the timing
+        for m in ("anneal", "ipm", "exact"):  # compile outside the timing
             wo.solve_balanced(np.random.default_rng(0).random((60, 60)), device=device, method=m)
+            if m != "ipm":
+                wo.solve_balanced(wo.FeatureCost(X[:60], Y[:60], metric="l2", device=device), device=device, method=m)
         t0 = time.perf_counter()
         if cost is None:
             cost = cost_matrix(X, Y, metric="l2", device=device, out="warp")
-        r = wo.solve_balanced(cost, device=device, method="ipm" if method == "stored-ipm" else "anneal")
+        solver = {"stored-ipm": "ipm", "exact": "exact", "exact-matrix-free": "exact"}.get(method, "anneal")
+        r = wo.solve_balanced(cost, device=device, method=solver, dense_plan=False)
         out["time"] = time.perf_counter() - t0
         out["cost"] = float(r.cost)
         out["converged"] = bool(r.converged)
         out["n_newton"] = int(r.n_newton)
         out["n_linear"] = int(r.n_linear)
+        out["gap_bound_rel"] = float(r.history[-1].gap_bound / r.cost)
     if device.startswith("cuda") and method != "emd":
         import warp as wp
 
@@ -84,6 +94,14 @@ def child(method: str, n: int, d: int, device: str) -> dict:
 
 
 def run_one(method: str, n: int, d: int, device: str, timeout: float) -> dict:
+    need = DENSE_ARRAYS[method] * 8.0 * n * n
+    if need:
+        from wpot._warp import available_memory
+
+        avail = available_memory("cpu")
+        if need > avail:
+            return {"method": method, "n": n, "failed": f"needs {DENSE_ARRAYS[method]} N x N float64 arrays, "
+                    f"{need / 2**30:.1f} GiB, more than the {avail / 2**30:.1f} GiB available: not run"}
     cmd = [sys.executable, os.path.abspath(__file__), "--child", method, str(n), str(d), device]
     env = dict(os.environ, OPENBLAS_NUM_THREADS=os.environ.get("OPENBLAS_NUM_THREADS", "1"))
     t0 = time.perf_counter()
@@ -138,8 +156,10 @@ def main() -> None:
             if "time" in r:
                 gap = "" if u_emd is None or m == "emd" else f"{(r['cost'] - u_emd) / u_emd:.1e}"
                 note = []
-                if "n_newton" in r:
+                if r.get("n_newton"):
                     note.append(f"newton {r['n_newton']} cg {r['n_linear']}")
+                if "gap_bound_rel" in r:
+                    note.append(f"certified gap {r['gap_bound_rel']:.1e}")
                 if r.get("converged") is False:
                     note.append("NOT converged")
                 if "gpu_peak_mb" in r:
