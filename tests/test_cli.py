@@ -67,6 +67,7 @@ def test_compare_two_files(dataset, tmp_path):
     assert (tmp_path / "c" / "correspondence.png").is_file()
     # the default is the exact LP: its one step is beta = infinity (null in the JSON, which has no infinity)
     assert info["beta"] is None and info["history"] == [[None, info["distance"]]]
+    assert re.search(r"^converged: True, the exact optimum \(beta = inf; certified gap \S+ of U", r.stdout, re.M)
     # the interior-point start and annealing reach the same distance, and record D(beta) along the way
     infos = {}
     for m in ("ipm", "anneal"):
@@ -74,6 +75,7 @@ def test_compare_two_files(dataset, tmp_path):
                   "--out", str(tmp_path / m))
         assert r2.returncode == 0, r2.stderr
         infos[m] = json.loads((tmp_path / m / "comparison.json").read_text())
+        assert re.search(r"^converged: True at beta \S+ \(\d+ Newton steps", r2.stdout, re.M)
         assert infos[m]["distance"] == pytest.approx(info["distance"], rel=1e-6)
     assert 1 < len(infos["ipm"]["history"]) < len(infos["anneal"]["history"])
     # a lower --match-ratio can only match more pairs; the summary says which ratio, and why no registration

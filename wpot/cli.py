@@ -450,8 +450,7 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
         f"distance: {c.distance:.6g}  ({'U, Eq. 6' if c.transport == 'balanced' else 'SU, Eq. 27'}; "
         f"{signature_title(c.signature)}, {c.transport} transport)",
         where,
-        f"converged: {bool(c.result.converged)} at beta {float(c.result.beta):.3g}"
-        f" ({int(c.result.n_newton)} Newton steps, {int(c.result.n_linear)} linear iterations)",
+        _convergence_line(c.result),
         f"matched pairs (G > {match_ratio:g} m1): {len(c.matched)} of {n1} {points} of A",
     ]
     if c.registration is not None:
@@ -521,6 +520,16 @@ def _run_state(run: str, config: Any) -> tuple[dict[str, Any], int, list[str]]:
     if not state:
         raise CliError(f"--energies-from {run}: the run has not fitted its {sig.title} grid yet (rerun its all-vs-all)")
     return state, n, [w for (k, _, _), w in zip(diffs, words) if k not in own]
+
+
+def _convergence_line(res: Any) -> str:
+    """How the transport ended: the exact optimum with its certified gap, or the annealing's last beta."""
+    if not np.isfinite(res.beta):
+        gap = res.history[-1].gap_bound / abs(res.cost) if res.cost else res.history[-1].gap_bound
+        return (f"converged: {bool(res.converged)}, the exact optimum (beta = inf; certified gap {gap:.1g} of U, "
+                "over every entry)")
+    return (f"converged: {bool(res.converged)} at beta {float(res.beta):.3g} ({int(res.n_newton)} Newton steps, "
+            f"{int(res.n_linear)} linear iterations)")
 
 
 def _json_beta(beta: float) -> float | None:
