@@ -16,7 +16,8 @@ from wpot.ot.options import SolverOptions
 from wpot.ot.problem import FeatureCost, TransportProblem
 from wpot.ot.result import BetaStep, OTResult, debiased
 from wpot.ot.schedule import beta_schedule
-from wpot.ot.solvers import SOLVERS, TransportSolver, make_solver, solve_balanced, solve_partial
+from wpot.ot.solvers import SOLVERS, TransportSolver, make_solver, solve_balanced, solve_batch, solve_partial
 
 __all__ = ["BetaStep", "FeatureCost", "OTResult", "SOLVERS", "SolverOptions", "TransportProblem",
-           "TransportSolver", "beta_schedule", "debiased", "make_solver", "solve_balanced", "solve_partial"]
+           "TransportSolver", "beta_schedule", "debiased", "make_solver", "solve_balanced", "solve_batch",
+           "solve_partial"]

@@ -39,7 +39,7 @@ from wpot.ot.result import BetaStep, OTResult
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ColumnGeneration", "solve_exact_problem"]
+__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "BatchPricer", "ExactRun", "solve_exact_batch", "ColumnGeneration", "solve_exact_problem"]
 
 #: entries per row and per column in the first support (each row's and column's cheapest)
 INIT_K = 8
@@ -51,6 +51,26 @@ PRICE_TOL = 1e-11
 #: network simplex iterations allowed per LP (POT's default of 1e5 stops early from N ~ 3,400)
 _LP_MAX_ITER = 10**9
 _BIG = 1.0e300
+
+
+@wp.func
+def clear_row(neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32), g: int, m: int):
+    for j in range(m):
+        neg_r[g, j] = wp.float64(-_BIG)
+        idx[g, j] = -1
+
+
+@wp.func
+def price_entry(r: wp.float64, l: int, thresh: wp.float64, neg_r: wp.array2d(dtype=wp.float64),
+                idx: wp.array2d(dtype=wp.int32), g: int, m: int, worst: wp.float64, rmin: wp.float64, cnt: int):
+    """One entry (reduced cost r, column l) of row g's scan: returns the updated (smallest -r kept, row
+    minimum, count below ``thresh``)."""
+    rmin = wp.min(rmin, r)
+    if r < thresh:
+        cnt += 1
+        if -r > worst:
+            worst = K.topk_insert(neg_r, idx, g, m, -r, l)
+    return worst, rmin, cnt
 
 
 @wp.kernel
@@ -65,22 +85,53 @@ def price_rows(
     """Row k of the pricing pass: r(k, l) = C'(k, l) - u(k) - v(l) over every column l. With u = v = 0 and
     ``thresh`` = +inf it lists each row's m cheapest columns."""
     k = wp.tid()
-    for j in range(m):
-        neg_r[k, j] = wp.float64(-_BIG)
-        idx[k, j] = -1
+    clear_row(neg_r, idx, k, m)
     worst = wp.float64(-_BIG)
     rmin = wp.float64(_BIG)
     cnt = int(0)
     uk = u[k]
     for l in range(n_c):
-        r = K.cost_at(csrc, k, l) - uk - v[l]
-        rmin = wp.min(rmin, r)
-        if r < thresh:
-            cnt += 1
-            if -r > worst:
-                worst = K.topk_insert(neg_r, idx, k, m, -r, l)
+        worst, rmin, cnt = price_entry(K.cost_at(csrc, k, l) - uk - v[l], l, thresh, neg_r, idx, k, m, worst, rmin, cnt)
     row_min[k] = rmin
     row_cnt[k] = cnt
+
+
+@wp.kernel
+def price_rows_batch(
+    C: wp.array(dtype=wp.float64), off: wp.array(dtype=wp.int64), n1s: wp.array(dtype=wp.int32),
+    n2s: wp.array(dtype=wp.int32), inv_scale: wp.array(dtype=wp.float64), trans: int,
+    row_prob: wp.array(dtype=wp.int32), row_local: wp.array(dtype=wp.int32),
+    u: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64), v_off: wp.array(dtype=wp.int32),
+    thresh: wp.float64, m: int,
+    neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32),
+    row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
+):
+    """`price_rows` for many problems in one launch: row g of the launch is row ``row_local[g]`` of problem
+    ``row_prob[g]``, whose (N1, N2) cost starts at ``off[p]`` of the flat ``C``; with ``trans`` the rows
+    are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``. The same
+    operations in the same order as `price_rows` on each problem alone."""
+    g = wp.tid()
+    p = row_prob[g]
+    k = row_local[g]
+    n2 = n2s[p]
+    n = n2
+    if trans != 0:
+        n = n1s[p]
+    clear_row(neg_r, idx, g, m)
+    worst = wp.float64(-_BIG)
+    rmin = wp.float64(_BIG)
+    cnt = int(0)
+    ug = u[g]
+    vo = v_off[p]
+    base = off[p]
+    s = inv_scale[p]
+    for l in range(n):
+        e = base + wp.int64(k) * wp.int64(n2) + wp.int64(l)
+        if trans != 0:
+            e = base + wp.int64(l) * wp.int64(n2) + wp.int64(k)
+        worst, rmin, cnt = price_entry(C[e] * s - ug - v[vo + l], l, thresh, neg_r, idx, g, m, worst, rmin, cnt)
+    row_min[g] = rmin
+    row_cnt[g] = cnt
 
 
 @wp.kernel
@@ -108,6 +159,17 @@ def cost_source(cost: CostInput, transposed: bool = False):
         src.C, src.trans = cost.C, int(transposed)
     src.inv_scale = wp.float64(1.0 / cost.scale)
     return src
+
+
+def _candidates(idx: np.ndarray, rmin: np.ndarray, rcnt: np.ndarray, transposed: bool):
+    """A pass's (rows, columns) of the listed entries (``idx`` (n, m), -1 where a row lists fewer; with
+    ``transposed`` its rows are columns), its row minima and its count below the threshold."""
+    ok = idx >= 0
+    rows = np.broadcast_to(np.arange(idx.shape[0])[:, None], idx.shape)[ok].astype(np.int64)
+    cols = idx[ok].astype(np.int64)
+    if transposed:
+        rows, cols = cols, rows
+    return rows, cols, rmin, int(rcnt.sum())
 
 
 def northwest_corner(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,13 +250,7 @@ class ColumnGeneration:
                           wp.float64(thresh), m, neg, idx, rmin, rcnt])
         self.n_h2d += 2
         self.n_d2h += 3
-        cols = idx.numpy()
-        ok = cols >= 0
-        rows = np.broadcast_to(np.arange(n_rows)[:, None], cols.shape)[ok].astype(np.int64)
-        cols = cols[ok].astype(np.int64)
-        if transposed:
-            rows, cols = cols, rows
-        return rows, cols, rmin.numpy(), int(rcnt.numpy().sum())
+        return _candidates(idx.numpy(), rmin.numpy(), rcnt.numpy(), transposed)
 
     def cost_of(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """C'(k, l) of the listed entries (normalized units), computed by the kernels' own cost function."""
@@ -245,86 +301,208 @@ class ColumnGeneration:
                 u, v, float(log["cost"]))
 
 
+class ExactRun:
+    """One problem's column generation (steps 1-3 of the module's docstring), driven round by round:
+    `solve_exact_problem` drives one with its own passes, `solve_exact_batch` many with shared ones.
+
+    ``first_support`` takes the two candidate passes, then while ``active``: ``lp`` solves the LP on the
+    support and returns its duals, ``take`` takes the pass at those duals. ``result`` assembles the
+    `OTResult` (and warns when the solve stopped at ``max_iter`` before the optimum)."""
+
+    def __init__(self, problem: TransportProblem, options: SolverOptions, kind: str,
+                 on_round: Callable[[Round], None] | None = None):
+        if problem.partial:
+            raise ValueError("method='exact' solves balanced transport only (mass_penalty=None); use "
+                             "method='anneal' for partial transport")
+        self.options, self.kind, self.on_round = options, kind, on_round
+        self.device = resolve_device(problem.device)
+        self.dense = check_mode(problem.cost, options, self.device)
+        self.cost = cost = prepare_cost(problem.cost, self.device)
+        self.a_ = prepare_masses(problem.a, cost.n1, "a")
+        self.b_ = prepare_masses(problem.b, cost.n2, "b")
+        self.total = check_balanced(self.a_, self.b_)
+        a, b = self.a_ / self.total, self.b_ / self.total
+        b *= a.sum() / b.sum()
+        self.cg = ColumnGeneration(cost, a, b, self.device)
+        self.active, self.converged, self.n_rounds = True, False, 0
+        self._seen = (0, 0)
+
+    def first_support(self, row_pass: tuple, col_pass: tuple) -> None:
+        """The first support: each row's (``row_pass``) and each column's (``col_pass``) candidates, as
+        (rows, columns) pairs, and the north-west corner."""
+        nw_r, nw_c = northwest_corner(self.cg.a, self.cg.b)
+        self.cg.add(np.concatenate([row_pass[0], col_pass[0], nw_r]),
+                    np.concatenate([row_pass[1], col_pass[1], nw_c]))
+
+    def lp(self) -> tuple[np.ndarray, np.ndarray]:
+        """Solve the LP on the support; returns its duals (u, v) for the next pass."""
+        t0 = time.perf_counter()
+        rows, cols, vals, self.u, self.v, self.obj = self.cg.solve_lp()
+        self.plan_entries = (rows, cols, vals)
+        self.t_lp = time.perf_counter() - t0
+        return self.u, self.v
+
+    def take(self, rows: np.ndarray, cols: np.ndarray, rmin: np.ndarray, nviol: int, t_pass: float) -> None:
+        """The pass at the last LP's duals: its entries priced out join the support, or the solve ends."""
+        cg = self.cg
+        self.rmin = rmin
+        self.n_rounds += 1
+        rnd = Round(self.obj, len(cg.rows), nviol, float(rmin.min()), self.t_lp, t_pass,
+                    cg.n_d2h - self._seen[0], cg.n_h2d - self._seen[1])
+        self._seen = (cg.n_d2h, cg.n_h2d)
+        if self.on_round is not None:
+            self.on_round(rnd)
+        if self.options.verbose:
+            print(f"  exact: LP {self.obj:.12g} on {rnd.support} entries, {nviol} priced out (min r "
+                  f"{rnd.min_reduced:.2e}), LP {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
+        if nviol == 0 or cg.add(rows, cols) == 0:
+            self.active, self.converged = False, nviol == 0
+        elif self.n_rounds >= self.options.max_iter:
+            self.active = False
+
+    def result(self, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
+        """The `OTResult`: the LP's optimum, ``beta`` = inf, ``cost`` = ``objective`` = ``free_energy`` = U (the
+        entropy term vanishes at beta = inf), one `BetaStep` in ``history`` whose ``gap_bound`` is the certified
+        U - L over all entries, ``n_newton`` = ``n_linear`` = 0, ``lam`` = -u and ``mu`` = -v (the sign of
+        Eq. 15: C + lam + mu >= 0, = 0 on the plan's support)."""
+        cg, options, cost, total = self.cg, self.options, self.cost, self.total
+        (rows, cols, vals), u, v = self.plan_entries, self.u, self.v
+        n1, n2 = cost.n1, cost.n2
+        # the certificate over every entry, from the last pass: the primal cost of the plan (its entries' costs
+        # recomputed, as every cost here, by the kernels' function) against the dual bound
+        primal = float(cg.cost_of(rows, cols) @ vals)
+        lower = float(cg.a @ (u + np.minimum(self.rmin, 0.0)) + cg.b @ v)
+        gap = max(primal - lower, 0.0)
+        # tol relative to U, atol a fraction of max C per unit of mass (as the annealing's)
+        converged = self.converged and gap <= options.tol * abs(primal) + options.atol
+        unit = cost.scale * total  # normalized objective -> user units
+        vals = vals * total
+        mass1 = np.bincount(rows, weights=vals, minlength=n1)
+        mass2 = np.bincount(cols, weights=vals, minlength=n2)
+        resid = 0.5 * (np.abs(mass1 - self.a_).sum() + np.abs(mass2 - self.b_).sum()) / total
+        U = primal * unit
+        step = BetaStep(beta=math.inf, cost=U, free_energy=U, n_newton=0, n_linear=0, residual=float(resid),
+                        gap_bound=gap * unit, objective=U)
+        if on_beta is not None:
+            on_beta(step)
+        if not converged:
+            warnings.warn(f"{self.kind}: the exact solve stopped after max_iter={options.max_iter} pricing rounds "
+                          f"with a certified gap of {gap * unit:.3g} (cost units), above tol; increase max_iter",
+                          RuntimeWarning, stacklevel=4)
+        order = np.lexsort((-vals, rows))
+        rows, cols, vals = rows[order], cols[order], vals[order]
+        start = np.searchsorted(rows, np.arange(n1 + 1))
+        rank = np.arange(len(rows)) - start[rows]
+        top = rank < options.plan_topk
+        counts = np.bincount(rows[top], minlength=n1)
+        plan_top = sp.csr_matrix((vals[top], cols[top], np.concatenate([[0], np.cumsum(counts)])), shape=(n1, n2))
+        argmax = cols[start[:-1]]
+        plan = None
+        if self.dense:
+            plan = np.zeros((n1, n2))
+            plan[rows, cols] = vals
+        return OTResult(plan=plan, plan_top=plan_top, argmax=argmax.astype(np.int64), cost=U, objective=U,
+                        free_energy=U, lam=-u * cost.scale, mu=-v * cost.scale, x=0.0, mass1=mass1, mass2=mass2,
+                        beta=math.inf, converged=bool(converged), n_newton=0, n_linear=0, history=(step,))
+
+
 def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, kind: str = "solve_balanced",
                         on_beta: Callable[[BetaStep], None] | None = None,
                         on_round: Callable[[Round], None] | None = None) -> OTResult:
-    """Solve the balanced ``problem`` exactly by column generation (see the module's docstring).
-
-    The result is the LP's optimum: ``beta`` = inf, ``cost`` = ``objective`` = ``free_energy`` = U (the
-    entropy term vanishes at beta = inf), one `BetaStep` in ``history`` whose ``gap_bound`` is the certified
-    U - L over all entries, ``n_newton`` = ``n_linear`` = 0, ``lam`` = -u and ``mu`` = -v (the sign of
-    Eq. 15: C + lam + mu >= 0, = 0 on the plan's support). ``on_round`` gets each pricing round's `Round`."""
-    if problem.partial:
-        raise ValueError("method='exact' solves balanced transport only (mass_penalty=None); use method='anneal' "
-                         "for partial transport")
-    dev = resolve_device(problem.device)
-    dense = check_mode(problem.cost, options, dev)
-    cost = prepare_cost(problem.cost, dev)
-    n1, n2 = cost.n1, cost.n2
-    a_ = prepare_masses(problem.a, n1, "a")
-    b_ = prepare_masses(problem.b, n2, "b")
-    total = check_balanced(a_, b_)
-    a, b = a_ / total, b_ / total
-    b *= a.sum() / b.sum()
-
-    cg = ColumnGeneration(cost, a, b, dev)
-    zero1, zero2 = np.zeros(n1), np.zeros(n2)
-    r0, c0, _, _ = cg.price(zero1, zero2, math.inf, INIT_K)
-    r1, c1, _, _ = cg.price(zero2, zero1, math.inf, INIT_K, transposed=True)
-    nw_r, nw_c = northwest_corner(a, b)
-    cg.add(np.concatenate([r0, r1, nw_r]), np.concatenate([c0, c1, nw_c]))
-    converged = False
-    seen = (0, 0)
-    for _ in range(options.max_iter):
+    """Solve the balanced ``problem`` exactly by column generation (see the module's docstring and
+    `ExactRun.result` for the result). ``on_round`` gets each pricing round's `Round`."""
+    run = ExactRun(problem, options, kind, on_round)
+    cg = run.cg
+    z1, z2 = np.zeros(cg.n1), np.zeros(cg.n2)
+    run.first_support(cg.price(z1, z2, math.inf, INIT_K)[:2], cg.price(z2, z1, math.inf, INIT_K, transposed=True)[:2])
+    while run.active:
+        u, v = run.lp()
         t0 = time.perf_counter()
-        rows, cols, vals, u, v, obj = cg.solve_lp()
-        t1 = time.perf_counter()
-        rr, cc, rmin, nviol = cg.price(u, v, -PRICE_TOL, PRICE_K)
-        t2 = time.perf_counter()
-        rnd = Round(obj, len(cg.rows), nviol, float(rmin.min()), t1 - t0, t2 - t1,
-                    cg.n_d2h - seen[0], cg.n_h2d - seen[1])
-        seen = (cg.n_d2h, cg.n_h2d)
-        if on_round is not None:
-            on_round(rnd)
-        if options.verbose:
-            print(f"  exact: LP {obj:.12g} on {rnd.support} entries, {nviol} priced out (min r {rnd.min_reduced:.2e}), "
-                  f"LP {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
-        if nviol == 0 or cg.add(rr, cc) == 0:
-            converged = nviol == 0
+        rows, cols, rmin, nviol = cg.price(u, v, -PRICE_TOL, PRICE_K)
+        run.take(rows, cols, rmin, nviol, time.perf_counter() - t0)
+    return run.result(on_beta)
+
+
+class BatchPricer:
+    """The pricing passes of many problems (stored costs, one device) in one launch of `price_rows_batch`:
+    their costs (the caller's C, scaled in the kernel) are copied once into one flat device array, and
+    each launch covers the rows (or columns) of the problems asked for. Counts its host-device transfers
+    (``n_d2h``, ``n_h2d``: per launch, whatever the number of problems)."""
+
+    def __init__(self, runs: list[ExactRun]):
+        if any(r.cost.lazy for r in runs):
+            raise ValueError("solve_exact_batch needs stored costs (arrays), not FeatureCost; solve matrix-free "
+                             "problems one at a time")
+        devices = {r.device for r in runs}
+        if len(devices) != 1:
+            raise ValueError(f"solve_exact_batch needs every problem on one device, got {sorted(devices)}")
+        self.device = d = devices.pop()
+        self.runs = runs
+        sizes = np.array([r.cost.n1 * r.cost.n2 for r in runs], dtype=np.int64)
+        self.off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        flat = wp.empty(int(sizes.sum()), dtype=wp.float64, device=d)
+        for r, o, n in zip(runs, self.off, sizes):
+            wp.copy(flat, r.cost.C.flatten(), dest_offset=int(o), count=int(n))
+        self.C = flat
+        self.n1 = np.array([r.cost.n1 for r in runs], dtype=np.int32)
+        self.n2 = np.array([r.cost.n2 for r in runs], dtype=np.int32)
+        self.inv_scale = np.array([1.0 / r.cost.scale for r in runs])
+        self.n_d2h = self.n_h2d = 0
+
+    def price(self, which: list[int], us: list[np.ndarray], vs: list[np.ndarray], thresh: float, m: int, *,
+              transposed: bool = False) -> list[tuple]:
+        """`ColumnGeneration.price` of the problems ``which`` (indices into the runs), at their duals ``us``,
+        ``vs``, in one launch; one (rows, columns, row minima, count) per problem."""
+        d = self.device
+        n_rows = (self.n2 if transposed else self.n1)[which]
+        n_cols = (self.n1 if transposed else self.n2)[which]
+        m = max(1, min(m, int(n_cols.min())))
+        prob = np.repeat(np.arange(len(which), dtype=np.int32), n_rows)
+        local = np.concatenate([np.arange(n, dtype=np.int32) for n in n_rows])
+        v_off = np.concatenate([[0], np.cumsum(n_cols)[:-1]]).astype(np.int32)
+        g = len(prob)
+        neg = wp.empty((g, m), dtype=wp.float64, device=d)
+        idx = wp.empty((g, m), dtype=wp.int32, device=d)
+        rmin = wp.empty(g, dtype=wp.float64, device=d)
+        rcnt = wp.empty(g, dtype=wp.int32, device=d)
+        arr = lambda x, t: wp.array(x, dtype=t, device=d)  # noqa: E731
+        wp.launch(price_rows_batch, dim=g, device=d, inputs=[
+            self.C, arr(self.off[which], wp.int64), arr(self.n1[which], wp.int32), arr(self.n2[which], wp.int32),
+            arr(self.inv_scale[which], wp.float64), int(transposed), arr(prob, wp.int32), arr(local, wp.int32),
+            arr(np.concatenate(us), wp.float64), arr(np.concatenate(vs), wp.float64), arr(v_off, wp.int32),
+            wp.float64(thresh), m, neg, idx, rmin, rcnt])
+        self.n_h2d += 9
+        self.n_d2h += 3
+        idx_h, rmin_h, rcnt_h = idx.numpy(), rmin.numpy(), rcnt.numpy()
+        bounds = np.concatenate([[0], np.cumsum(n_rows)])
+        return [_candidates(idx_h[s:e], rmin_h[s:e], rcnt_h[s:e], transposed) for s, e in zip(bounds[:-1], bounds[1:])]
+
+
+def solve_exact_batch(problems: list[TransportProblem], options: SolverOptions | None = None) -> list[OTResult]:
+    """Solve many balanced problems (stored costs of any sizes, one device) exactly, their pricing passes in
+    shared launches: one launch a round for every problem still running, so that a GPU is kept busy by small
+    problems; the LPs run on the host. Each result equals `solve_exact_problem`'s on the problem alone (the
+    same passes, in the same order: bit for bit)."""
+    options = SolverOptions() if options is None else options
+    runs = [ExactRun(p, options, "solve_exact_batch") for p in problems]
+    if not runs:
+        return []
+    pricer = BatchPricer(runs)
+    everyone = list(range(len(runs)))
+    z1 = [np.zeros(r.cg.n1) for r in runs]
+    z2 = [np.zeros(r.cg.n2) for r in runs]
+    rows_pass = pricer.price(everyone, z1, z2, math.inf, INIT_K)
+    cols_pass = pricer.price(everyone, z2, z1, math.inf, INIT_K, transposed=True)
+    for r, rp, cp in zip(runs, rows_pass, cols_pass):
+        r.first_support(rp[:2], cp[:2])
+    while True:
+        active = [i for i, r in enumerate(runs) if r.active]
+        if not active:
             break
-    # the certificate over every entry, from the last pass: the primal cost of the plan (its entries' costs
-    # recomputed, as every cost here, by the kernels' function) against the dual bound
-    primal = float(cg.cost_of(rows, cols) @ vals)
-    lower = float(a @ (u + np.minimum(rmin, 0.0)) + b @ v)
-    gap = max(primal - lower, 0.0)
-    # tol relative to U, atol a fraction of max C per unit of mass (as the annealing's)
-    converged = converged and gap <= options.tol * abs(primal) + options.atol
-    unit = cost.scale * total  # normalized objective -> user units
-    vals = vals * total
-    mass1 = np.bincount(rows, weights=vals, minlength=n1)
-    mass2 = np.bincount(cols, weights=vals, minlength=n2)
-    resid = 0.5 * (np.abs(mass1 - a_).sum() + np.abs(mass2 - b_).sum()) / total
-    U = primal * unit
-    step = BetaStep(beta=math.inf, cost=U, free_energy=U, n_newton=0, n_linear=0, residual=float(resid),
-                    gap_bound=gap * unit, objective=U)
-    if on_beta is not None:
-        on_beta(step)
-    if not converged:
-        warnings.warn(f"{kind}: the exact solve stopped after max_iter={options.max_iter} pricing rounds with a "
-                      f"certified gap of {gap * unit:.3g} (cost units), above tol; increase max_iter", RuntimeWarning,
-                      stacklevel=3)
-    order = np.lexsort((-vals, rows))
-    rows, cols, vals = rows[order], cols[order], vals[order]
-    start = np.searchsorted(rows, np.arange(n1 + 1))
-    rank = np.arange(len(rows)) - start[rows]
-    top = rank < options.plan_topk
-    counts = np.bincount(rows[top], minlength=n1)
-    plan_top = sp.csr_matrix((vals[top], cols[top], np.concatenate([[0], np.cumsum(counts)])), shape=(n1, n2))
-    argmax = cols[start[:-1]]
-    plan = None
-    if dense:
-        plan = np.zeros((n1, n2))
-        plan[rows, cols] = vals
-    return OTResult(plan=plan, plan_top=plan_top, argmax=argmax.astype(np.int64), cost=U, objective=U,
-                    free_energy=U, lam=-u * cost.scale, mu=-v * cost.scale, x=0.0, mass1=mass1, mass2=mass2,
-                    beta=math.inf, converged=bool(converged), n_newton=0, n_linear=0, history=(step,))
+        duals = [runs[i].lp() for i in active]
+        t0 = time.perf_counter()
+        passes = pricer.price(active, [u for u, _ in duals], [v for _, v in duals], -PRICE_TOL, PRICE_K)
+        t_pass = (time.perf_counter() - t0) / len(active)
+        for i, (rows, cols, rmin, nviol) in zip(active, passes):
+            runs[i].take(rows, cols, rmin, nviol, t_pass)
+    return [r.result() for r in runs]

@@ -18,13 +18,13 @@ from typing import Any, Callable, ClassVar, Mapping, Protocol, runtime_checkable
 from wpot._validate import integer_at_least, positive_finite
 from wpot.ot import kernels as K
 from wpot.ot.balanced import solve_balanced_problem
-from wpot.ot.exact import solve_exact_problem
+from wpot.ot.exact import solve_exact_batch, solve_exact_problem
 from wpot.ot.options import SolverOptions
 from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
 from wpot.ot.result import BetaStep, OTResult
 
-__all__ = ["SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
+__all__ = ["SOLVERS", "solve_batch", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
            "make_solver", "solve_balanced", "solve_partial"]
 
 _F64 = 8
@@ -338,3 +338,15 @@ def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, device:
     mass_penalty = positive_finite("mass_penalty", mass_penalty)
     solver = AnnealSolver(_options(options, option_keywords, "solve_partial"))
     return solver.solve(TransportProblem(C, rho1, rho2, mass_penalty=mass_penalty, device=device))
+
+
+def solve_batch(problems, *, options: SolverOptions | None = None, **option_keywords: Any) -> list[OTResult]:
+    """Many balanced problems (`TransportProblem`s with stored costs of any sizes, on one device) solved
+    exactly (``method="exact"``) together: each round's pricing passes of every problem still running share
+    one kernel launch, so that a GPU stays busy with small problems (the LPs run on the host). Each result
+    equals that of ``solve_balanced(..., method="exact")`` on the problem alone, bit for bit.
+
+    ``options`` and ``**option_keywords`` as in `solve_balanced`; a partial problem or a `FeatureCost` is a
+    ValueError."""
+    problems = [_check_problem(p) for p in problems]
+    return solve_exact_batch(problems, _options(options, option_keywords, "solve_batch"))
