@@ -11,6 +11,9 @@ of the whole N1 x N2 cost has a negative reduced cost:
 3. One Warp pass over all N1 N2 entries (`price_rows`) computes r(k, l) = C(k, l) - u(k) - v(l), each row's
    least r, and its `PRICE_K` most negative entries below -`PRICE_TOL`, which join S. None: stop.
 
+Many problems can share each round's pass in one launch (`solve_exact_batch`, `price_rows_batch`), with the
+same results as alone.
+
 Certificate: for any u, v, the duals u'(k) = u(k) + min(0, min_l r(k, l)) and v are feasible for the dual LP,
 so L = sum a u' + sum b v <= U* <= U = sum C x. The last pass gives L over every entry; ``gap_bound`` is
 U - L, and the solve has converged when it is <= ``tol`` U + ``atol`` max C.
@@ -39,7 +42,8 @@ from wpot.ot.result import BetaStep, OTResult
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "BatchPricer", "ExactRun", "solve_exact_batch", "ColumnGeneration", "solve_exact_problem"]
+__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "BatchPricer", "ColumnGeneration", "ExactRun", "solve_exact_batch",
+           "solve_exact_problem"]
 
 #: entries per row and per column in the first support (each row's and column's cheapest)
 INIT_K = 8
@@ -414,7 +418,8 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     run = ExactRun(problem, options, kind, on_round)
     cg = run.cg
     z1, z2 = np.zeros(cg.n1), np.zeros(cg.n2)
-    run.first_support(cg.price(z1, z2, math.inf, INIT_K)[:2], cg.price(z2, z1, math.inf, INIT_K, transposed=True)[:2])
+    run.first_support(cg.price(z1, z2, math.inf, INIT_K)[:2],
+                      cg.price(z2, z1, math.inf, INIT_K, transposed=True)[:2])
     while run.active:
         u, v = run.lp()
         t0 = time.perf_counter()

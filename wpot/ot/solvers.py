@@ -24,8 +24,8 @@ from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
 from wpot.ot.result import BetaStep, OTResult
 
-__all__ = ["SOLVERS", "solve_batch", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
-           "make_solver", "solve_balanced", "solve_partial"]
+__all__ = ["SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
+           "make_solver", "solve_balanced", "solve_batch", "solve_partial"]
 
 _F64 = 8
 _I32 = 4
@@ -143,8 +143,8 @@ class AnnealSolver(_Solver):
         features per point), on the CPU, where the device's and the host's arrays share the memory.
 
         Stored cost: the device copy of C (counted always; a float64 ``wp.array`` on the device, or on the CPU
-        a C-contiguous float64 NumPy array, is used in place, one (N1, N2) array fewer), the Hessian weights W, and then the dense plan when it is formed
-        (``dense_plan``): three (N1, N2) float64 arrays; with ``linear_solver="direct"``, the dense Schur
+        a C-contiguous float64 NumPy array, is used in place, one (N1, N2) array fewer), the Hessian weights W,
+        and then the dense plan when it is formed (``dense_plan``): three (N1, N2) float64 arrays; with ``linear_solver="direct"``, the dense Schur
         solve's arrays instead of the plan when larger (`_direct_bytes`). Matrix-free: the features
         (N1 + N2) x dim, the plan only with ``dense_plan=True``. Both: the engine's O(N1 + N2) device arrays
         (counted one by one; the per-lane sums with `wpot.ot.kernels.MATVEC_LANES` lanes unless
