@@ -121,12 +121,12 @@ def main():
         a, b = masses(n, args.mass_spread)
         print(f"\nN = {n}  (C {n}x{n}, float64 {C.nbytes / 2**20:.0f} MiB; masses max/min {a.max() / a.min():.3g},"
               f" {b.max() / b.min():.3g})")
-        compare_on(C, a, b, args, timers, f"N = {n}")
+        compare_on(C, a, b, args, timers)
 
     for name, C in tosca_costs(args.tosca, args.data, args.tosca_samples):
         n1, n2 = C.shape
         print(f"\nTOSCA {name}  (WKS cost {n1}x{n2}{'' if args.tosca_samples is None else ', farthest-point samples'})")
-        compare_on(C, np.full(n1, 1.0 / n1), np.full(n2, 1.0 / n2), args, timers, name)
+        compare_on(C, np.full(n1, 1.0 / n1), np.full(n2, 1.0 / n2), args, timers)
 
 
 def tosca_costs(n_pairs: int, data: Path, samples: int | None = None):
@@ -151,7 +151,7 @@ def tosca_costs(n_pairs: int, data: Path, samples: int | None = None):
         yield f"{f1.stem}-{f2.stem}", cost_matrix(X, Y, metric="wks")
 
 
-def compare_on(C, a, b, args, timers, label):
+def compare_on(C, a, b, args, timers):
     """ot.emd and each of wpot's methods on one cost, one line each (time, gap to ot.emd, marginal error)."""
     import ot
 

@@ -165,6 +165,15 @@ def cost_source(cost: CostInput, transposed: bool = False):
     return src
 
 
+def _pass_outputs(n_rows: int, m: int, device: str) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+    """The output arrays of a pricing pass over ``n_rows`` rows keeping ``m`` entries a row (`price_rows`,
+    `price_rows_batch`): -r and columns of the kept entries, each row's minimum and count."""
+    return (wp.empty((n_rows, m), dtype=wp.float64, device=device),
+            wp.empty((n_rows, m), dtype=wp.int32, device=device),
+            wp.empty(n_rows, dtype=wp.float64, device=device),
+            wp.empty(n_rows, dtype=wp.int32, device=device))
+
+
 def _candidates(idx: np.ndarray, rmin: np.ndarray, rcnt: np.ndarray, transposed: bool):
     """A pass's (rows, columns) of the listed entries (``idx`` (n, m), -1 where a row lists fewer; with
     ``transposed`` its rows are columns), its row minima and its count below the threshold."""
@@ -244,10 +253,7 @@ class ColumnGeneration:
         d = self.device
         n_rows, n_cols = (self.n2, self.n1) if transposed else (self.n1, self.n2)
         m = max(1, min(m, n_cols))
-        neg = wp.empty((n_rows, m), dtype=wp.float64, device=d)
-        idx = wp.empty((n_rows, m), dtype=wp.int32, device=d)
-        rmin = wp.empty(n_rows, dtype=wp.float64, device=d)
-        rcnt = wp.empty(n_rows, dtype=wp.int32, device=d)
+        neg, idx, rmin, rcnt = _pass_outputs(n_rows, m, d)
         src = self.src_t if transposed else self.src
         wp.launch(_PRICE[src._cls], dim=n_rows, device=d,
                   inputs=[src, n_cols, wp.array(u, dtype=wp.float64, device=d), wp.array(v, dtype=wp.float64, device=d),
@@ -466,10 +472,7 @@ class BatchPricer:
         local = np.concatenate([np.arange(n, dtype=np.int32) for n in n_rows])
         v_off = np.concatenate([[0], np.cumsum(n_cols)[:-1]]).astype(np.int32)
         g = len(prob)
-        neg = wp.empty((g, m), dtype=wp.float64, device=d)
-        idx = wp.empty((g, m), dtype=wp.int32, device=d)
-        rmin = wp.empty(g, dtype=wp.float64, device=d)
-        rcnt = wp.empty(g, dtype=wp.int32, device=d)
+        neg, idx, rmin, rcnt = _pass_outputs(g, m, d)
         arr = lambda x, t: wp.array(x, dtype=t, device=d)  # noqa: E731
         wp.launch(price_rows_batch, dim=g, device=d, inputs=[
             self.C, arr(self.off[which], wp.int64), arr(self.n1[which], wp.int32), arr(self.n2[which], wp.int32),
