@@ -12,6 +12,7 @@ from wpot._validate import positive_finite
 from wpot._warp import resolve_device as _resolve_device
 from wpot.cost import METRIC_CODES, cost_matrix, prepare_signatures
 from wpot.ot import kernels as K
+from wpot.ot.gram import GramBlocks, gram_applies
 
 
 def resolve_device(device) -> str:
@@ -134,16 +135,21 @@ class CostInput:
         return self.features is not None
 
 
-def _prepare_features(fc: FeatureCost, device: str) -> CostInput:
-    """Matrix-free cost: check the device and find max C by a Warp pass over the rows (nothing stored)."""
+def _prepare_features(fc: FeatureCost, device: str, *, gram: bool | None = None) -> CostInput:
+    """Matrix-free cost: check the device and find max C by a Warp pass over the rows (nothing stored); for a
+    Euclidean cost on the CPU (``gram`` None) or with ``gram`` True, through BLAS (`wpot.ot.gram`, the same
+    value)."""
     if fc.device != device:
         raise ValueError(f"FeatureCost is on device {fc.device}, expected {device} (pass device= to one of them)")
     n1, n2 = fc.shape
     src = K.LazyCost()
     src.A, src.B, src.metric, src.inv_scale = fc.X, fc.Y, METRIC_CODES[fc.metric], wp.float64(1.0)
-    rmax = wp.zeros(n1, dtype=wp.float64, device=device)
-    wp.launch(K.feature_cost_max, dim=n1, inputs=[src, n2, rmax], device=device)
-    cmax = float(rmax.numpy().max())
+    if gram_applies(fc, device) if gram is None else gram:
+        cmax = float(GramBlocks(fc).row_max(src).max())
+    else:
+        rmax = wp.zeros(n1, dtype=wp.float64, device=device)
+        wp.launch(K.feature_cost_max, dim=n1, inputs=[src, n2, rmax], device=device)
+        cmax = float(rmax.numpy().max())
     if not math.isfinite(cmax):
         raise ValueError(f"the {fc.metric!r} cost of the signatures overflows (max C = {cmax}); rescale them")
     return CostInput(None, n1, n2, 1.0 if cmax <= 0 else cmax, cmax, fc)
