@@ -26,10 +26,12 @@ Writes ``results_<signature>.json``, ``results.md`` and ``head_partial.png`` (ho
 classification change with the penalty) into ``--out``.
 
 Usage (2 busy CPU cores: ~30 min for the default sweep; ``--confirm K`` then runs all heads against all
-full shapes at κ = K):
+full shapes at κ = K; ``--lowres`` builds the paper's own HEAD from TOSCA's low-resolution shapes):
 
     python benchmarks/head_partial.py --out /tmp/head_partial
     python benchmarks/head_partial.py --out /tmp/head_partial --confirm 0.01 --signatures ldsift
+    python benchmarks/head_partial.py --out /tmp/head8 --lowres ../shared/data/tosca_lowres --per-class 6 \
+        --confirm 0.01 --signatures ldsift --pooling cell --vertices-per-sample 20
 """
 from __future__ import annotations
 
@@ -245,8 +247,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("/work/shared/data/tosca_isometric_5k")))
     ap.add_argument("--out", type=Path, required=True, help="output folder (not inside the repository)")
+    ap.add_argument("--lowres", type=Path, default=None,
+                    help="tosca_lowres folder: the paper's HEAD, the low-resolution shapes (~3,400 vertices) and their "
+                         "heads (~700), with --per-class 6 TOSCA8's cats and six horses (build_head_dataset(lowres=))")
+    ap.add_argument("--per-class", type=int, default=None, help="full shapes per class (default: all)")
     ap.add_argument("--signatures", nargs="+", default=["wks", "ldsift"], choices=["wks", "ldsift"])
-    ap.add_argument("--heads", nargs="+", default=list(DEFAULT_HEADS))
+    ap.add_argument("--heads", nargs="+", default=None,
+                    help=f"heads of the sweep (default: those of {', '.join(DEFAULT_HEADS)} in the dataset)")
     ap.add_argument("--extra-full", nargs="*", default=[], help="full shapes besides the heads' parents")
     ap.add_argument("--kappas", nargs="+", type=float, default=list(DEFAULT_KAPPAS))
     ap.add_argument("--no-paper", action="store_true", help="skip the paper's alpha = 1/rho^2 row")
@@ -280,7 +287,8 @@ def main(argv=None) -> int:
     from wpot.datasets import build_head_dataset, load_head_dataset
 
     dsdir = out / "head_dataset"
-    ds = load_head_dataset(dsdir) if (dsdir / "manifest.json").is_file() else build_head_dataset(a.tosca, dsdir)
+    ds = load_head_dataset(dsdir) if (dsdir / "manifest.json").is_file() else \
+        build_head_dataset(a.tosca, dsdir, lowres=a.lowres, per_class=a.per_class)
     if a.confirm is not None:
         heads = [n for n in ds.names if n in ds.parent]
         fulls = [n for n in ds.names if n not in ds.parent]
@@ -288,7 +296,10 @@ def main(argv=None) -> int:
         if not a.no_paper:
             settings.append(("paper", 1.0))
     else:
-        heads = list(a.heads)
+        heads = [h for h in DEFAULT_HEADS if h in ds.parent] if a.heads is None else list(a.heads)
+        missing = [h for h in heads if h not in ds.parent]
+        if missing:
+            raise SystemExit(f"--heads: {missing} not in this HEAD dataset; its heads: {sorted(ds.parent)}")
         fulls = list(dict.fromkeys([ds.parent[h] for h in heads] + list(a.extra_full)))
         settings = [("relative", k) for k in sorted(a.kappas, reverse=True)]
         if not a.no_paper:

@@ -49,6 +49,7 @@ __all__ = [
     "tosca8_draws",
     "write_shape_list",
     "build_head_dataset",
+    "lowres_template",
     "load_head_dataset",
     "head_ground_truth",
 ]
@@ -393,6 +394,9 @@ class HeadDataset:
     from and ``parent_map[name]`` ((N_head,) int64) the vertex of the parent each head vertex is
     (part vertex -> full-shape vertex). ``template[name]`` ((K,) int64, -1 where absent) is the head vertex at
     each TOSCA template point, so heads map to every shape of their class (`head_ground_truth`).
+    ``full_template[name]`` ((K,) int64) is a full shape's vertex at each template point where the full shapes
+    are not ``tosca_isometric_5k``'s own meshes (the low-resolution HEAD: ``build_head_dataset(lowres=)``);
+    empty otherwise (the ``.vts`` files serve).
     """
 
     names: tuple[str, ...]
@@ -404,6 +408,7 @@ class HeadDataset:
     template: dict[str, np.ndarray] = field(repr=False)
     landmark: dict[str, int] = field(repr=False)
     radius: dict[str, float] = field(repr=False)
+    full_template: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -464,12 +469,22 @@ def region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> flo
     return float(dist[order[np.searchsorted(cum, fraction)]])
 
 
+def lowres_template(mesh: Mesh, mesh_5k: Mesh, vts_5k: np.ndarray) -> np.ndarray:
+    """The TOSCA template carried to a low-resolution shape: (K,) int64, the vertex of ``mesh`` nearest to
+    the template point's vertex ``vts_5k`` of the same-named ``tosca_isometric_5k`` shape ``mesh_5k`` (the two
+    sets share coordinates and poses: nearest neighbours are 0.1-0.25 of an edge apart, see the data README)."""
+    _, nn = cKDTree(mesh.vertices).query(mesh_5k.vertices[vts_5k])
+    return nn.astype(np.int64)
+
+
 def build_head_dataset(
     tosca: str | Path,
     out: str | Path | None = None,
     *,
     classes: Sequence[str] = ("cat", "horse"),
     area_fraction: float = HEAD_AREA_FRACTION,
+    lowres: str | Path | None = None,
+    per_class: int | None = None,
 ) -> HeadDataset:
     """Build HEAD (paper §4.2): every cat and horse of ``tosca_isometric_5k`` and its head.
 
@@ -480,9 +495,18 @@ def build_head_dataset(
     piece without holes and cut out with `wpot.cut`. For ``tosca_isometric_5k`` that is 11 cats + 8 horses =
     19 full shapes and 19 heads: 38 shapes.
 
+    With ``lowres`` (the ``tosca_lowres`` folder), the full shapes are the low-resolution meshes of the same
+    names (about 3,400 vertices, heads about 700: the paper's HEAD), and the template is carried to each by
+    nearest neighbours (`lowres_template`), so the same head region and the same ground truth follow. Only
+    names in both sets qualify: TOSCA8's cats (cat0-cat5) are, but its horses horse2-horse4 have no
+    ``tosca_isometric_5k`` counterpart, hence no ground truth and no way to place their head; with
+    ``per_class=6`` the horses are the six lowest-numbered ones that have one (horse0, 5, 6, 7, 10, 14).
+
     Parameters
     ----------
     tosca : the ``tosca_isometric_5k`` folder or its ``vtx_5k`` folder.
+    lowres : optional ``tosca_lowres`` folder (see above).
+    per_class : keep each class's first ``per_class`` shapes by shape number (None: all).
     out : optional folder (created; never inside the repository) where the shapes are written as
         ``<name>.off`` beside ``labels.csv`` (name, class, species), ``<head>.parent.txt`` (one 0-based
         vertex of the parent per head vertex) and ``<head>.template.txt`` (the head vertex at each template
@@ -494,12 +518,23 @@ def build_head_dataset(
         raise ValueError(f"{tosca} is not a tosca_isometric_5k folder (no vtx_5k/corres)")
     if not 0.0 < area_fraction < 1.0:
         raise ValueError(f"area_fraction must lie in (0, 1), got {area_fraction}")
+    if per_class is not None and per_class < 1:
+        raise ValueError(f"per_class must be >= 1 (or None), got {per_class}")
     all_names = [p.stem for p in sorted(folder.glob("*.off"), key=lambda p: _natural_key(p.stem))]
+    low: dict[str, Path] = {}
+    if lowres is not None:
+        lowres = Path(lowres)
+        if (lowres / "tosca_lowres").is_dir():
+            lowres = lowres / "tosca_lowres"
+        low = {p.stem: p for p in lowres.glob("*.mat")}
+        if not low:
+            raise ValueError(f"lowres={str(lowres)!r} holds no TOSCA low-resolution shapes (*.mat)")
     names, meshes, labels, species = [], [], [], []
-    parent, parent_map, template, landmark, radius = {}, {}, {}, {}, {}
+    parent, parent_map, template, landmark, radius, full_template = {}, {}, {}, {}, {}, {}
     heads: list[tuple[str, Mesh, str]] = []
     for cls in classes:
-        members = [n for n in all_names if class_label(n) == cls]
+        members = [n for n in all_names if class_label(n) == cls and (not low or n in low)]
+        members = members[:per_class] if per_class is not None else members
         ref = HEAD_REFERENCES.get(cls, members[0] if members else None)
         if ref not in members:
             raise ValueError(f"no shapes of class {cls!r} (reference {ref!r}) in {folder}")
@@ -515,6 +550,9 @@ def build_head_dataset(
         for name in members:
             mesh = ref_mesh if name == ref else _load_mesh(folder / f"{name}.off")
             vts = tosca_vts(folder, name)
+            if low:
+                mesh_5k, mesh = mesh, _load_mesh(low[name])
+                vts = full_template[name] = lowres_template(mesh, mesh_5k, vts)
             f = _transfer_scalar(mesh, vts, f_template)
             region = clean_region(mesh, f <= r, int(vts[t_land]))
             head, pmap = cut(mesh, region)
@@ -528,7 +566,7 @@ def build_head_dataset(
             names.append(hname), meshes.append(head), labels.append(f"{cls}_head"), species.append(cls)
         heads.clear()
     ds = HeadDataset(tuple(names), tuple(meshes), np.array(labels), np.array(species), parent, parent_map, template,
-                     landmark, radius)
+                     landmark, radius, full_template)
     if out is not None:
         _write_head_dataset(ds, Path(out))
     return ds
@@ -545,6 +583,8 @@ def _write_head_dataset(ds: HeadDataset, out: Path) -> None:
     for h in ds.parent:
         np.savetxt(out / f"{h}.parent.txt", ds.parent_map[h], fmt="%d")
         np.savetxt(out / f"{h}.template.txt", ds.template[h], fmt="%d")
+    for name, t in ds.full_template.items():
+        np.savetxt(out / f"{name}.template.txt", t, fmt="%d")
     manifest = {
         "description": "HEAD dataset (Koehl & Orland 2023, section 4.2) built by wpot.datasets.build_head_dataset",
         "index_base": 0,
@@ -552,6 +592,7 @@ def _write_head_dataset(ds: HeadDataset, out: Path) -> None:
         "parent": ds.parent,
         "landmark_template_point": ds.landmark,
         "radius": ds.radius,
+        "full_template": sorted(ds.full_template),
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
@@ -569,9 +610,11 @@ def load_head_dataset(folder: str | Path) -> HeadDataset:
     nv = dict(zip(names, (m.n_vertices for m in meshes)))
     pm = {h: load_vertex_map(folder / f"{h}.parent.txt", base=0, n_vertices=nv[p]) for h, p in manifest["parent"].items()}
     tp = {h: np.loadtxt(folder / f"{h}.template.txt", dtype=np.int64, ndmin=1) for h in manifest["parent"]}
+    ft = {n: np.loadtxt(folder / f"{n}.template.txt", dtype=np.int64, ndmin=1)
+          for n in manifest.get("full_template", [])}
     return HeadDataset(names, meshes, table["class"], table["species"], dict(manifest["parent"]), pm, tp,
                        {k: int(v) for k, v in manifest["landmark_template_point"].items()},
-                       {k: float(v) for k, v in manifest["radius"].items()})
+                       {k: float(v) for k, v in manifest["radius"].items()}, ft)
 
 
 def head_ground_truth(ds: HeadDataset, head: str, target: str, tosca: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -583,7 +626,10 @@ def head_ground_truth(ds: HeadDataset, head: str, target: str, tosca: str | Path
     if head not in ds.template:
         raise ValueError(f"{head!r} is not a head of this dataset; heads: {sorted(ds.template)}")
     tmpl = ds.template[head]
-    dst_all = tosca_vts(tosca, target)
+    if ds.full_template and target not in ds.full_template:
+        raise ValueError(f"{target!r} is not a full shape of this low-resolution HEAD dataset; full shapes: "
+                         f"{sorted(ds.full_template)}")
+    dst_all = ds.full_template[target] if ds.full_template else tosca_vts(tosca, target)
     if correspondence_group(ds.parent[head]) != correspondence_group(target):
         raise ValueError(f"{head!r} (cut from {ds.parent[head]!r}) and {target!r} share no correspondence template")
     keep = tmpl >= 0
