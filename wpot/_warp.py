@@ -130,3 +130,40 @@ def available_memory(device: str | wp.context.Device, *, host_too: bool = False)
         return host_available_bytes()
     free = float(dev.free_memory)
     return min(free, host_available_bytes()) if host_too else free
+
+
+def cpu_threads() -> int:
+    """The cores this process may run on: its CPU affinity where the OS reports one, else ``os.cpu_count()``."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+#: rows per host thread below which `launch_rows` does not split a CPU launch (a thread costs ~0.1 ms)
+MIN_ROWS_PER_THREAD = 256
+
+
+def launch_rows(launch, n: int, device, *, threads: int | None = None) -> None:
+    """Run ``launch(lo, hi)``, a kernel launch over rows ``lo .. hi - 1`` that reads anything and writes only
+    those rows' outputs, over rows ``0 .. n - 1``.
+
+    On a GPU it is one launch. On the CPU, Warp runs a launch on one thread without SIMD (NVIDIA/warp issue
+    1309) and releases the GIL while it runs, so the rows are cut into ``threads`` contiguous chunks (default:
+    `cpu_threads`, at least `MIN_ROWS_PER_THREAD` rows each) launched from as many host threads at once. Each
+    row is computed by the same code whatever the cut, so the results are the same bit for bit."""
+    n = int(n)
+    if n <= 0:
+        return
+    t = cpu_threads() if threads is None else int(threads)
+    t = max(1, min(t, n // MIN_ROWS_PER_THREAD))
+    if t == 1 or not resolve_device(device).is_cpu:
+        launch(0, n)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    bounds = [n * i // t for i in range(t + 1)]
+    with ThreadPoolExecutor(max_workers=t) as pool:
+        jobs = [pool.submit(launch, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
+        for j in jobs:
+            j.result()  # re-raises a chunk's exception

@@ -17,7 +17,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from wpot._warp import resolve_device
+from wpot._warp import launch_rows, resolve_device
 
 __all__ = ["cost_matrix", "cost_mean", "METRICS"]
 
@@ -217,7 +217,9 @@ def cost_matrix(
     dev = resolve_device(device)
     a, b = prepare_signatures(S1, S2, metric, dev)
     c = wp.empty((a.shape[0], b.shape[0]), dtype=wp.float64, device=dev)
-    wp.launch(_cost, dim=c.shape, inputs=[a, b, METRIC_CODES[metric], c], device=dev)
+    code = METRIC_CODES[metric]
+    launch_rows(lambda lo, hi: wp.launch(_cost, dim=(hi - lo, c.shape[1]), inputs=[a[lo:hi], b, code, c[lo:hi]],
+                                         device=dev), c.shape[0], dev)
     if out == "warp":
         return c
     return c.numpy()
@@ -242,5 +244,7 @@ def cost_mean(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device: str
     dev = resolve_device(device)
     a, b = prepare_signatures(S1, S2, metric, dev)
     rows = wp.empty(a.shape[0], dtype=wp.float64, device=dev)
-    wp.launch(_cost_row_sums, dim=a.shape[0], inputs=[a, b, METRIC_CODES[metric], rows], device=dev)
+    code = METRIC_CODES[metric]
+    launch_rows(lambda lo, hi: wp.launch(_cost_row_sums, dim=hi - lo, inputs=[a[lo:hi], b, code, rows[lo:hi]],
+                                         device=dev), a.shape[0], dev)
     return float(rows.numpy().sum()) / (float(a.shape[0]) * float(b.shape[0]))

@@ -34,6 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
+from wpot._warp import launch_rows
 from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
 from wpot.ot.gram import GramBlocks, gram_applies, sq_bounds
@@ -83,16 +84,16 @@ def price_entry(r: wp.float64, l: int, thresh: wp.float64, neg_r: wp.array2d(dty
 
 @wp.kernel
 def price_rows(
-    csrc: Any, n_c: int, u: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64), thresh: wp.float64,
-    m: int,
+    csrc: Any, k0: int, n_c: int, u: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64),
+    thresh: wp.float64, m: int,
     # outputs: each row's m most negative reduced costs below ``thresh`` (as -r, descending) and their columns
     # (-1 where there are fewer), its least reduced cost and how many entries are below ``thresh``
     neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32),
     row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
 ):
-    """Row k of the pricing pass: r(k, l) = C'(k, l) - u(k) - v(l) over every column l. With u = v = 0 and
-    ``thresh`` = +inf it lists each row's m cheapest columns."""
-    k = wp.tid()
+    """Row k = k0 + i of the pricing pass: r(k, l) = C'(k, l) - u(k) - v(l) over every column l. With u = v = 0
+    and ``thresh`` = +inf it lists each row's m cheapest columns."""
+    k = k0 + wp.tid()
     clear_row(neg_r, idx, k, m)
     worst = wp.float64(-_BIG)
     rmin = wp.float64(_BIG)
@@ -106,7 +107,7 @@ def price_rows(
 
 @wp.kernel
 def price_rows_batch(
-    C: wp.array(dtype=wp.float64), off: wp.array(dtype=wp.int64), n1s: wp.array(dtype=wp.int32),
+    g0: int, C: wp.array(dtype=wp.float64), off: wp.array(dtype=wp.int64), n1s: wp.array(dtype=wp.int32),
     n2s: wp.array(dtype=wp.int32), inv_scale: wp.array(dtype=wp.float64), trans: int,
     row_prob: wp.array(dtype=wp.int32), row_local: wp.array(dtype=wp.int32),
     u: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64), v_off: wp.array(dtype=wp.int32),
@@ -114,11 +115,11 @@ def price_rows_batch(
     neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32),
     row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
 ):
-    """`price_rows` for many problems in one launch: row g of the launch is row ``row_local[g]`` of problem
+    """`price_rows` for many problems in one launch: row g = g0 + i of the launch is row ``row_local[g]`` of problem
     ``row_prob[g]``, whose (N1, N2) cost starts at ``off[p]`` of the flat ``C``; with ``trans`` the rows
     are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``. The same
     operations in the same order as `price_rows` on each problem alone."""
-    g = wp.tid()
+    g = g0 + wp.tid()
     p = row_prob[g]
     k = row_local[g]
     n2 = n2s[p]
@@ -310,13 +311,15 @@ class ColumnGeneration:
         if self.gram is not None:
             if not (thresh <= 0.0 or thresh == math.inf):
                 raise ValueError(f"price_rows_gram needs thresh <= 0 or inf, got {thresh!r}")
+            norms, err = self.gram.norms(transposed), wp.float64(self.gram.err)
             for k0, n, P in self.gram.blocks(transposed):
-                wp.launch(price_rows_gram, dim=n, device=d,
-                          inputs=[P, k0, src, n_cols, *self.gram.norms(transposed), wp.float64(self.gram.err), u_w,
-                                  v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt])
+                launch_rows(lambda lo, hi: wp.launch(
+                    price_rows_gram, dim=hi - lo, device=d, inputs=[P[lo:hi], k0 + lo, src, n_cols, *norms, err, u_w,
+                                                                    v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt]),
+                    n, d)
         else:
-            wp.launch(_PRICE[src._cls], dim=n_rows, device=d,
-                      inputs=[src, n_cols, u_w, v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt])
+            launch_rows(lambda lo, hi: wp.launch(_PRICE[src._cls], dim=hi - lo, device=d, inputs=[
+                src, lo, n_cols, u_w, v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt]), n_rows, d)
         self.n_h2d += 2
         self.n_d2h += 3
         return _candidates(idx.numpy(), rmin.numpy(), rcnt.numpy(), transposed)
@@ -535,11 +538,11 @@ class BatchPricer:
         g = len(prob)
         neg, idx, rmin, rcnt = _pass_outputs(g, m, d)
         arr = lambda x, t: wp.array(x, dtype=t, device=d)  # noqa: E731
-        wp.launch(price_rows_batch, dim=g, device=d, inputs=[
-            self.C, arr(self.off[which], wp.int64), arr(self.n1[which], wp.int32), arr(self.n2[which], wp.int32),
-            arr(self.inv_scale[which], wp.float64), int(transposed), arr(prob, wp.int32), arr(local, wp.int32),
-            arr(np.concatenate(us), wp.float64), arr(np.concatenate(vs), wp.float64), arr(v_off, wp.int32),
-            wp.float64(thresh), m, neg, idx, rmin, rcnt])
+        ins = [self.C, arr(self.off[which], wp.int64), arr(self.n1[which], wp.int32), arr(self.n2[which], wp.int32),
+               arr(self.inv_scale[which], wp.float64), int(transposed), arr(prob, wp.int32), arr(local, wp.int32),
+               arr(np.concatenate(us), wp.float64), arr(np.concatenate(vs), wp.float64), arr(v_off, wp.int32),
+               wp.float64(thresh), m, neg, idx, rmin, rcnt]
+        launch_rows(lambda lo, hi: wp.launch(price_rows_batch, dim=hi - lo, device=d, inputs=[lo, *ins]), g, d)
         self.n_h2d += 9
         self.n_d2h += 3
         idx_h, rmin_h, rcnt_h = idx.numpy(), rmin.numpy(), rcnt.numpy()

@@ -20,6 +20,7 @@ from typing import Iterator
 import numpy as np
 import warp as wp
 
+from wpot._warp import launch_rows
 from wpot.ot import kernels as K
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -101,7 +102,8 @@ class GramBlocks:
         """Each row's max C'(k, l) (``src`` a `LazyCost` of these features), as `feature_cost_max` gives it."""
         out = wp.empty(self.feats[0].shape[0], dtype=wp.float64, device="cpu")
         n_c = self.feats[1].shape[0]
+        norms, err = self.norms(), wp.float64(self.err)
         for k0, n, P in self.blocks():
-            wp.launch(feature_cost_max_gram, dim=n, device="cpu",
-                      inputs=[P, k0, src, n_c, *self.norms(), wp.float64(self.err), out])
+            launch_rows(lambda lo, hi: wp.launch(feature_cost_max_gram, dim=hi - lo, device="cpu",
+                                                 inputs=[P[lo:hi], k0 + lo, src, n_c, *norms, err, out]), n, "cpu")
         return out.numpy()

@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from wpot._validate import positive_finite
-from wpot._warp import resolve_device as _resolve_device
+from wpot._warp import launch_rows, resolve_device as _resolve_device
 from wpot.cost import METRIC_CODES, cost_matrix, prepare_signatures
 from wpot.ot import kernels as K
 from wpot.ot.gram import GramBlocks, gram_applies
@@ -148,7 +148,13 @@ def _prepare_features(fc: FeatureCost, device: str, *, gram: bool | None = None)
         cmax = float(GramBlocks(fc).row_max(src).max())
     else:
         rmax = wp.zeros(n1, dtype=wp.float64, device=device)
-        wp.launch(K.feature_cost_max, dim=n1, inputs=[src, n2, rmax], device=device)
+
+        def rows(lo: int, hi: int) -> None:
+            part = K.LazyCost()
+            part.A, part.B, part.metric, part.inv_scale = fc.X[lo:hi], fc.Y, src.metric, src.inv_scale
+            wp.launch(K.feature_cost_max, dim=hi - lo, inputs=[part, n2, rmax[lo:hi]], device=device)
+
+        launch_rows(rows, n1, device)
         cmax = float(rmax.numpy().max())
     if not math.isfinite(cmax):
         raise ValueError(f"the {fc.metric!r} cost of the signatures overflows (max C = {cmax}); rescale them")
