@@ -146,7 +146,8 @@ MIN_ROWS_PER_THREAD = 256
 
 def launch_rows(launch, n: int, device, *, threads: int | None = None) -> None:
     """Run ``launch(lo, hi)``, a kernel launch over rows ``lo .. hi - 1`` that reads anything and writes only
-    those rows' outputs, over rows ``0 .. n - 1``.
+    those rows' outputs (no atomic sums across rows: Warp's CPU atomics are plain additions), over rows
+    ``0 .. n - 1``.
 
     On a GPU it is one launch. On the CPU, Warp runs a launch on one thread without SIMD (NVIDIA/warp issue
     1309) and releases the GIL while it runs, so the rows are cut into ``threads`` contiguous chunks (default:
