@@ -128,3 +128,49 @@ def test_rms_text_gives_the_unit_and_sizes_of_the_target():
     inv = reg.inverse()  # in A's units: B's sizes no longer apply
     assert inv.target_edge_length is None and inv.n_inliers == reg.n_inliers
     np.testing.assert_allclose(inv.apply(reg.apply(p)), p, atol=1e-12)
+
+
+def test_a_given_scale_fits_only_the_rotation_and_translation():
+    p, q, scale, rot, t, good = _outlier_problem(4, 0.3)
+    reg = fit_similarity_robust(p, q, scale=scale)
+    assert reg.scale == scale and reg.scale_from == "given"
+    np.testing.assert_array_equal(reg.inliers, good)
+    assert _angle(reg.rotation @ rot.T) < 1e-9
+    np.testing.assert_allclose(reg.translation, t, atol=1e-8 * (1 + np.abs(t).max()))
+    # a wrong given scale is kept as given (the rotation and translation fit around it)
+    assert fit_similarity_robust(p, q, scale=2 * scale).scale == 2 * scale
+    assert fit_similarity_robust(p, q).scale_from == "fit"
+    for bad in (0.0, -1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="scale must be a positive finite number"):
+            fit_similarity_robust(p, q, scale=bad)
+
+
+def test_area_scale_is_the_size_ratio():
+    from wpot.examples import example_pair
+    from wpot.registration import area_scale
+
+    mesh = example_pair(300, seed=0).source
+    rot = Rotation.from_euler("xyz", [20, -40, 75], degrees=True).as_matrix()
+    big = mesh.transformed(rot, np.array([1.0, -2.0, 0.5]), 1.7)
+    assert area_scale(mesh, big) == pytest.approx(1.7, rel=1e-12)
+    assert area_scale(big, mesh) == pytest.approx(1 / 1.7, rel=1e-12)
+    half = mesh.vertices[:, 0] < np.median(mesh.vertices[:, 0])
+    assert area_scale(mesh, big, half, half) == pytest.approx(1.7, rel=1e-12)  # the same region on both
+    assert area_scale(mesh, mesh, half, None) > 1.2  # the whole against about half of it: ~sqrt(2)
+    with pytest.raises(ValueError, match="no area"):
+        area_scale(mesh, big, np.zeros(mesh.n_vertices, bool))
+    with pytest.raises(ValueError, match="bool mask"):
+        area_scale(mesh, big, half[:-1])
+
+
+def test_a_comparison_registers_a_moved_and_scaled_copy_exactly():
+    from wpot.examples import example_pair
+
+    mesh = example_pair(300, seed=1).source
+    rot = Rotation.from_euler("xyz", [10, 30, -50], degrees=True).as_matrix()
+    moved = mesh.transformed(rot, np.array([3.0, 0.0, -1.0]), 0.6)
+    c = wpot.compare(mesh, moved, n_eigen=40, n_energies=40, device="cpu", scale_invariant=True)
+    reg = c.registration
+    assert reg.scale_from == "given" and reg.scale == pytest.approx(0.6, rel=1e-12)
+    assert _angle(reg.rotation @ rot.T) < 1e-6
+    np.testing.assert_allclose(reg.apply(mesh.vertices), moved.vertices, atol=1e-6 * moved.bounding_box_diagonal)

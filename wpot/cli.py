@@ -456,7 +456,8 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     if c.registration is not None:
         r = c.registration
         over = f"over {r.n_inliers} of {r.n_pairs} pairs (the inliers)" if r.n_inliers != r.n_pairs else f"over {r.n_pairs} pairs"
-        lines.append(f"registration: scale {r.scale:.4g}, rms residual {r.rms_text()} {over}, "
+        how = "the size ratio of the matched areas" if r.scale_from == "given" else "fitted"
+        lines.append(f"registration: scale {r.scale:.4g} ({how}), rms residual {r.rms_text()} {over}, "
                      f"rotation {r.rotation_degrees:.3g} degrees")
     else:
         why = (f"with balanced transport a point of A (mass 1/{n1}) fits in one of B (mass 1/{n2}) only when "
@@ -569,6 +570,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
             "n_pairs": c.registration.n_pairs,
             "n_inliers": c.registration.n_inliers,
             "method": c.registration.method,
+            "scale_from": c.registration.scale_from,
         },
         **(extra or {}),
     }
