@@ -21,7 +21,6 @@ Usage (about 20 s per TOSCA pair on 2 busy cores; WPOT_CACHE_DIR speeds up a sec
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
