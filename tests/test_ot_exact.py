@@ -163,6 +163,35 @@ def test_exact_says_when_max_iter_stops_it_before_the_optimum():
     assert r.cost - r.history[0].gap_bound <= u * (1 + 1e-12) and r.cost >= u * (1 - 1e-12)
 
 
+def test_the_certificate_decides_when_rounding_stops_the_rounds():
+    """On large problems the network simplex's duals carry rounding, so entries of the support itself can price
+    out below -PRICE_TOL; the rounds then stop (nothing new to add) and the dual bound over every entry decides
+    convergence, as it does when nothing prices out."""
+    import warnings
+
+    from wpot.ot.exact import ExactRun
+
+    C, a, b = _problem(200, 200, True, seed=5)
+    run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
+    cg = run.cg
+    z1, z2 = np.zeros(200), np.zeros(200)
+    run.first_support(cg.price(z1, z2, math.inf, 8)[:2], cg.price(z2, z1, math.inf, 8, transposed=True)[:2])
+    while run.active:
+        u, v = run.lp()
+        run.take(*cg.price(u, v, -1e-11, 8), 0.0)
+    assert run.stop == "optimal"
+    # the same last pass, as if two support entries had priced out by rounding
+    u, v = run.lp()
+    rows, cols, rmin, _ = cg.price(u, v, -1e-11, 8)
+    run.active = True
+    run.take(cg.rows[:2], cg.cols[:2], rmin, 2, 0.0)
+    assert not run.active and run.stop == "rounding"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = run.result()
+    assert r.converged and abs(r.cost - _emd(C, a, b)) <= 1e-12 * r.cost
+
+
 def test_each_pricing_round_costs_a_few_transfers():
     """The pass's results and the new entries' costs come back to the host once a round (a GPU's
     synchronisations): 4 device-to-host reads a round, 10 in the first (it includes the first support's row

@@ -140,24 +140,26 @@ def cpu_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-#: rows per host thread below which `launch_rows` does not split a CPU launch (a thread costs ~0.1 ms)
-MIN_ROWS_PER_THREAD = 256
+#: entries (rows x columns) per host thread below which `launch_rows` does not split a CPU launch (a thread
+#: costs ~0.1 ms, an entry of a pass ~2-20 ns)
+MIN_ENTRIES_PER_THREAD = 2**16
 
 
-def launch_rows(launch, n: int, device, *, threads: int | None = None) -> None:
+def launch_rows(launch, n: int, device, *, cols: int = 1, threads: int | None = None) -> None:
     """Run ``launch(lo, hi)``, a kernel launch over rows ``lo .. hi - 1`` that reads anything and writes only
     those rows' outputs (no atomic sums across rows: Warp's CPU atomics are plain additions), over rows
     ``0 .. n - 1``.
 
     On a GPU it is one launch. On the CPU, Warp runs a launch on one thread without SIMD (NVIDIA/warp issue
     1309) and releases the GIL while it runs, so the rows are cut into ``threads`` contiguous chunks (default:
-    `cpu_threads`, at least `MIN_ROWS_PER_THREAD` rows each) launched from as many host threads at once. Each
-    row is computed by the same code whatever the cut, so the results are the same bit for bit."""
+    `cpu_threads`; at least `MIN_ENTRIES_PER_THREAD` entries each, a row being ``cols`` entries) launched from as
+    many host threads at once. Each row is computed by the same code whatever the cut, so the results are the
+    same bit for bit."""
     n = int(n)
     if n <= 0:
         return
     t = cpu_threads() if threads is None else int(threads)
-    t = max(1, min(t, n // MIN_ROWS_PER_THREAD))
+    t = max(1, min(t, n, n * max(1, int(cols)) // MIN_ENTRIES_PER_THREAD))
     if t == 1 or not resolve_device(device).is_cpu:
         launch(0, n)
         return

@@ -219,7 +219,8 @@ def cost_matrix(
     c = wp.empty((a.shape[0], b.shape[0]), dtype=wp.float64, device=dev)
     code = METRIC_CODES[metric]
     launch_rows(lambda lo, hi: wp.launch(_cost, dim=(hi - lo, c.shape[1]), inputs=[a[lo:hi], b, code, c[lo:hi]],
-                                         device=dev), c.shape[0], dev)
+                                         device=dev), c.shape[0], dev,
+                cols=c.shape[1])
     if out == "warp":
         return c
     return c.numpy()
@@ -246,5 +247,6 @@ def cost_mean(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device: str
     rows = wp.empty(a.shape[0], dtype=wp.float64, device=dev)
     code = METRIC_CODES[metric]
     launch_rows(lambda lo, hi: wp.launch(_cost_row_sums, dim=hi - lo, inputs=[a[lo:hi], b, code, rows[lo:hi]],
-                                         device=dev), a.shape[0], dev)
+                                         device=dev), a.shape[0], dev,
+                cols=b.shape[0])
     return float(rows.numpy().sum()) / (float(a.shape[0]) * float(b.shape[0]))

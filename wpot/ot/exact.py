@@ -316,10 +316,11 @@ class ColumnGeneration:
                 launch_rows(lambda lo, hi: wp.launch(
                     price_rows_gram, dim=hi - lo, device=d, inputs=[P[lo:hi], k0 + lo, src, n_cols, *norms, err, u_w,
                                                                     v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt]),
-                    n, d)
+                    n, d, cols=n_cols)
         else:
             launch_rows(lambda lo, hi: wp.launch(_PRICE[src._cls], dim=hi - lo, device=d, inputs=[
-                src, lo, n_cols, u_w, v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt]), n_rows, d)
+                src, lo, n_cols, u_w, v_w, wp.float64(thresh), m, neg, idx, rmin, rcnt]), n_rows, d,
+                cols=n_cols)
         self.n_h2d += 2
         self.n_d2h += 3
         return _candidates(idx.numpy(), rmin.numpy(), rcnt.numpy(), transposed)
@@ -396,7 +397,7 @@ class ExactRun:
         a, b = self.a_ / self.total, self.b_ / self.total
         b *= a.sum() / b.sum()
         self.cg = ColumnGeneration(cost, a, b, self.device, gram=gram)
-        self.active, self.converged, self.n_rounds = True, False, 0
+        self.active, self.stop, self.n_rounds = True, None, 0
         self._seen = (0, 0)
 
     def first_support(self, row_pass: tuple, col_pass: tuple) -> None:
@@ -427,10 +428,12 @@ class ExactRun:
         if self.options.verbose:
             print(f"  exact: LP {self.obj:.12g} on {rnd.support} entries, {nviol} priced out (min r "
                   f"{rnd.min_reduced:.2e}), LP {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
-        if nviol == 0 or cg.add(rows, cols) == 0:
-            self.active, self.converged = False, nviol == 0
+        if nviol == 0:
+            self.active, self.stop = False, "optimal"
+        elif cg.add(rows, cols) == 0:  # every entry priced out is in the support already: the duals' rounding
+            self.active, self.stop = False, "rounding"
         elif self.n_rounds >= self.options.max_iter:
-            self.active = False
+            self.active, self.stop = False, "max_iter"
 
     def result(self, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """The `OTResult`: the LP's optimum, ``beta`` = inf, ``cost`` = ``objective`` = ``free_energy`` = U (the
@@ -445,8 +448,10 @@ class ExactRun:
         primal = float(cg.cost_of(rows, cols) @ vals)
         lower = float(cg.a @ (u + np.minimum(self.rmin, 0.0)) + cg.b @ v)
         gap = max(primal - lower, 0.0)
-        # tol relative to U, atol a fraction of max C per unit of mass (as the annealing's)
-        converged = self.converged and gap <= options.tol * abs(primal) + options.atol
+        # the certificate decides: tol relative to U, atol a fraction of max C per unit of mass (as the
+        # annealing's). Where the rounds stopped on entries already in the support (large problems: the network
+        # simplex's duals carry rounding of ~1e-11 of max C), the bound still covers them.
+        converged = gap <= options.tol * abs(primal) + options.atol
         unit = cost.scale * total  # normalized objective -> user units
         vals = vals * total
         mass1 = np.bincount(rows, weights=vals, minlength=n1)
@@ -458,9 +463,11 @@ class ExactRun:
         if on_beta is not None:
             on_beta(step)
         if not converged:
-            warnings.warn(f"{self.kind}: the exact solve stopped after max_iter={options.max_iter} pricing rounds "
-                          f"with a certified gap of {gap * unit:.3g} (cost units), above tol; increase max_iter",
-                          RuntimeWarning, stacklevel=4)
+            why, fix = ((f"stopped after max_iter={options.max_iter} pricing rounds", "increase max_iter")
+                        if self.stop == "max_iter" else
+                        ("stopped on entries below -PRICE_TOL that are in the support already", "please report this"))
+            warnings.warn(f"{self.kind}: the exact solve {why} with a certified gap of {gap * unit:.3g} (cost units), "
+                          f"above tol; {fix}", RuntimeWarning, stacklevel=4)
         order = np.lexsort((-vals, rows))
         rows, cols, vals = rows[order], cols[order], vals[order]
         start = np.searchsorted(rows, np.arange(n1 + 1))
@@ -542,7 +549,8 @@ class BatchPricer:
                arr(self.inv_scale[which], wp.float64), int(transposed), arr(prob, wp.int32), arr(local, wp.int32),
                arr(np.concatenate(us), wp.float64), arr(np.concatenate(vs), wp.float64), arr(v_off, wp.int32),
                wp.float64(thresh), m, neg, idx, rmin, rcnt]
-        launch_rows(lambda lo, hi: wp.launch(price_rows_batch, dim=hi - lo, device=d, inputs=[lo, *ins]), g, d)
+        launch_rows(lambda lo, hi: wp.launch(price_rows_batch, dim=hi - lo, device=d, inputs=[lo, *ins]), g, d,
+                    cols=int(n_cols.max()))
         self.n_h2d += 9
         self.n_d2h += 3
         idx_h, rmin_h, rcnt_h = idx.numpy(), rmin.numpy(), rcnt.numpy()

@@ -105,5 +105,6 @@ class GramBlocks:
         norms, err = self.norms(), wp.float64(self.err)
         for k0, n, P in self.blocks():
             launch_rows(lambda lo, hi: wp.launch(feature_cost_max_gram, dim=hi - lo, device="cpu",
-                                                 inputs=[P[lo:hi], k0 + lo, src, n_c, *norms, err, out]), n, "cpu")
+                                                 inputs=[P[lo:hi], k0 + lo, src, n_c, *norms, err, out]), n, "cpu",
+                        cols=n_c)
         return out.numpy()

@@ -157,7 +157,7 @@ def _prepare_features(fc: FeatureCost, device: str, *, gram: bool | None = None)
             part.A, part.B, part.metric, part.inv_scale = fc.X[lo:hi], fc.Y, src.metric, src.inv_scale
             wp.launch(K.feature_cost_max, dim=hi - lo, inputs=[part, n2, rmax[lo:hi]], device=device)
 
-        launch_rows(rows, n1, device)
+        launch_rows(rows, n1, device, cols=n2)
         cmax = float(rmax.numpy().max())
     if not math.isfinite(cmax):
         raise ValueError(f"the {fc.metric!r} cost of the signatures overflows (max C = {cmax}); rescale them")
