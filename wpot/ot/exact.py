@@ -160,11 +160,11 @@ def price_rows_gram(
     row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
 ):
     """`price_rows` for rows k0 + i of a Euclidean `FeatureCost` on the CPU, from a block P of the Gram matrix
-    (`wpot.ot.gram.GramBlocks`), which gives each entry a lower bound of its reduced cost. Only where that bound
-    could matter (below `_GRAM_GUARD`: a candidate or a
-    negative row minimum; or, below ``thresh``, above the row's least kept -r: the top-m list) is the entry recomputed exactly by
-    `cost_at`, so the outputs are `price_rows`'s, except row minima >= 0 (then a lower bound >= 0). Valid for
-    ``thresh`` <= 0 or +inf."""
+    (`wpot.ot.gram.GramBlocks`), which bounds each entry's C'(k, l)^2 from below (no square root is taken).
+    Only where the bound could matter is the entry recomputed exactly by `cost_at`: where its reduced cost may
+    be below `_GRAM_GUARD` (a candidate, or a negative row minimum) or, with ``thresh`` = +inf, may enter the
+    row's top-m list. So the outputs are `price_rows`'s, except row minima >= `_GRAM_GUARD` (then
+    `_GRAM_GUARD`, a lower bound). Valid for ``thresh`` <= 0 or +inf."""
     i = wp.tid()
     k = k0 + i
     clear_row(neg_r, idx, k, m)
@@ -174,16 +174,28 @@ def price_rows_gram(
     uk = u[k]
     ak2 = a2[k]
     ak = an[k]
+    inv2 = src.inv_scale * src.inv_scale
+    ug = uk + _GRAM_GUARD
+    every = thresh > wp.float64(_BIG)  # thresh = +inf: every entry counts, the top m are wanted
+    skipped = int(0)
     for l in range(n_c):
         lo2, hi2 = sq_bounds(P, i, l, ak2, ak, b2, bn, err)
-        lo = wp.sqrt(lo2) * src.inv_scale - uk - v[l]
-        if lo < _GRAM_GUARD or (lo < thresh and -lo > worst):
-            worst, rmin, cnt = price_entry(K.cost_at(src, k, l) - uk - v[l], l, thresh, neg_r, idx, k, m, worst,
+        d2 = lo2 * inv2  # <= C'(k, l)^2
+        vl = v[l]
+        t = ug + vl  # r < guard  <=>  C' < t
+        need = t > wp.float64(0.0) and d2 < t * t
+        if every and not need:
+            t = uk + vl - worst  # -r > worst  <=>  C' < t
+            need = t > wp.float64(0.0) and d2 < t * t
+        if need:
+            worst, rmin, cnt = price_entry(K.cost_at(src, k, l) - uk - vl, l, thresh, neg_r, idx, k, m, worst,
                                            rmin, cnt)
         else:
-            rmin = wp.min(rmin, lo)
-            if lo < thresh:
-                cnt += 1
+            skipped += 1
+    if skipped > 0:
+        rmin = wp.min(rmin, _GRAM_GUARD)
+        if every:
+            cnt += skipped
     row_min[k] = rmin
     row_cnt[k] = cnt
 
