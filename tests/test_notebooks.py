@@ -161,8 +161,10 @@ def test_quickstart(kernel_env):
 
 
 @pytest.mark.data
-def test_tosca_classification(kernel_env, tosca5k, monkeypatch):
-    monkeypatch.setenv("WPOT_DATA", str(tosca5k))
+def test_tosca_classification(kernel_env, shared_data, monkeypatch):
+    if not (shared_data / "tosca_lowres").is_dir():
+        pytest.skip(f"TOSCA low-resolution meshes not found at {shared_data / 'tosca_lowres'}")
+    monkeypatch.setenv("WPOT_DATA", str(shared_data))
     _, s = execute("tosca_classification.ipynb", PROBES["tosca_classification.ipynb"])
     assert s["full"] is False and s["n_shapes"] >= 6
     for key, d in s["distances"].items():

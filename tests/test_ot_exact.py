@@ -192,6 +192,26 @@ def test_the_certificate_decides_when_rounding_stops_the_rounds():
     assert r.converged and abs(r.cost - _emd(C, a, b)) <= 1e-12 * r.cost
 
 
+def test_the_threshold_keeps_support_entries_out_of_the_candidates():
+    """The pricing threshold sits below the duals' rounding on the support, so a pass lists new entries only."""
+    from wpot.ot.exact import PRICE_TOL, ExactRun
+
+    C, a, b = _problem(400, 350, False, seed=6)
+    run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
+    cg = run.cg
+    z1, z2 = np.zeros(400), np.zeros(350)
+    run.first_support(cg.price(z1, z2, math.inf, 8)[:2], cg.price(z2, z1, math.inf, 8, transposed=True)[:2])
+    while run.active:
+        u, v = run.lp()
+        r_support = cg.c - u[cg.rows] - v[cg.cols]
+        assert run.thresh <= -PRICE_TOL and run.thresh < r_support.min()
+        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, 8)
+        known = set(zip(cg.rows.tolist(), cg.cols.tolist()))
+        assert not any((r, c) in known for r, c in zip(rows.tolist(), cols.tolist()))
+        run.take(rows, cols, rmin, nviol, 0.0)
+    assert run.stop == "optimal" and run.result().converged
+
+
 def test_each_pricing_round_costs_a_few_transfers():
     """The pass's results and the new entries' costs come back to the host once a round (a GPU's
     synchronisations): 4 device-to-host reads a round, 10 in the first (it includes the first support's row

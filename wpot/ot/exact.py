@@ -9,7 +9,8 @@ of the whole N1 x N2 cost has a negative reduced cost:
    north-west-corner plan's N1 + N2 - 1 entries, which make the LP on S0 feasible whatever the masses.
 2. The LP on S is solved, warm-started from the previous round's duals: the plan x on S and the duals u, v.
 3. One Warp pass over all N1 N2 entries (`price_rows`) computes r(k, l) = C(k, l) - u(k) - v(l), each row's
-   least r, and its `PRICE_K` most negative entries below -`PRICE_TOL`, which join S. None: stop.
+   least r, and its `PRICE_K` most negative entries below a threshold (-`PRICE_TOL`, or the duals' rounding
+   if that is more), which join S. None: stop.
 
 Many problems can share each round's pass in one launch (`solve_exact_batch`, `price_rows_batch`), with the
 same results as alone.
@@ -44,16 +45,19 @@ from wpot.ot.result import BetaStep, OTResult
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "BatchPricer", "ColumnGeneration", "ExactRun", "solve_exact_batch",
+__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ROUNDING_MARGIN", "BatchPricer", "ColumnGeneration", "ExactRun", "solve_exact_batch",
            "solve_exact_problem"]
 
 #: entries per row and per column in the first support (each row's and column's cheapest)
 INIT_K = 8
 #: most negative entries per row that join the support in each pricing round
 PRICE_K = 8
-#: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C, duals of the
-#: network simplex, exact to rounding: ~1e-16 of the duals' size)
+#: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C), or below
+#: -ROUNDING_MARGIN times the largest |reduced cost| on the LP's own support where that is more: the network
+#: simplex's duals are exact only to their rounding, which grows with the problem (its support's reduced costs
+#: reach -4e-12 at N = 10,000 and -3e-11 at N = 50,000), and support entries listed again crowd new ones out
 PRICE_TOL = 1e-11
+ROUNDING_MARGIN = 4.0
 #: network simplex iterations allowed per LP (POT's default of 1e5 stops early from N ~ 3,400)
 _LP_MAX_ITER = 10**9
 _BIG = 1.0e300
@@ -111,13 +115,13 @@ def price_rows_batch(
     n2s: wp.array(dtype=wp.int32), inv_scale: wp.array(dtype=wp.float64), trans: int,
     row_prob: wp.array(dtype=wp.int32), row_local: wp.array(dtype=wp.int32),
     u: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64), v_off: wp.array(dtype=wp.int32),
-    thresh: wp.float64, m: int,
+    thresh: wp.array(dtype=wp.float64), m: int,
     neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32),
     row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
 ):
     """`price_rows` for many problems in one launch: row g = g0 + i of the launch is row ``row_local[g]`` of problem
     ``row_prob[g]``, whose (N1, N2) cost starts at ``off[p]`` of the flat ``C``; with ``trans`` the rows
-    are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``. The same
+    are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``, ``thresh`` per problem. The same
     operations in the same order as `price_rows` on each problem alone."""
     g = g0 + wp.tid()
     p = row_prob[g]
@@ -134,11 +138,12 @@ def price_rows_batch(
     vo = v_off[p]
     base = off[p]
     s = inv_scale[p]
+    th = thresh[p]
     for l in range(n):
         e = base + wp.int64(k) * wp.int64(n2) + wp.int64(l)
         if trans != 0:
             e = base + wp.int64(l) * wp.int64(n2) + wp.int64(k)
-        worst, rmin, cnt = price_entry(C[e] * s - ug - v[vo + l], l, thresh, neg_r, idx, g, m, worst, rmin, cnt)
+        worst, rmin, cnt = price_entry(C[e] * s - ug - v[vo + l], l, th, neg_r, idx, g, m, worst, rmin, cnt)
     row_min[g] = rmin
     row_cnt[g] = cnt
 
@@ -268,7 +273,7 @@ def support_bytes(n1: int, n2: int) -> int:
 @dataclass(frozen=True)
 class Round:
     """One pricing round: the LP's objective on the support (normalized units), the support's size, the
-    entries priced out (below -PRICE_TOL), the least reduced cost over all N1 N2 entries, seconds in the LP
+    entries priced out (below the threshold, see `PRICE_TOL`), the least reduced cost over all N1 N2 entries, seconds in the LP
     and in the pass, and the host-device transfers since the previous round (device-to-host reads are the
     synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device writes: the
     duals and the new entries' indices)."""
@@ -420,10 +425,15 @@ class ExactRun:
                     np.concatenate([row_pass[1], col_pass[1], nw_c]))
 
     def lp(self) -> tuple[np.ndarray, np.ndarray]:
-        """Solve the LP on the support; returns its duals (u, v) for the next pass."""
+        """Solve the LP on the support; returns its duals (u, v) for the next pass, whose threshold is then
+        ``thresh`` (see `PRICE_TOL`)."""
         t0 = time.perf_counter()
-        rows, cols, vals, self.u, self.v, self.obj = self.cg.solve_lp()
+        cg = self.cg
+        rows, cols, vals, self.u, self.v, self.obj = cg.solve_lp()
         self.plan_entries = (rows, cols, vals)
+        # the duals' rounding, seen on the support (where the LP is optimal: r >= 0 up to it)
+        worst = float(np.max(-(cg.c - self.u[cg.rows] - self.v[cg.cols]), initial=0.0))
+        self.thresh = -max(PRICE_TOL, ROUNDING_MARGIN * worst)
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 
@@ -477,7 +487,7 @@ class ExactRun:
         if not converged:
             why, fix = ((f"stopped after max_iter={options.max_iter} pricing rounds", "increase max_iter")
                         if self.stop == "max_iter" else
-                        ("stopped on entries below -PRICE_TOL that are in the support already", "please report this"))
+                        ("stopped on entries priced out that are in the support already", "please report this"))
             warnings.warn(f"{self.kind}: the exact solve {why} with a certified gap of {gap * unit:.3g} (cost units), "
                           f"above tol; {fix}", RuntimeWarning, stacklevel=4)
         order = np.lexsort((-vals, rows))
@@ -512,7 +522,7 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     while run.active:
         u, v = run.lp()
         t0 = time.perf_counter()
-        rows, cols, rmin, nviol = cg.price(u, v, -PRICE_TOL, PRICE_K)
+        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, PRICE_K)
         run.take(rows, cols, rmin, nviol, time.perf_counter() - t0)
     return run.result(on_beta)
 
@@ -543,10 +553,11 @@ class BatchPricer:
         self.inv_scale = np.array([1.0 / r.cost.scale for r in runs])
         self.n_d2h = self.n_h2d = 0
 
-    def price(self, which: list[int], us: list[np.ndarray], vs: list[np.ndarray], thresh: float, m: int, *,
-              transposed: bool = False) -> list[tuple]:
+    def price(self, which: list[int], us: list[np.ndarray], vs: list[np.ndarray], thresh: float | list[float],
+              m: int, *, transposed: bool = False) -> list[tuple]:
         """`ColumnGeneration.price` of the problems ``which`` (indices into the runs), at their duals ``us``,
-        ``vs``, in one launch; one (rows, columns, row minima, count) per problem."""
+        ``vs`` and thresholds ``thresh`` (one, or one per problem), in one launch; one (rows, columns, row minima,
+        count) per problem."""
         d = self.device
         n_rows = (self.n2 if transposed else self.n1)[which]
         n_cols = (self.n1 if transposed else self.n2)[which]
@@ -560,7 +571,8 @@ class BatchPricer:
         ins = [self.C, arr(self.off[which], wp.int64), arr(self.n1[which], wp.int32), arr(self.n2[which], wp.int32),
                arr(self.inv_scale[which], wp.float64), int(transposed), arr(prob, wp.int32), arr(local, wp.int32),
                arr(np.concatenate(us), wp.float64), arr(np.concatenate(vs), wp.float64), arr(v_off, wp.int32),
-               wp.float64(thresh), m, neg, idx, rmin, rcnt]
+               arr(np.broadcast_to(np.asarray(thresh, np.float64), (len(which),)).copy(), wp.float64), m, neg, idx,
+               rmin, rcnt]
         launch_rows(lambda lo, hi: wp.launch(price_rows_batch, dim=hi - lo, device=d, inputs=[lo, *ins]), g, d,
                     cols=int(n_cols.max()))
         self.n_h2d += 9
@@ -593,7 +605,8 @@ def solve_exact_batch(problems: list[TransportProblem], options: SolverOptions |
             break
         duals = [runs[i].lp() for i in active]
         t0 = time.perf_counter()
-        passes = pricer.price(active, [u for u, _ in duals], [v for _, v in duals], -PRICE_TOL, PRICE_K)
+        passes = pricer.price(active, [u for u, _ in duals], [v for _, v in duals], [runs[i].thresh for i in active],
+                              PRICE_K)
         t_pass = (time.perf_counter() - t0) / len(active)
         for i, (rows, cols, rmin, nviol) in zip(active, passes):
             runs[i].take(rows, cols, rmin, nviol, t_pass)
