@@ -163,22 +163,33 @@ def test_exact_says_when_max_iter_stops_it_before_the_optimum():
     assert r.cost - r.history[0].gap_bound <= u * (1 + 1e-12) and r.cost >= u * (1 - 1e-12)
 
 
+def _rounds(C, a, b, check=None):
+    """An `ExactRun` driven round by round to its end as `solve_exact_problem` drives it; ``check(run, u, v,
+    rows, cols)`` sees each round's duals and candidates."""
+    from wpot.ot.exact import PRICE_K, ExactRun
+
+    run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
+    cg = run.cg
+    z1, z2 = np.zeros(cg.n1), np.zeros(cg.n2)
+    run.first_support(cg.price(z1, z2, math.inf, 8)[:2], cg.price(z2, z1, math.inf, 8, transposed=True)[:2])
+    while run.active:
+        u, v = run.lp()
+        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, PRICE_K)
+        if check is not None:
+            check(run, u, v, rows, cols)
+        run.take(rows, cols, rmin, nviol, 0.0)
+    return run
+
+
 def test_the_certificate_decides_when_rounding_stops_the_rounds():
     """On large problems the network simplex's duals carry rounding, so entries of the support itself can price
     out below -PRICE_TOL; the rounds then stop (nothing new to add) and the dual bound over every entry decides
     convergence, as it does when nothing prices out."""
     import warnings
 
-    from wpot.ot.exact import ExactRun
-
     C, a, b = _problem(200, 200, True, seed=5)
-    run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
+    run = _rounds(C, a, b)
     cg = run.cg
-    z1, z2 = np.zeros(200), np.zeros(200)
-    run.first_support(cg.price(z1, z2, math.inf, 8)[:2], cg.price(z2, z1, math.inf, 8, transposed=True)[:2])
-    while run.active:
-        u, v = run.lp()
-        run.take(*cg.price(u, v, -1e-11, 8), 0.0)
     assert run.stop == "optimal"
     # the same last pass, as if two support entries had priced out by rounding
     u, v = run.lp()
@@ -194,21 +205,16 @@ def test_the_certificate_decides_when_rounding_stops_the_rounds():
 
 def test_the_threshold_keeps_support_entries_out_of_the_candidates():
     """The pricing threshold sits below the duals' rounding on the support, so a pass lists new entries only."""
-    from wpot.ot.exact import PRICE_TOL, ExactRun
+    from wpot.ot.exact import PRICE_TOL
 
-    C, a, b = _problem(400, 350, False, seed=6)
-    run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
-    cg = run.cg
-    z1, z2 = np.zeros(400), np.zeros(350)
-    run.first_support(cg.price(z1, z2, math.inf, 8)[:2], cg.price(z2, z1, math.inf, 8, transposed=True)[:2])
-    while run.active:
-        u, v = run.lp()
-        r_support = cg.c - u[cg.rows] - v[cg.cols]
-        assert run.thresh <= -PRICE_TOL and run.thresh < r_support.min()
-        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, 8)
+    def check(run, u, v, rows, cols):
+        cg = run.cg
+        assert run.thresh <= -PRICE_TOL and run.thresh < (cg.c - u[cg.rows] - v[cg.cols]).min()
         known = set(zip(cg.rows.tolist(), cg.cols.tolist()))
         assert not any((r, c) in known for r, c in zip(rows.tolist(), cols.tolist()))
-        run.take(rows, cols, rmin, nviol, 0.0)
+
+    C, a, b = _problem(400, 350, False, seed=6)
+    run = _rounds(C, a, b, check)
     assert run.stop == "optimal" and run.result().converged
 
 

@@ -67,10 +67,12 @@ _GRAM_GUARD = wp.constant(wp.float64(1e-12))
 
 
 @wp.func
-def clear_row(neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32), g: int, m: int):
+def start_row(neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32), g: int, m: int):
+    """Clear row g's kept list; returns a scan's starting (smallest -r kept, row minimum, count)."""
     for j in range(m):
         neg_r[g, j] = wp.float64(-_BIG)
         idx[g, j] = -1
+    return wp.float64(-_BIG), wp.float64(_BIG), int(0)
 
 
 @wp.func
@@ -98,10 +100,7 @@ def price_rows(
     """Row k = k0 + i of the pricing pass: r(k, l) = C'(k, l) - u(k) - v(l) over every column l. With u = v = 0
     and ``thresh`` = +inf it lists each row's m cheapest columns."""
     k = k0 + wp.tid()
-    clear_row(neg_r, idx, k, m)
-    worst = wp.float64(-_BIG)
-    rmin = wp.float64(_BIG)
-    cnt = int(0)
+    worst, rmin, cnt = start_row(neg_r, idx, k, m)
     uk = u[k]
     for l in range(n_c):
         worst, rmin, cnt = price_entry(K.cost_at(csrc, k, l) - uk - v[l], l, thresh, neg_r, idx, k, m, worst, rmin, cnt)
@@ -130,10 +129,7 @@ def price_rows_batch(
     n = n2
     if trans != 0:
         n = n1s[p]
-    clear_row(neg_r, idx, g, m)
-    worst = wp.float64(-_BIG)
-    rmin = wp.float64(_BIG)
-    cnt = int(0)
+    worst, rmin, cnt = start_row(neg_r, idx, g, m)
     ug = u[g]
     vo = v_off[p]
     base = off[p]
@@ -172,10 +168,7 @@ def price_rows_gram(
     `_GRAM_GUARD`, a lower bound). Valid for ``thresh`` <= 0 or +inf."""
     i = wp.tid()
     k = k0 + i
-    clear_row(neg_r, idx, k, m)
-    worst = wp.float64(-_BIG)
-    rmin = wp.float64(_BIG)
-    cnt = int(0)
+    worst, rmin, cnt = start_row(neg_r, idx, k, m)
     uk = u[k]
     ak2 = a2[k]
     ak = an[k]
