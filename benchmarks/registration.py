@@ -21,6 +21,7 @@ Usage (about 20 s per TOSCA pair on 2 busy cores; WPOT_CACHE_DIR speeds up a sec
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import warnings
@@ -29,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-TOSCA = ROOT.parent / "shared" / "data" / "tosca_isometric_5k"
+#: the shared data folder: $WPOT_DATA, else ../shared/data beside the repository
+TOSCA = Path(os.environ.get("WPOT_DATA", ROOT.parent / "shared" / "data")) / "tosca_isometric_5k"
 
 
 def angle_deg(r: np.ndarray) -> float:
