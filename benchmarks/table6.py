@@ -3,7 +3,8 @@
 For each pair of TOSCA8 shapes (TOSCA's low-resolution set, every vertex: ~3,400 x 3,400) and each combination
 (WKS / LD-SIFT x balanced / partial) with wpot's defaults, it times, in one process:
 
-* ``sig``: the signatures of both shapes (cold: spectrum, WKS or depth images + SIFT), once per shape;
+* ``sig``: the signatures of both shapes (spectrum, WKS or depth images + SIFT), once per shape; cold unless
+  ``$WPOT_CACHE_DIR`` holds the spectra (`benchmarks/signatures.py` times them cold);
 * ``cost``: the cost matrix (Eq. 29 for WKS, L2 for LD-SIFT);
 * ``transport``: wpot's transport as `Comparer` runs it (the exact solver for balanced, the annealing for
   partial); for partial also ``self``, the two self-comparisons of Eq. 27 (computed once per shape in an
