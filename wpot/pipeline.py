@@ -724,7 +724,7 @@ def _mesh_at(path: str, repair: bool = False) -> Mesh:
 
     if repair:
         return repair_mesh(load_mesh(path, warn=False))[0]
-    return load_mesh(path)
+    return load_mesh(path, warn=False)  # the coordinator said its defects once, when it read the shapes
 
 
 def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
