@@ -1,5 +1,5 @@
 """Registration of a comparison's matched pairs: the plain weighted least-squares fit (`fit_similarity`, the
-peer) against the registration the `Comparer` stores (scale: the size ratio of the matched areas,
+peer) against the registration the `Comparer` stores (scale: the size ratio of the two shapes,
 `area_scale`; rotation and translation: `fit_similarity_robust`), on the same pairs in the same run.
 
 * **demo**: the shapes of ``wpot demo`` (one surface triangulated twice, B rigidly moved; 400 vertices, WKS
@@ -40,7 +40,7 @@ def angle_deg(r: np.ndarray) -> float:
 
 def fits(c, mesh_a, mesh_b):
     """The plain least-squares fit of the comparison's matched pairs, and the registration the Comparer stored
-    (the size ratio of the matched areas as scale, rotation and translation by the robust fit), refitted here
+    (the size ratio of the two shapes as scale, rotation and translation by the robust fit), refitted here
     to time it."""
     from wpot.registration import fit_similarity, fit_similarity_robust
 

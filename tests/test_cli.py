@@ -84,7 +84,7 @@ def test_compare_two_files(dataset, tmp_path):
     assert r3.returncode == 0, r3.stderr
     assert matched(r3.stdout, "0.3") >= matched(r.stdout, "0.9")
     for out in (r.stdout, r3.stdout):
-        assert re.search(r"^registration: (scale \S+ \((the size ratio of the matched areas|fitted)\), rms residual|none, fewer than 3 non-collinear pairs matched \()", out, re.M), out
+        assert re.search(r"^registration: (scale \S+ \((the size ratio of the two shapes|fitted)\), rms residual|none, fewer than 3 non-collinear pairs matched \()", out, re.M), out
     _one_line_error(wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), "--match-ratio", "1.5"),
                     "--match-ratio must be in (0, 1], got 1.5")
 

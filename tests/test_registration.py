@@ -174,3 +174,7 @@ def test_a_comparison_registers_a_moved_and_scaled_copy_exactly():
     assert reg.scale_from == "given" and reg.scale == pytest.approx(0.6, rel=1e-12)
     assert _angle(reg.rotation @ rot.T) < 1e-6
     np.testing.assert_allclose(reg.apply(mesh.vertices), moved.vertices, atol=1e-6 * moved.bounding_box_diagonal)
+    # partial transport matches regions, not whole shapes: its scale is fitted
+    part = wpot.compare(mesh, moved, transport="partial", n_eigen=40, n_energies=40, device="cpu",
+                        scale_invariant=True)
+    assert part.registration.scale_from == "fit" and part.registration.scale == pytest.approx(0.6, rel=0.05)

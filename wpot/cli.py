@@ -456,7 +456,7 @@ def _summary_lines(c: Any, match_ratio: float) -> list[str]:
     if c.registration is not None:
         r = c.registration
         over = f"over {r.n_inliers} of {r.n_pairs} pairs (the inliers)" if r.n_inliers != r.n_pairs else f"over {r.n_pairs} pairs"
-        how = "the size ratio of the matched areas" if r.scale_from == "given" else "fitted"
+        how = "the size ratio of the two shapes" if r.scale_from == "given" else "fitted"
         lines.append(f"registration: scale {r.scale:.4g} ({how}), rms residual {r.rms_text()} {over}, "
                      f"rotation {r.rotation_degrees:.3g} degrees")
     else:

@@ -7,9 +7,9 @@
   samples, then least squares over the pairs it finds consistent (the inliers); wrong matches, up to
   about half of the pairs, do not pull on it.
 
-* `area_scale` is the size ratio of two shapes (or of their matched regions), sqrt of the area ratio. Between
-  two poses of one body no fitted scale is their size ratio, so the `wpot.Comparer` gives this one to
-  `fit_similarity_robust` (``scale=``), which then fits the rotation and translation.
+* `area_scale` is the size ratio of two shapes (or of two regions), sqrt of the area ratio. Between two poses
+  of one body no fitted scale is their size ratio, so for balanced transport the `wpot.Comparer` gives this
+  one to `fit_similarity_robust` (``scale=``), which then fits the rotation and translation.
 
 `Registration` is the result of both fits.
 """
