@@ -122,6 +122,14 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     np.testing.assert_allclose(np.log10(betas), np.round(np.log10(betas)), atol=1e-12)
     assert np.all(np.diff(betas) > 0) and info["one_shot_per_beta"][-1][1] == 1.0
     assert "did not converge" not in r.stderr
+    assert info["draws"] is None
+    # random draws of k shapes per class: with k = the class size each draw is the whole run
+    r = wpot("classify", str(run), "--trials", "200", "--draws", "3", "--per-class", "2")
+    assert r.returncode == 0, r.stderr
+    assert "over 3 random draws of 2 shapes per class: one-shot 100.0%" in r.stdout, r.stdout
+    d = json.loads((run / "classification.json").read_text())["draws"]
+    assert d["n_draws"] == 3 and d["one_shot"] == [1.0] * 3 and d["leave_one_out"] == [1.0] * 3
+    _one_line_error(wpot("classify", str(run), "--draws", "3", "--per-class", "3"), "--per-class 3", "fewer shapes")
     # a pair the solver did not converge on is flagged, never used silently
     import sqlite3
 

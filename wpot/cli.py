@@ -226,6 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the one-shot trials' random training shapes (default 0; the same seed gives the "
                         "same accuracy)")
+    p.add_argument("--draws", type=int, default=0,
+                   help="also score N random subsets of --per-class shapes per class (e.g. TOSCA8's 'six of each' "
+                        "drawn from the full set), so that the accuracy does not hinge on one choice (default 0: no)")
+    p.add_argument("--per-class", type=int, default=6, help="shapes per class in each --draws subset (default 6, TOSCA8)")
     p.set_defaults(func=cmd_classify)
 
     p = sub.add_parser("export", help="write a run's distance matrix as CSV (names as header) or NPZ (with D(beta))")
@@ -615,6 +619,10 @@ def _check_trials(a: argparse.Namespace) -> None:
         raise CliError(f"--trials must be >= 1, got {a.trials}")
     if a.seed < 0:
         raise CliError(f"--seed must be >= 0, got {a.seed}")
+    if getattr(a, "draws", 0) < 0:
+        raise CliError(f"--draws must be >= 0, got {a.draws}")
+    if getattr(a, "draws", 0) and a.per_class < 2:
+        raise CliError(f"--per-class must be >= 2 (leave-one-out needs a same-class neighbour), got {a.per_class}")
 
 
 def _check_size(m: _Loaded, config: Any, label: str) -> None:
@@ -759,6 +767,17 @@ def cmd_classify(a: argparse.Namespace) -> None:
     with RunStore(a.run) as store:
         r = classify_run(store, trials=a.trials, seed=a.seed)
         p = store.params
+        draws = None
+        if a.draws:
+            from wpot.evaluate import classification_draws
+
+            labels = np.array(store.labels("class"), dtype=object)
+            counts = {c: int((labels == c).sum()) for c in sorted(set(labels))}
+            short = {c: n for c, n in counts.items() if n < a.per_class}
+            if short:
+                raise CliError(f"--per-class {a.per_class}: these classes of the run have fewer shapes: {short}")
+            draws = classification_draws(store.distance_matrix(), labels.astype(str), per_class=a.per_class,
+                                         n_draws=a.draws, seed=a.seed, n_trials=min(a.trials, 1000))
     one = r["one_shot"]
     key = (p.get("signature"), p.get("transport"))
     paper = PAPER_TABLE1.get(key)
@@ -774,6 +793,10 @@ def cmd_classify(a: argparse.Namespace) -> None:
             print("  wrong: " + misses_text(r["loo_misses"][lv]))
     if r["per_beta"]:
         print("one-shot 1-NN from D(β): " + ", ".join(f"β={b:.0e} {format_percent(acc)}" for b, acc in r["per_beta"]))
+    if draws is not None:
+        print(f"over {draws.n_draws} random draws of {draws.per_class} shapes per class: one-shot "
+              f"{format_percent(draws.one_shot_mean)} (std over draws {100 * draws.one_shot_std:.1f}), leave-one-out "
+              f"{format_percent(draws.leave_one_out_mean)} (std {100 * draws.leave_one_out_std:.1f})")
     if r["not_converged"]:
         n = len(r["levels"]["class"])
         print(f"warning: {r['not_converged']} of {n * (n - 1) // 2} pairs did not converge, and their D(inf) may be wrong, "
@@ -788,6 +811,9 @@ def cmd_classify(a: argparse.Namespace) -> None:
         "leave_one_out": {lv: res.accuracy for lv, res in r["loo"].items()},
         "leave_one_out_wrong": r["loo_misses"],
         "one_shot_per_beta": r["per_beta"],
+        "draws": None if draws is None else {
+            "n_draws": draws.n_draws, "per_class": draws.per_class, "seed": draws.seed,
+            "one_shot": draws.one_shot.tolist(), "leave_one_out": draws.leave_one_out.tolist()},
     }, indent=2))
 
 
