@@ -374,6 +374,8 @@ OTHER_BAD_VALUES = [
     (["all-vs-all", "DATA", "--out", "r", "--labels", "none.csv"], "label CSV not found: none.csv"),
     (["classify", "RUN", "--trials", "0"], "--trials must be >= 1, got 0"),
     (["classify", "RUN", "--seed", "-1"], "--seed must be >= 0, got -1"),
+    (["classify", "RUN", "--draws", "-1"], "--draws must be >= 0, got -1"),
+    (["classify", "RUN", "--draws", "5", "--per-class", "1"], "--per-class must be >= 2"),
     (["report", "RUN", "--trials", "0"], "--trials must be >= 1, got 0"),
     (["report", "RUN", "--seed", "-1"], "--seed must be >= 0, got -1"),
     (["export", "RUN", "--out", "d.txt"], "export writes .csv or .npz"),
