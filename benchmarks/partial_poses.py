@@ -145,11 +145,6 @@ def _rng(seed: int, *names: str) -> np.random.Generator:
 
 
 # ----------------------------------------------------------------------------- mesh helpers
-def vertex_areas(mesh) -> np.ndarray:
-    """(N,) one third of the area of the triangles around each vertex (they sum to the mesh's area)."""
-    return np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices)
-
-
 def _components(mesh, keep: np.ndarray) -> np.ndarray:
     """Connected-component label of every vertex of the sub-graph on ``keep`` (others: their own label)."""
     k = sp.diags(keep.astype(float))
@@ -161,7 +156,7 @@ def largest_piece(mesh, mask: np.ndarray, areas: np.ndarray | None = None) -> np
     """The connected piece of ``mask`` with the most area."""
     if not mask.any():
         return mask.copy()
-    areas = vertex_areas(mesh) if areas is None else areas
+    areas = mesh.vertex_areas if areas is None else areas
     lab = _components(mesh, mask)
     tot = np.bincount(lab[mask], areas[mask])
     return mask & (lab == int(np.argmax(tot)))
@@ -192,7 +187,7 @@ def _foot_vertices(mesh, n_feet: int) -> list[int]:
     z = v[:, 2]
     low = z <= z.min() + FOOT_BAND * (z.max() - z.min())
     lab = _components(mesh, low)
-    areas = vertex_areas(mesh)
+    areas = mesh.vertex_areas
     comps = np.unique(lab[low])
     sizes = np.array([areas[low & (lab == c)].sum() for c in comps])
     chosen = comps[np.argsort(-sizes)[:n_feet]]
@@ -271,7 +266,7 @@ def geodesic_ball(mesh, centre: int, fraction: float) -> tuple[np.ndarray, float
 def plane_cut(mesh, rng: np.random.Generator, lo: float, hi: float) -> tuple[np.ndarray, dict]:
     """The largest piece of one side of a random plane, its offset chosen so that the piece's area fraction is
     nearest a fraction drawn in [lo, hi]."""
-    areas = vertex_areas(mesh)
+    areas = mesh.vertex_areas
     total = areas.sum()
     n = rng.normal(size=3)
     n /= np.linalg.norm(n)
@@ -318,7 +313,7 @@ def _cut_one_piece(mesh, mask: np.ndarray):
         part, idx = cut(mesh, mask)
     if part.n_components > 1:
         lab = part.component_labels
-        area = np.bincount(lab, vertex_areas(part), minlength=lab.max() + 1)
+        area = np.bincount(lab, part.vertex_areas, minlength=lab.max() + 1)
         part, idx = cut(mesh, idx[lab == int(np.argmax(area))])
     return part, idx
 
@@ -412,7 +407,7 @@ def ground_truth(folder: Path, part: Part, source_mesh, target: str, target_mesh
     tp = part_template(part.idx, vts_s, source_mesh.n_vertices)
     keep = tp >= 0
     region = true_region(target_mesh, vts_t, keep, exact=part.idx if target == part.source else None)
-    areas = vertex_areas(target_mesh)
+    areas = target_mesh.vertex_areas
     return Truth(tp[keep], vts_t[keep], vts_sym[keep], region, float(areas[region].sum() / areas.sum()))
 
 
@@ -951,7 +946,7 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
                     mass = float(truth.region[pred].mean())
                 rec.update(scores, mass=mass, uniform=truth.uniform, eval_seconds=time.perf_counter() - t_eval)
                 if comp is not None:
-                    rec.update(trust=trust_scores(comp, truth, arrays["errors"], vertex_areas(tm)))
+                    rec.update(trust=trust_scores(comp, truth, arrays["errors"], tm.vertex_areas))
                 msg.append(f"{m}: ε {scores['mean']:.3f} AUC {scores['auc']:.3f} sym {scores['sym_auc']:.3f} "
                            f"mass {mass:.2f}/{truth.uniform:.2f} {dt:.1f}s")
             else:

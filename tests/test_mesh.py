@@ -239,3 +239,12 @@ def test_cut_drops_mask_vertices_without_a_triangle():
         cut(m, [0, 1, 7])
     with pytest.raises(ValueError, match=r"shape \(4,\)"):
         cut(m, np.ones(3, dtype=bool))
+
+
+def test_vertex_areas_are_a_third_of_each_triangle_and_sum_to_the_area():
+    # two triangles sharing an edge, areas 0.5 and 1.0, and an unreferenced vertex
+    m = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 1, 0], [5, 5, 5]], float),
+             np.array([[0, 1, 2], [1, 3, 2]]), warn=False)
+    np.testing.assert_allclose(m.face_areas, [0.5, 1.0])
+    np.testing.assert_allclose(m.vertex_areas, [0.5 / 3, 1.5 / 3, 1.5 / 3, 1.0 / 3, 0.0])
+    assert m.vertex_areas.sum() == pytest.approx(m.area) and not m.vertex_areas.flags.writeable

@@ -63,7 +63,7 @@ def test_identity_match_onto_the_source_scores_zero_error_and_full_mass(pp, tosc
 
     S = cat["S"]
     geo = GeodesicDistances(S)
-    va = pp.vertex_areas(S)
+    va = S.vertex_areas
     # the small parts (head, limb, cut; the holes part has the same ground truth code, but 4,000 template points
     # whose geodesic rows would take most of this test's time)
     for p in (p for p in cat["parts"] if p.size == "S"):

@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--draws", type=int, default=0,
                    help="also score N random subsets of --per-class shapes per class (e.g. TOSCA8's 'six of each' "
                         "drawn from the full set), so that the accuracy does not hinge on one choice (default 0: no)")
-    p.add_argument("--per-class", type=int, default=6, help="shapes per class in each --draws subset (default 6, TOSCA8)")
+    p.add_argument("--per-class", type=int, default=6,
+                   help="shapes per class in each --draws subset (default 6, TOSCA8)")
     p.set_defaults(func=cmd_classify)
 
     p = sub.add_parser("export", help="write a run's distance matrix as CSV (names as header) or NPZ (with D(beta))")

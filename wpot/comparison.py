@@ -169,8 +169,6 @@ def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: floa
 
 # ------------------------------------------------------------------------------------------- mesh size
 #: the fewest vertices of a mesh in a comparison: three points to sample (`SamplerOptions.max_vertices`) and
-#: the share of its reference mass a vertex's sample must receive to be in B's matched region (`region`)
-REGION_SHARE = 0.5
 #: three matched pairs to fit a registration
 MIN_VERTICES = 3
 #: the fewest Laplace-Beltrami eigenpairs a spectral signature (one with an ``n_eigen`` option: WKS, HKS) takes
@@ -274,7 +272,7 @@ class Comparison:
     confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     received: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    def region(self, threshold: float = REGION_SHARE) -> np.ndarray:
+    def region(self, threshold: float = 0.5) -> np.ndarray:
         """(N_B,) bool, the vertices of B that A matched: those whose sample receives at least ``threshold``
         times its reference mass (`received`). With partial transport of a part into a whole, the part's place
         in the whole; with balanced transport, all of B."""

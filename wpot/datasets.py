@@ -463,7 +463,7 @@ def clean_region(mesh: Mesh, mask: np.ndarray, seed: int) -> np.ndarray:
 
 def region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> float:
     """Smallest radius r whose ball {dist <= r} holds ``fraction`` of the area (vertex areas = 1/3 of faces)."""
-    va = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices)
+    va = mesh.vertex_areas
     order = np.argsort(dist)
     cum = np.cumsum(va[order]) / va.sum()
     return float(dist[order[np.searchsorted(cum, fraction)]])

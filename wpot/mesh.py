@@ -222,6 +222,12 @@ class Mesh:
         return float(self.face_areas.sum())
 
     @cached_property
+    def vertex_areas(self) -> np.ndarray:
+        """(N,) float64 barycentric vertex areas: a third of the area of each triangle a vertex is in (they sum to
+        `area`; an unreferenced vertex has 0)."""
+        return _ro(np.bincount(self._faces.ravel(), np.repeat(self.face_areas / 3.0, 3), minlength=self.n_vertices))
+
+    @cached_property
     def face_normals(self) -> np.ndarray:
         """(F, 3) unit normals (right-hand rule on the face order); zero for degenerate faces."""
         c = self._face_cross

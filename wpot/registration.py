@@ -235,7 +235,7 @@ _BLOCK = 64
 
 def area_scale(mesh_a: Mesh, mesh_b: Mesh, mask_a: ArrayLike | None = None, mask_b: ArrayLike | None = None) -> float:
     """The size ratio of B to A, sqrt(area of B's region / area of A's region), the regions given as (N,) bool
-    vertex masks (None: the whole mesh; a vertex stands for a third of the area of its triangles).
+    vertex masks (None: the whole mesh; a vertex stands for its `Mesh.vertex_areas`).
 
     Between two poses of one body the scale of a similarity fitted to corresponding points is not their size
     ratio: a least-squares fit shrinks with the pose change (0.73-1.02 on ten same-size TOSCA pairs fitted to
@@ -243,11 +243,12 @@ def area_scale(mesh_a: Mesh, mesh_b: Mesh, mask_a: ArrayLike | None = None, mask
     while sqrt(area ratio) is 0.99-1.03 there. Raises ValueError when a region has no area."""
     out = []
     for name, mesh, mask in (("A", mesh_a, mask_a), ("B", mesh_b, mask_b)):
-        va = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices)
+        va = mesh.vertex_areas
         if mask is not None:
             mask = np.asarray(mask, dtype=bool)
             if mask.shape != (mesh.n_vertices,):
-                raise ValueError(f"mask_{name.lower()} must be an ({mesh.n_vertices},) bool mask, got shape {mask.shape}")
+                raise ValueError(f"mask_{name.lower()} must be an ({mesh.n_vertices},) bool mask, "
+                                 f"got shape {mask.shape}")
             va = va[mask]
         area = float(va.sum())
         if not area > 0:

@@ -38,15 +38,15 @@ import warp as wp
 from wpot._warp import launch_rows
 from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
-from wpot.ot.gram import GramBlocks, gram_applies, sq_bounds
+from wpot.ot.gram import GramBlocks, gram_blocks, sq_bounds
 from wpot.ot.options import SolverOptions, check_mode
 from wpot.ot.problem import CostInput, TransportProblem, check_balanced, prepare_cost, prepare_masses, resolve_device
 from wpot.ot.result import BetaStep, OTResult
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ROUNDING_MARGIN", "BatchPricer", "ColumnGeneration", "ExactRun", "solve_exact_batch",
-           "solve_exact_problem"]
+__all__ = ["INIT_K", "PRICE_K", "PRICE_TOL", "ROUNDING_MARGIN", "BatchPricer", "ColumnGeneration", "ExactRun",
+           "solve_exact_batch", "solve_exact_problem"]
 
 #: entries per row and per column in the first support (each row's and column's cheapest)
 INIT_K = 8
@@ -118,10 +118,10 @@ def price_rows_batch(
     neg_r: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32),
     row_min: wp.array(dtype=wp.float64), row_cnt: wp.array(dtype=wp.int32),
 ):
-    """`price_rows` for many problems in one launch: row g = g0 + i of the launch is row ``row_local[g]`` of problem
-    ``row_prob[g]``, whose (N1, N2) cost starts at ``off[p]`` of the flat ``C``; with ``trans`` the rows
-    are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``, ``thresh`` per problem. The same
-    operations in the same order as `price_rows` on each problem alone."""
+    """`price_rows` for many problems in one launch: row g = g0 + i of the launch is row ``row_local[g]`` of
+    problem ``row_prob[g]``, whose (N1, N2) cost starts at ``off[p]`` of the flat ``C``; with ``trans`` the
+    rows are the problems' columns. u is given per launch row, v per problem from ``v_off[p]``, ``thresh``
+    per problem. The same operations in the same order as `price_rows` on each problem alone."""
     g = g0 + wp.tid()
     p = row_prob[g]
     k = row_local[g]
@@ -266,10 +266,10 @@ def support_bytes(n1: int, n2: int) -> int:
 @dataclass(frozen=True)
 class Round:
     """One pricing round: the LP's objective on the support (normalized units), the support's size, the
-    entries priced out (below the threshold, see `PRICE_TOL`), the least reduced cost over all N1 N2 entries, seconds in the LP
-    and in the pass, and the host-device transfers since the previous round (device-to-host reads are the
-    synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device writes: the
-    duals and the new entries' indices)."""
+    entries priced out (below the threshold, see `PRICE_TOL`), the least reduced cost over all N1 N2 entries,
+    seconds in the LP and in the pass, and the host-device transfers since the previous round (device-to-host
+    reads are the synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device
+    writes: the duals and the new entries' indices)."""
 
     objective: float
     support: int
@@ -290,13 +290,7 @@ class ColumnGeneration:
     def __init__(self, cost: CostInput, a: np.ndarray, b: np.ndarray, device: str, *,
                  gram: bool | GramBlocks | None = None):
         self.cost, self.a, self.b, self.device = cost, a, b, device
-        fits = gram_applies(cost.features, device)
-        if gram is not None and gram is not False and not fits:
-            raise ValueError("gram needs a FeatureCost with metric='l2' on the CPU")
-        if isinstance(gram, GramBlocks):
-            self.gram = gram
-        else:
-            self.gram = GramBlocks(cost.features) if (fits if gram is None else gram) else None
+        self.gram = gram_blocks(cost.features, device, gram)
         self.n1, self.n2 = cost.n1, cost.n2
         self.src = cost_source(cost)
         self.src_t = cost_source(cost, transposed=True)
@@ -390,7 +384,7 @@ class ExactRun:
 
     ``first_support`` takes the two candidate passes, then while ``active``: ``lp`` solves the LP on the
     support and returns its duals, ``take`` takes the pass at those duals. ``result`` assembles the
-    `OTResult` (and warns when the solve stopped at ``max_iter`` before the optimum)."""
+    `OTResult` (and warns, saying why the rounds stopped, when the certified gap is above tol)."""
 
     def __init__(self, problem: TransportProblem, options: SolverOptions, kind: str,
                  on_round: Callable[[Round], None] | None = None, *, gram: bool | GramBlocks | None = None):

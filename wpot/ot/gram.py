@@ -25,7 +25,7 @@ from wpot.ot import kernels as K
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["GRAM_BLOCK_BYTES", "GramBlocks", "gram_applies", "feature_cost_max_gram"]
+__all__ = ["GRAM_BLOCK_BYTES", "GramBlocks", "gram_applies", "gram_blocks", "feature_cost_max_gram"]
 
 #: bytes of one block of the Gram matrix
 GRAM_BLOCK_BYTES = 64 * 2**20
@@ -34,9 +34,22 @@ _ERR_PER_FEATURE = 2.0 * 2.0 ** -53
 
 
 def gram_applies(features, device) -> bool:
-    """Whether passes over ``features`` (a `FeatureCost`) on ``device`` go through `GramBlocks`: a Euclidean
-    cost on the CPU (on a GPU the plain kernels are fast)."""
+    """Whether passes over ``features`` (a `FeatureCost`, or None for a stored cost) on ``device`` can go
+    through `GramBlocks`: a Euclidean cost on the CPU (on a GPU the plain kernels are fast)."""
     return features is not None and features.metric == "l2" and wp.get_device(device).is_cpu
+
+
+def gram_blocks(features, device, gram: bool | GramBlocks | None = None) -> GramBlocks | None:
+    """The `GramBlocks` that passes over ``features`` on ``device`` use, or None for the plain kernels.
+    ``gram``: None where `gram_applies`, False never, True always, or the `GramBlocks` to use (a test seam);
+    True or a `GramBlocks` where it does not apply is a ValueError (the bound is for the Euclidean metric)."""
+    fits = gram_applies(features, device)
+    use = fits if gram is None else gram is not False
+    if use and not fits:
+        raise ValueError("gram needs a FeatureCost with metric='l2' on the CPU")
+    if not use:
+        return None
+    return gram if isinstance(gram, GramBlocks) else GramBlocks(features)
 
 
 @wp.func

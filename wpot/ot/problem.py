@@ -12,7 +12,7 @@ from wpot._validate import positive_finite
 from wpot._warp import launch_rows, resolve_device as _resolve_device
 from wpot.cost import METRIC_CODES, cost_matrix, prepare_signatures
 from wpot.ot import kernels as K
-from wpot.ot.gram import GramBlocks, gram_applies
+from wpot.ot.gram import gram_blocks
 
 
 def resolve_device(device) -> str:
@@ -140,15 +140,16 @@ class CostInput:
 
 def _prepare_features(fc: FeatureCost, device: str, *, gram: bool | None = None) -> CostInput:
     """Matrix-free cost: check the device and find max C by a Warp pass over the rows (nothing stored); for a
-    Euclidean cost on the CPU (``gram`` None) or with ``gram`` True, through BLAS (`wpot.ot.gram`, the same
-    value)."""
+    Euclidean cost on the CPU, through BLAS (`wpot.ot.gram`, the same value; ``gram`` as in
+    `wpot.ot.gram.gram_blocks`)."""
     if fc.device != device:
         raise ValueError(f"FeatureCost is on device {fc.device}, expected {device} (pass device= to one of them)")
     n1, n2 = fc.shape
     src = K.LazyCost()
     src.A, src.B, src.metric, src.inv_scale = fc.X, fc.Y, METRIC_CODES[fc.metric], wp.float64(1.0)
-    if gram_applies(fc, device) if gram is None else gram:
-        cmax = float(GramBlocks(fc).row_max(src).max())
+    blocks = gram_blocks(fc, device, gram)
+    if blocks is not None:
+        cmax = float(blocks.row_max(src).max())
     else:
         rmax = wp.zeros(n1, dtype=wp.float64, device=device)
 

@@ -144,8 +144,9 @@ class AnnealSolver(_Solver):
 
         Stored cost: the device copy of C (counted always; a float64 ``wp.array`` on the device, or on the CPU
         a C-contiguous float64 NumPy array, is used in place, one (N1, N2) array fewer), the Hessian weights W,
-        and then the dense plan when it is formed (``dense_plan``): three (N1, N2) float64 arrays; with ``linear_solver="direct"``, the dense Schur
-        solve's arrays instead of the plan when larger (`_direct_bytes`). Matrix-free: the features
+        and then the dense plan when it is formed (``dense_plan``): three (N1, N2) float64 arrays; with
+        ``linear_solver="direct"``, the dense Schur solve's arrays instead of the plan when larger
+        (`_direct_bytes`). Matrix-free: the features
         (N1 + N2) x dim, the plan only with ``dense_plan=True``. Both: the engine's O(N1 + N2) device arrays
         (counted one by one; the per-lane sums with `wpot.ot.kernels.MATVEC_LANES` lanes unless
         ``matvec_lanes`` says otherwise: exact on a GPU, an upper bound on the CPU's one lane), host
