@@ -91,25 +91,22 @@ def main() -> int:
     if not folder.is_dir():
         print(f"skipped: {folder} not found (set --data or WPOT_DATA)")
         return 0
-    done = set()
+    done = {}  # (pair, combination) -> its record, from an earlier run into the same --out
     if a.out.is_file():
         for line in a.out.read_text().splitlines():
             r = json.loads(line)
-            done.add((r["pair"], r["combo"]))
+            done[r["pair"], r["combo"]] = r
     print(f"TOSCA8 pairs at full resolution, device {a.device}; paper Table 6: "
           + ", ".join(f"{k} {v:g} s" for k, v in PAPER.items()))
     print(f"{'pair':<18} {'combination':<16} {'N1 x N2':>11} {'sig s':>7} {'cost s':>7} {'OT s':>8} {'self s':>7} "
           f"{'pair s':>8} {'ot.emd s':>9}  note")
     for pair in PAIRS[:a.pairs]:
         for combo in a.combos:
-            key = ("-".join(pair), combo)
-            if key not in done:
+            r = done.get(("-".join(pair), combo))
+            if r is None:
                 r = run_pair(pair, combo, folder, a.device)
                 with open(a.out, "a") as fh:
                     fh.write(json.dumps(r) + "\n")
-            else:
-                r = next(json.loads(x) for x in a.out.read_text().splitlines()
-                         if (json.loads(x)["pair"], json.loads(x)["combo"]) == key)
             per_pair = r["cost_s"] + r["transport_s"]
             note = [r["method"], "converged" if r["converged"] else "NOT converged"]
             if "gap_to_emd" in r:
