@@ -85,3 +85,17 @@ def blob_spectrum(blob):
     from wpot.spectral import eigenpairs
 
     return eigenpairs(blob, k=60)
+
+
+def partial_qp(C: np.ndarray, r1: np.ndarray, r2: np.ndarray, mass_penalty: float):
+    """The chi^2 partial transport problem (Eq. 17-18) on the whole dense plan, by cvxpy (an independent
+    formulation: the masses are the plan's sums, no duals, no support): (optimum, m1, m2)."""
+    import cvxpy as cp
+
+    G = cp.Variable(C.shape, nonneg=True)
+    m1, m2 = cp.sum(G, axis=1), cp.sum(G, axis=0)
+    obj = (cp.sum(cp.multiply(C, G)) + cp.sum(cp.multiply(mass_penalty / r1**2, cp.square(m1)))
+           + cp.sum(cp.multiply(mass_penalty / r2**2, cp.square(m2))))
+    prob = cp.Problem(cp.Minimize(obj), [cp.sum(G) == 1])
+    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+    return prob.value, m1.value, m2.value

@@ -249,14 +249,15 @@ def test_method_options_reach_the_comparer():
                                                                 "--device", "cpu"])), device="cpu").params()
     assert d["pooling"] == "none" and d["scale_invariant"] is False  # the library's defaults
     # --ot-method: auto (default) leaves the choice to the Comparer (and the run key as before auto existed);
-    # anneal and ipm are passed on for balanced transport; partial transport always anneals
+    # anneal and ipm are passed on for balanced transport, anneal for partial transport (ipm is refused there)
     def solver(*extra):
         args = build_parser().parse_args(["compare", "a.off", "b.off", "--device", "cpu", *extra])
         return Comparer(config_from_args(args), device="cpu").params()["solver_options"]
 
     assert solver() == {} and solver("--ot-method", "auto") == {}
     assert solver("--ot-method", "anneal") == {"method": "anneal"} and solver("--ot-method", "ipm") == {"method": "ipm"}
-    assert solver("--transport", "partial", "--ot-method", "anneal") == {}
+    assert solver("--transport", "partial", "--ot-method", "anneal") == {"method": "anneal"}
+    assert solver("--transport", "partial") == {}
 
 
 def test_ldsift_slab_reaches_the_comparer_and_runs_stored_before_it_resume():

@@ -110,7 +110,9 @@ def test_function_forms_refuse_unknown_keywords():
     C = _points_cost(6, 7)
     with pytest.raises(TypeError, match=r"solve_balanced\(\) got an unexpected keyword argument 'tolerance'"):
         wo.solve_balanced(C, device="cpu", tolerance=1e-3, method="anneal")
-    with pytest.raises(TypeError, match=r"solve_partial\(\) got an unexpected keyword argument 'method'"):
+    with pytest.raises(TypeError, match=r"solve_partial\(\) got an unexpected keyword argument 'tolerance'"):
+        wo.solve_partial(C, device="cpu", tolerance=1e-3)
+    with pytest.raises(ValueError, match="method='ipm' solves balanced transport only"):
         wo.solve_partial(C, device="cpu", method="ipm")
 
 
@@ -133,9 +135,11 @@ def test_solvers_give_the_function_forms_results_bit_for_bit():
     _same(wo.make_solver("ipm").solve(wo.TransportProblem(C, a, b, device="cpu")), ri)
     _same(wo.make_solver("auto").solve(wo.TransportProblem(C, a, b, device="cpu")), wo.solve_balanced(C, a, b, device="cpu"))
     _same(wo.make_solver("exact").solve(wo.TransportProblem(C, a, b, device="cpu")), wo.solve_balanced(C, a, b, device="cpu"))
-    rp = wo.solve_partial(C, a, b, mass_penalty=0.3, device="cpu")
+    rp = wo.solve_partial(C, a, b, mass_penalty=0.3, device="cpu", method="anneal")
     _same(wo.make_solver("anneal").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), rp)
-    _same(wo.make_solver("auto").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), rp)
+    re = wo.solve_partial(C, a, b, mass_penalty=0.3, device="cpu")
+    _same(wo.make_solver("auto").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), re)
+    _same(wo.make_solver("exact").solve(wo.TransportProblem(C, a, b, mass_penalty=0.3, device="cpu")), re)
 
 
 def test_ipm_refuses_partial_and_matrix_free_problems():
@@ -150,14 +154,14 @@ def test_ipm_refuses_partial_and_matrix_free_problems():
         wo.make_solver("anneal").solve(C)
 
 
-def test_auto_picks_the_exact_lp_for_balanced_and_the_annealing_for_partial_transport():
+def test_auto_picks_the_exact_solver_for_balanced_and_partial_transport():
     auto = wo.make_solver("auto")
     big = np.zeros((2000, 2005))  # zero pages: only the shape is read
     assert auto.method_for(wo.TransportProblem(big)) == "exact"
-    assert auto.method_for(wo.TransportProblem(big, mass_penalty=1.0)) == "anneal"
+    assert auto.method_for(wo.TransportProblem(big, mass_penalty=1.0)) == "exact"
     fc = wo.FeatureCost(np.zeros((20, 1)), np.zeros((20, 1)), "l1", device="cpu")
     assert auto.method_for(wo.TransportProblem(fc)) == "exact"
-    assert auto.method_for(wo.TransportProblem(fc, mass_penalty=1.0)) == "anneal"
+    assert auto.method_for(wo.TransportProblem(fc, mass_penalty=1.0)) == "exact"
 
 
 # --------------------------------------------------------------------------- memory_bytes
@@ -170,8 +174,8 @@ def test_memory_bytes_counts_the_quadratic_arrays():
     assert anneal.memory_bytes(n1, n2) == no_plan + nn  # + the dense plan
     assert ipm.memory_bytes(n1, n2) > no_plan + 2 * nn  # + the primal plan and the reduced costs
     assert exact.memory_bytes(n1, n2) < no_plan + nn  # C and the plan, no W
-    for kw in ({}, {"matrix_free": True, "dim": 10}):  # auto: whichever of its two solvers needs more
-        assert auto.memory_bytes(n1, n2, **kw) == max(anneal.memory_bytes(n1, n2, **kw), exact.memory_bytes(n1, n2, **kw))
+    for kw in ({}, {"matrix_free": True, "dim": 10}):  # auto: the exact solver's
+        assert auto.memory_bytes(n1, n2, **kw) == exact.memory_bytes(n1, n2, **kw)
     # matrix-free: no (N1, N2) term unless the dense plan is asked for; the features count
     mf = anneal.memory_bytes(n1, n2, matrix_free=True, dim=100)
     assert 8 * (n1 + n2) * 100 < mf < nn
@@ -194,7 +198,7 @@ def test_energy_history_is_beta_and_objective_per_step():
     assert e.shape == (len(r.history), 2) and e.dtype == np.float64
     np.testing.assert_array_equal(e[:, 0], [h.beta for h in r.history])
     np.testing.assert_array_equal(e[:, 1], [h.cost for h in r.history])  # balanced: objective == cost, bit for bit
-    p = wo.solve_partial(C, device="cpu")
+    p = wo.solve_partial(C, device="cpu", method="anneal")
     np.testing.assert_array_equal(p.energy_history[:, 1], [h.objective for h in p.history])
     assert p.energy_history[-1, 1] == pytest.approx(p.objective, rel=1e-12)
 
@@ -208,7 +212,7 @@ def test_on_beta_reports_each_solved_beta_as_the_history_records_it(method, pena
     solver = wo.make_solver(method)
     problem = wo.TransportProblem(C, mass_penalty=penalty, device="cpu")
     r = solver.solve(problem, on_beta=seen.append)
-    exact = method == "exact" or (method == "auto" and penalty is None)  # the LP: beta = inf alone
+    exact = method in ("exact", "auto")  # the LP or the QP: beta = inf alone
     assert r.converged and len(seen) == len(r.history) and (len(seen) == 1 if exact else len(seen) >= 2)
     assert tuple(seen) == r.history  # the same BetaStep values, in the user's units, in order
     assert solver.solve(problem).cost == r.cost  # reporting changes nothing

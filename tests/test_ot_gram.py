@@ -68,9 +68,8 @@ def test_pricing_passes_equal_the_plain_kernel(offset):
     X, Y = _features(150, 110, 9, seed=2, offset=offset)
     fc = wo.FeatureCost(X, Y, metric="l2", device="cpu")
     cost = prepare_cost(fc, "cpu")
-    a, b = np.full(150, 1 / 150), np.full(110, 1 / 110)
-    plain = ColumnGeneration(cost, a, b, "cpu", gram=False)
-    gram = ColumnGeneration(cost, a, b, "cpu", gram=GramBlocks(fc, block_bytes=8 * 150 * 13))
+    plain = ColumnGeneration(cost, "cpu", gram=False)
+    gram = ColumnGeneration(cost, "cpu", gram=GramBlocks(fc, block_bytes=8 * 150 * 13))
     assert plain.gram is None and gram.gram is not None
     rng = np.random.default_rng(3)
     C = np.sqrt(((X[:, None] - Y[None]) ** 2).sum(-1)) / cost.scale
@@ -110,4 +109,4 @@ def test_gram_refuses_a_cost_it_cannot_serve():
     rng = np.random.default_rng(5)
     fc = wo.FeatureCost(rng.random((20, 4)), rng.random((30, 4)), metric="l1", device="cpu")
     with pytest.raises(ValueError, match="metric='l2'"):
-        ColumnGeneration(prepare_cost(fc, "cpu"), np.full(20, 0.05), np.full(30, 1 / 30), "cpu", gram=True)
+        ColumnGeneration(prepare_cost(fc, "cpu"), "cpu", gram=True)

@@ -10,6 +10,7 @@ import pytest
 import warp as wp
 
 import wpot.ot as wo
+from conftest import partial_qp
 from wpot.ot import kernels as K
 from wpot.ot.schedule import beta_schedule, relative_change
 
@@ -186,22 +187,11 @@ def test_cpu_and_cuda_agree(device):
 
 
 # --------------------------------------------------------------------------- partial
-def _qp(C, r1, r2, mp):
-    import cvxpy as cp
-
-    G = cp.Variable(C.shape, nonneg=True)
-    m1, m2 = cp.sum(G, axis=1), cp.sum(G, axis=0)
-    obj = (cp.sum(cp.multiply(C, G)) + cp.sum(cp.multiply(mp / r1**2, cp.square(m1)))
-           + cp.sum(cp.multiply(mp / r2**2, cp.square(m2))))
-    prob = cp.Problem(cp.Minimize(obj), [cp.sum(G) == 1])
-    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
-    return prob.value, m1.value, m2.value
-
-
 def _partial_checked_by_qp(C, r1, r2, mp):
-    """solve_partial's result, asserted converged and equal (objective, masses) to the cvxpy QP's optimum."""
-    res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu")
-    val, m1, m2 = _qp(C, r1, r2, mp)
+    """solve_partial's result (the annealing), asserted converged and equal (objective, masses) to the cvxpy QP's
+    optimum."""
+    res = wo.solve_partial(C, r1, r2, mass_penalty=mp, device="cpu", method="anneal")
+    val, m1, m2 = partial_qp(C, r1, r2, mp)
     assert res.converged
     assert abs(res.objective - val) <= 1e-6 * val
     np.testing.assert_allclose(res.mass1, m1, atol=1e-6)
@@ -353,7 +343,7 @@ def test_non_convergence_is_reported():
         res = wo.solve_balanced(C, device="cpu", max_iter=1, method="anneal")
     assert not res.converged and len(res.history) == 1
     with pytest.warns(RuntimeWarning, match="Newton"):
-        res = wo.solve_partial(C, device="cpu", max_newton=1)
+        res = wo.solve_partial(C, device="cpu", max_newton=1, method="anneal")
     assert not res.converged
 
 

@@ -66,7 +66,7 @@ def _cost(n1: int, n2: int, seed: int) -> np.ndarray:
 CASES = {
     "anneal": lambda: wo.solve_balanced(_cost(70, 90, 0), method="anneal", device="cpu"),
     "ipm": lambda: wo.solve_balanced(_cost(80, 80, 1), method="ipm", device="cpu"),
-    "partial": lambda: wo.solve_partial(_cost(90, 70, 2), mass_penalty=0.05, device="cpu"),
+    "partial": lambda: wo.solve_partial(_cost(90, 70, 2), mass_penalty=0.05, device="cpu", method="anneal"),
 }
 
 

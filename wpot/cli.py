@@ -81,10 +81,10 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
                         "vertex numbering")
     p.add_argument(
         "--ot-method", choices=tuple(SOLVERS), default=d.method,
-        help=("balanced transport: 'anneal' (Algorithm 1 from the first beta, D(beta) at every beta), 'ipm' "
-              "(interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U: the same D(inf), "
-              "faster for large problems; see the README) or 'auto' (default: 'ipm' when both shapes have "
-              "at least 2000 points, else 'anneal'); partial transport always anneals"),
+        help=("'auto' (default) or 'exact': D(inf) alone, solved exactly (the transport LP for balanced transport, "
+              "the chi^2 QP for partial) and certified over every pair of points; 'anneal': Algorithm 1 from the "
+              "first beta, D(beta) at every beta (slower: ~40x at full resolution); 'ipm' (balanced transport "
+              "only): an interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U"),
     )
 
 
@@ -134,7 +134,7 @@ def config_from_args(a: argparse.Namespace) -> Any:
         sampler=SamplerOptions(max_vertices=a.max_vertices, vertices_per_sample=a.vertices_per_sample,
                                pooling=a.pooling),
         mass_penalty=a.mass_penalty,
-        method=a.ot_method if a.transport == "balanced" else "auto",  # partial transport always anneals
+        method=a.ot_method,
         match_ratio=a.match_ratio if "match_ratio" in a else 0.9,
     )
 

@@ -310,9 +310,9 @@ class Comparer:
         a fraction f of its points costs κ (1/f − 1) mean costs, whatever the cost's unit and the number of
         points (`solver_mass_penalty`); default `DEFAULT_MASS_PENALTY`. ``penalty_scale="paper"``:
         ``α(k) = mass_penalty / ρ(k)²``, exactly Eq. 17 for ``mass_penalty=1``.
-    solver_options : the transport solver: ``method`` ("auto", default: the exact transport LP for balanced
-        transport, whose history is D(∞) alone, and annealing for partial transport; "exact"; "anneal" and
-        "ipm", which also record D(β) along the annealing) and any `wpot.ot.SolverOptions` (``tol``,
+    solver_options : the transport solver: ``method`` ("auto", default, or "exact": the exact limit β = ∞,
+        the transport LP for balanced transport and the χ² QP for partial transport, whose history is D(∞)
+        alone; "anneal", and "ipm" for balanced transport, which also record D(β) along the annealing) and any `wpot.ot.SolverOptions` (``tol``,
         ``max_newton``, ...)
     match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)
     **signature options : those of the chosen signature, e.g. ``n_eigen``, ``n_energies``,

@@ -32,8 +32,8 @@ PENALTY_SCALES = ("relative", "paper")
 #: receives a part's mass has the part's size (benchmarks/head_partial.py); κ ≥ 1 is nearly balanced and
 #: κ ≤ 0.003 collapses the plan onto a few pairs.
 DEFAULT_MASS_PENALTY = 0.01
-#: the comparison's default transport solver: the exact LP for balanced transport, annealing for partial
-#: transport (`wpot.ot.SOLVERS`)
+#: the comparison's default transport solver: the exact limit beta = infinity, the transport LP for balanced
+#: transport and the chi^2 QP for partial transport (`wpot.ot.SOLVERS`)
 DEFAULT_METHOD = "auto"
 
 #: keywords of `ComparisonConfig.from_keywords` that are not a stage's own

@@ -282,14 +282,14 @@ class Round:
 
 
 class ColumnGeneration:
-    """The column-generation state of one problem: the support and the device arrays of the pricing pass.
-    ``cost`` from `prepare_cost`; ``a``, ``b`` masses with equal sums. ``gram``: run the passes of a matrix-free
+    """The column-generation state of one problem: the support and the device arrays of the pricing pass
+    (the restricted problem on the support is the run's: `ExactRun`, `wpot.ot.exact_partial.PartialRun`).
+    ``cost`` from `prepare_cost`. ``gram``: run the passes of a matrix-free
     Euclidean cost on the CPU through BLAS (`wpot.ot.gram`; the same results, ~13x faster at D = 100): None
     (the default) where it applies, True, False, or the `GramBlocks` of the cost's features to use."""
 
-    def __init__(self, cost: CostInput, a: np.ndarray, b: np.ndarray, device: str, *,
-                 gram: bool | GramBlocks | None = None):
-        self.cost, self.a, self.b, self.device = cost, a, b, device
+    def __init__(self, cost: CostInput, device: str, *, gram: bool | GramBlocks | None = None):
+        self.cost, self.device = cost, device
         self.gram = gram_blocks(cost.features, device, gram)
         self.n1, self.n2 = cost.n1, cost.n2
         self.src = cost_source(cost)
@@ -298,7 +298,6 @@ class ColumnGeneration:
         self.cols = np.zeros(0, np.int64)
         self.c = np.zeros(0, np.float64)  # C' on the support
         self._known = np.zeros(0, np.int64)  # sorted keys row * n2 + col of the support
-        self._duals: tuple[np.ndarray, np.ndarray] | None = None  # the last LP's, its warm start
         self.n_d2h = self.n_h2d = 0  # host-device transfers (see `Round`)
 
     # ------------------------------------------------------------------ the pass over all entries
@@ -358,74 +357,130 @@ class ColumnGeneration:
         self._known = np.insert(self._known, pos, key)
         return len(key)
 
-    def solve_lp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """Solve the LP on the support by POT's network simplex on its bipartite graph, warm-started from the
-        previous duals: (plan rows, columns, values (its nonzeros), u (N1,), v (N2,), objective)."""
-        import ot
+def transport_lp(cg: ColumnGeneration, a: np.ndarray, b: np.ndarray, duals: tuple[np.ndarray, np.ndarray] | None):
+    """Solve the transport LP with masses ``a``, ``b`` on ``cg``'s support by POT's network simplex on its
+    bipartite graph, warm-started from ``duals`` (the previous round's u, v, or None): (plan rows, columns,
+    values (its nonzeros), u (N1,), v (N2,), objective)."""
+    import ot
 
-        M = sp.coo_matrix((self.c, (self.rows, self.cols)), shape=(self.n1, self.n2))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # reported below, as an error
-            G, log = ot.emd(self.a, self.b, M, numItermax=_LP_MAX_ITER, log=True, potentials_init=self._duals)
-        if log.get("warning"):
-            raise RuntimeError(f"the transport LP on the sparse support failed ({log['warning']}); please report "
-                               "this problem")
-        G = sp.coo_matrix(G)
-        u, v = np.asarray(log["u"], dtype=np.float64), np.asarray(log["v"], dtype=np.float64)
-        self._duals = (u, v)
-        keep = G.data > 0
-        return (G.row[keep].astype(np.int64), G.col[keep].astype(np.int64), np.asarray(G.data[keep], np.float64),
-                u, v, float(log["cost"]))
+    M = sp.coo_matrix((cg.c, (cg.rows, cg.cols)), shape=(cg.n1, cg.n2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # reported below, as an error
+        G, log = ot.emd(a, b, M, numItermax=_LP_MAX_ITER, log=True, potentials_init=duals)
+    if log.get("warning"):
+        raise RuntimeError(f"the transport LP on the sparse support failed ({log['warning']}); please report "
+                           "this problem")
+    G = sp.coo_matrix(G)
+    u, v = np.asarray(log["u"], dtype=np.float64), np.asarray(log["v"], dtype=np.float64)
+    keep = G.data > 0
+    return (G.row[keep].astype(np.int64), G.col[keep].astype(np.int64), np.asarray(G.data[keep], np.float64),
+            u, v, float(log["cost"]))
+
+
+def first_of_each(major: np.ndarray, k: int) -> np.ndarray:
+    """Mask of the first ``k`` entries of each run of equal values of ``major`` (a pass's candidates: a row's
+    are contiguous and listed cheapest first)."""
+    if len(major) == 0:
+        return np.zeros(0, bool)
+    starts = np.flatnonzero(np.concatenate([[True], major[1:] != major[:-1]]))
+    first = np.repeat(starts, np.diff(np.concatenate([starts, [len(major)]])))
+    return np.arange(len(major)) - first < k
+
+
+def threshold(c: np.ndarray, reduced_on_support: np.ndarray) -> float:
+    """The pricing threshold after a restricted solve (see `PRICE_TOL`): -max(PRICE_TOL, ROUNDING_MARGIN x the
+    support's most negative reduced cost), where the restricted problem is optimal up to its duals' rounding."""
+    worst = float(np.max(-reduced_on_support, initial=0.0))
+    return -max(PRICE_TOL, ROUNDING_MARGIN * worst)
+
+
+def sparse_plan(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, n1: int, n2: int, plan_topk: int,
+                dense: bool) -> tuple[np.ndarray | None, sp.csr_matrix, np.ndarray]:
+    """A plan given by its nonzeros (user units, every row listed or not) as `OTResult` holds it: the dense
+    (N1, N2) plan when ``dense`` (else None), each row's ``plan_topk`` largest entries (CSR) and each row's
+    argmax (int64; 0 for a row with no entry)."""
+    order = np.lexsort((-vals, rows))
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    start = np.searchsorted(rows, np.arange(n1 + 1))
+    rank = np.arange(len(rows)) - start[rows]
+    top = rank < plan_topk
+    counts = np.bincount(rows[top], minlength=n1)
+    plan_top = sp.csr_matrix((vals[top], cols[top], np.concatenate([[0], np.cumsum(counts)])), shape=(n1, n2))
+    has = start[1:] > start[:-1]
+    argmax = np.zeros(n1, np.int64)
+    argmax[has] = cols[start[:-1][has]]
+    plan = None
+    if dense:
+        plan = np.zeros((n1, n2))
+        plan[rows, cols] = vals
+    return plan, plan_top, argmax
 
 
 class ExactRun:
-    """One problem's column generation (steps 1-3 of the module's docstring), driven round by round:
+    """One balanced problem's column generation (steps 1-3 of the module's docstring), driven round by round:
     `solve_exact_problem` drives one with its own passes, `solve_exact_batch` many with shared ones.
 
-    ``first_support`` takes the two candidate passes, then while ``active``: ``lp`` solves the LP on the
-    support and returns its duals, ``take`` takes the pass at those duals. ``result`` assembles the
-    `OTResult` (and warns, saying why the rounds stopped, when the certified gap is above tol)."""
+    ``first_support`` takes the two candidate passes (``init_k`` a row and a column), then while ``active``:
+    ``lp`` solves the restricted problem on the support and returns its duals in the pass's convention
+    (r = C' - u - v), ``take`` takes the pass at those duals. ``result`` assembles the `OTResult` (and warns,
+    saying why the rounds stopped, when the certified gap is above tol). `wpot.ot.exact_partial.PartialRun`
+    is the same with the chi^2 problem on the support."""
+
+    #: candidates a row and a column in the first support
+    init_k: int = INIT_K
 
     def __init__(self, problem: TransportProblem, options: SolverOptions, kind: str,
                  on_round: Callable[[Round], None] | None = None, *, gram: bool | GramBlocks | None = None):
         if problem.partial:
-            raise ValueError("method='exact' solves balanced transport only (mass_penalty=None); use "
-                             "method='anneal' for partial transport")
-        self.options, self.kind, self.on_round = options, kind, on_round
-        self.device = resolve_device(problem.device)
-        self.dense = check_mode(problem.cost, options, self.device)
-        self.cost = cost = prepare_cost(problem.cost, self.device)
+            raise ValueError(f"ExactRun solves balanced transport (mass_penalty=None), got {problem!r}; partial "
+                             "problems are `wpot.ot.exact_partial.PartialRun`'s")
+        self._start(problem, options, kind, on_round, gram)
+        cost = self.cost
         self.a_ = prepare_masses(problem.a, cost.n1, "a")
         self.b_ = prepare_masses(problem.b, cost.n2, "b")
         self.total = check_balanced(self.a_, self.b_)
-        a, b = self.a_ / self.total, self.b_ / self.total
-        b *= a.sum() / b.sum()
-        self.cg = ColumnGeneration(cost, a, b, self.device, gram=gram)
+        self.a, self.b = self.a_ / self.total, self.b_ / self.total
+        self.b *= self.a.sum() / self.b.sum()
+        self._duals: tuple[np.ndarray, np.ndarray] | None = None  # the last LP's, its warm start
+
+    def _start(self, problem: TransportProblem, options: SolverOptions, kind: str,
+               on_round: Callable[[Round], None] | None, gram: bool | GramBlocks | None) -> None:
+        """The state every run shares: the device, the cost, the support and the round counters."""
+        self.options, self.kind, self.on_round = options, kind, on_round
+        self.device = resolve_device(problem.device)
+        self.dense = check_mode(problem.cost, options, self.device)
+        self.cost = prepare_cost(problem.cost, self.device)
+        self.cg = ColumnGeneration(self.cost, self.device, gram=gram)
         self.active, self.stop, self.n_rounds = True, None, 0
         self._seen = (0, 0)
 
     def first_support(self, row_pass: tuple, col_pass: tuple) -> None:
-        """The first support: each row's (``row_pass``) and each column's (``col_pass``) candidates, as
-        (rows, columns) pairs, and the north-west corner."""
-        nw_r, nw_c = northwest_corner(self.cg.a, self.cg.b)
-        self.cg.add(np.concatenate([row_pass[0], col_pass[0], nw_r]),
-                    np.concatenate([row_pass[1], col_pass[1], nw_c]))
+        """The first support: the first ``init_k`` of each row's (``row_pass``) and each column's (``col_pass``)
+        candidates, given as (rows, columns) pairs listed cheapest first, and the north-west corner (so that
+        the LP on it is feasible)."""
+        nw_r, nw_c = northwest_corner(self.a, self.b)
+        self._add_first(row_pass, col_pass, nw_r, nw_c)
+
+    def _add_first(self, row_pass: tuple, col_pass: tuple, *extra: np.ndarray) -> None:
+        r_ok, c_ok = first_of_each(row_pass[0], self.init_k), first_of_each(col_pass[1], self.init_k)
+        self.cg.add(np.concatenate([row_pass[0][r_ok], col_pass[0][c_ok], *extra[:1]]),
+                    np.concatenate([row_pass[1][r_ok], col_pass[1][c_ok], *extra[1:]]))
 
     def lp(self) -> tuple[np.ndarray, np.ndarray]:
         """Solve the LP on the support; returns its duals (u, v) for the next pass, whose threshold is then
         ``thresh`` (see `PRICE_TOL`)."""
         t0 = time.perf_counter()
         cg = self.cg
-        rows, cols, vals, self.u, self.v, self.obj = cg.solve_lp()
+        rows, cols, vals, self.u, self.v, self.obj = transport_lp(cg, self.a, self.b, self._duals)
+        self._duals = (self.u, self.v)
         self.plan_entries = (rows, cols, vals)
-        # the duals' rounding, seen on the support (where the LP is optimal: r >= 0 up to it)
-        worst = float(np.max(-(cg.c - self.u[cg.rows] - self.v[cg.cols]), initial=0.0))
-        self.thresh = -max(PRICE_TOL, ROUNDING_MARGIN * worst)
+        self.thresh = threshold(cg.c, cg.c - self.u[cg.rows] - self.v[cg.cols])
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 
     def take(self, rows: np.ndarray, cols: np.ndarray, rmin: np.ndarray, nviol: int, t_pass: float) -> None:
-        """The pass at the last LP's duals: its entries priced out join the support, or the solve ends."""
+        """The pass at the last restricted solve's duals: its entries priced out join the support, or the
+        solve ends."""
         cg = self.cg
         self.rmin = rmin
         self.n_rounds += 1
@@ -435,8 +490,8 @@ class ExactRun:
         if self.on_round is not None:
             self.on_round(rnd)
         if self.options.verbose:
-            print(f"  exact: LP {self.obj:.12g} on {rnd.support} entries, {nviol} priced out (min r "
-                  f"{rnd.min_reduced:.2e}), LP {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
+            print(f"  exact: restricted optimum {self.obj:.12g} on {rnd.support} entries, {nviol} priced out "
+                  f"(min r {rnd.min_reduced:.2e}), solve {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
         if nviol == 0:
             self.active, self.stop = False, "optimal"
         elif cg.add(rows, cols) == 0:  # every entry priced out is in the support already: the duals' rounding
@@ -444,24 +499,37 @@ class ExactRun:
         elif self.n_rounds >= self.options.max_iter:
             self.active, self.stop = False, "max_iter"
 
+    def converged(self, gap: float, primal: float, unit: float) -> bool:
+        """Whether the certified ``gap`` (normalized units) is within tol of ``primal`` (+ atol); warns,
+        saying why the rounds stopped, when it is not. ``unit``: normalized -> the user's cost units."""
+        # the certificate decides: tol relative to U, atol a fraction of max C per unit of mass (as the
+        # annealing's). Where the rounds stopped on entries already in the support (large problems: the
+        # restricted solver's duals carry rounding of ~1e-11 of max C), the bound still covers them.
+        options = self.options
+        if gap <= options.tol * abs(primal) + options.atol:
+            return True
+        why, fix = ((f"stopped after max_iter={options.max_iter} pricing rounds", "increase max_iter")
+                    if self.stop == "max_iter" else
+                    ("stopped on entries priced out that are in the support already", "please report this"))
+        warnings.warn(f"{self.kind}: the exact solve {why} with a certified gap of {gap * unit:.3g} (cost units), "
+                      f"above tol; {fix}", RuntimeWarning, stacklevel=5)
+        return False
+
     def result(self, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """The `OTResult`: the LP's optimum, ``beta`` = inf, ``cost`` = ``objective`` = ``free_energy`` = U (the
         entropy term vanishes at beta = inf), one `BetaStep` in ``history`` whose ``gap_bound`` is the certified
         U - L over all entries, ``n_newton`` = ``n_linear`` = 0, ``lam`` = -u and ``mu`` = -v (the sign of
         Eq. 15: C + lam + mu >= 0, = 0 on the plan's support)."""
-        cg, options, cost, total = self.cg, self.options, self.cost, self.total
+        cg, cost, total = self.cg, self.cost, self.total
         (rows, cols, vals), u, v = self.plan_entries, self.u, self.v
         n1, n2 = cost.n1, cost.n2
         # the certificate over every entry, from the last pass: the primal cost of the plan (its entries' costs
         # recomputed, as every cost here, by the kernels' function) against the dual bound
         primal = float(cg.cost_of(rows, cols) @ vals)
-        lower = float(cg.a @ (u + np.minimum(self.rmin, 0.0)) + cg.b @ v)
+        lower = float(self.a @ (u + np.minimum(self.rmin, 0.0)) + self.b @ v)
         gap = max(primal - lower, 0.0)
-        # the certificate decides: tol relative to U, atol a fraction of max C per unit of mass (as the
-        # annealing's). Where the rounds stopped on entries already in the support (large problems: the network
-        # simplex's duals carry rounding of ~1e-11 of max C), the bound still covers them.
-        converged = gap <= options.tol * abs(primal) + options.atol
         unit = cost.scale * total  # normalized objective -> user units
+        converged = self.converged(gap, primal, unit)
         vals = vals * total
         mass1 = np.bincount(rows, weights=vals, minlength=n1)
         mass2 = np.bincount(cols, weights=vals, minlength=n2)
@@ -471,41 +539,34 @@ class ExactRun:
                         gap_bound=gap * unit, objective=U)
         if on_beta is not None:
             on_beta(step)
-        if not converged:
-            why, fix = ((f"stopped after max_iter={options.max_iter} pricing rounds", "increase max_iter")
-                        if self.stop == "max_iter" else
-                        ("stopped on entries priced out that are in the support already", "please report this"))
-            warnings.warn(f"{self.kind}: the exact solve {why} with a certified gap of {gap * unit:.3g} (cost units), "
-                          f"above tol; {fix}", RuntimeWarning, stacklevel=4)
-        order = np.lexsort((-vals, rows))
-        rows, cols, vals = rows[order], cols[order], vals[order]
-        start = np.searchsorted(rows, np.arange(n1 + 1))
-        rank = np.arange(len(rows)) - start[rows]
-        top = rank < options.plan_topk
-        counts = np.bincount(rows[top], minlength=n1)
-        plan_top = sp.csr_matrix((vals[top], cols[top], np.concatenate([[0], np.cumsum(counts)])), shape=(n1, n2))
-        argmax = cols[start[:-1]]
-        plan = None
-        if self.dense:
-            plan = np.zeros((n1, n2))
-            plan[rows, cols] = vals
-        return OTResult(plan=plan, plan_top=plan_top, argmax=argmax.astype(np.int64), cost=U, objective=U,
+        plan, plan_top, argmax = sparse_plan(rows, cols, vals, n1, n2, self.options.plan_topk, self.dense)
+        return OTResult(plan=plan, plan_top=plan_top, argmax=argmax, cost=U, objective=U,
                         free_energy=U, lam=-u * cost.scale, mu=-v * cost.scale, x=0.0, mass1=mass1, mass2=mass2,
                         beta=math.inf, converged=bool(converged), n_newton=0, n_linear=0, history=(step,))
+
+
+def exact_run(problem: TransportProblem, options: SolverOptions, kind: str,
+              on_round: Callable[[Round], None] | None = None, *, gram: bool | GramBlocks | None = None) -> ExactRun:
+    """The run of ``problem``: `ExactRun` (balanced) or `wpot.ot.exact_partial.PartialRun` (partial)."""
+    if problem.partial:
+        from wpot.ot.exact_partial import PartialRun  # it builds on this module
+
+        return PartialRun(problem, options, kind, on_round, gram=gram)
+    return ExactRun(problem, options, kind, on_round, gram=gram)
 
 
 def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, kind: str = "solve_balanced",
                         on_beta: Callable[[BetaStep], None] | None = None,
                         on_round: Callable[[Round], None] | None = None,
                         gram: bool | GramBlocks | None = None) -> OTResult:
-    """Solve the balanced ``problem`` exactly by column generation (see the module's docstring and
-    `ExactRun.result` for the result). ``on_round`` gets each pricing round's `Round`; ``gram`` as in
+    """Solve ``problem`` exactly by column generation (see the module's docstring; balanced: `ExactRun.result`,
+    partial: `wpot.ot.exact_partial.PartialRun.result`). ``on_round`` gets each pricing round's `Round`; ``gram`` as in
     `ColumnGeneration`."""
-    run = ExactRun(problem, options, kind, on_round, gram=gram)
+    run = exact_run(problem, options, kind, on_round, gram=gram)
     cg = run.cg
     z1, z2 = np.zeros(cg.n1), np.zeros(cg.n2)
-    run.first_support(cg.price(z1, z2, math.inf, INIT_K)[:2],
-                      cg.price(z2, z1, math.inf, INIT_K, transposed=True)[:2])
+    run.first_support(cg.price(z1, z2, math.inf, run.init_k)[:2],
+                      cg.price(z2, z1, math.inf, run.init_k, transposed=True)[:2])
     while run.active:
         u, v = run.lp()
         t0 = time.perf_counter()
@@ -515,7 +576,7 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
 
 
 class BatchPricer:
-    """The pricing passes of many problems (stored costs, one device) in one launch of `price_rows_batch`:
+    """The pricing passes of many problems (stored costs, one device; balanced or partial) in one launch of `price_rows_batch`:
     their costs (the caller's C, scaled in the kernel) are copied once into one flat device array, and
     each launch covers the rows (or columns) of the problems asked for. Counts its host-device transfers
     (``n_d2h``, ``n_h2d``: per launch, whatever the number of problems)."""
@@ -570,20 +631,21 @@ class BatchPricer:
 
 
 def solve_exact_batch(problems: list[TransportProblem], options: SolverOptions | None = None) -> list[OTResult]:
-    """Solve many balanced problems (stored costs of any sizes, one device) exactly, their pricing passes in
-    shared launches: one launch a round for every problem still running, so that a GPU is kept busy by small
-    problems; the LPs run on the host. Each result equals `solve_exact_problem`'s on the problem alone (the
+    """Solve many problems (balanced or partial, stored costs of any sizes, one device) exactly, their pricing
+    passes in shared launches: one launch a round for every problem still running, so that a GPU is kept busy
+    by small problems; the restricted problems are solved on the host. Each result equals `solve_exact_problem`'s on the problem alone (the
     same passes, in the same order: bit for bit)."""
     options = SolverOptions() if options is None else options
-    runs = [ExactRun(p, options, "solve_exact_batch") for p in problems]
+    runs = [exact_run(p, options, "solve_exact_batch") for p in problems]
     if not runs:
         return []
     pricer = BatchPricer(runs)
     everyone = list(range(len(runs)))
     z1 = [np.zeros(r.cg.n1) for r in runs]
     z2 = [np.zeros(r.cg.n2) for r in runs]
-    rows_pass = pricer.price(everyone, z1, z2, math.inf, INIT_K)
-    cols_pass = pricer.price(everyone, z2, z1, math.inf, INIT_K, transposed=True)
+    init_k = max(r.init_k for r in runs)  # each run takes its own first init_k of the lists
+    rows_pass = pricer.price(everyone, z1, z2, math.inf, init_k)
+    cols_pass = pricer.price(everyone, z2, z1, math.inf, init_k, transposed=True)
     for r, rp, cp in zip(runs, rows_pass, cols_pass):
         r.first_support(rp[:2], cp[:2])
     while True:

@@ -4,11 +4,13 @@ the function forms `solve_balanced` / `solve_partial`.
 - "anneal": Algorithm 1 from beta0 (balanced or partial, stored or matrix-free cost).
 - "ipm": a primal-dual interior-point start up to the first grid beta whose gap bound is <= 1e-3 U, then
   Algorithm 1 (balanced transport with a stored cost only; `wpot.ot.ipm`).
-- "exact": the transport LP itself (beta = infinity) by column generation (balanced transport; `wpot.ot.exact`).
-- "auto": "exact" for balanced transport, "anneal" for partial transport.
+- "exact": the limit beta = infinity itself by column generation: the transport LP (balanced; `wpot.ot.exact`)
+  or the chi^2 QP (partial; `wpot.ot.exact_partial`), certified over every entry.
+- "auto": "exact", balanced or partial.
 
 The annealing solvers record D(beta), the paper's distance along beta (every recorded beta is that beta's saddle
-point); "exact" records beta = infinity only, 3-30x faster than the annealing (`benchmarks/ot_speed.py`).
+point); "exact" records beta = infinity only, 3-30x faster than the annealing for balanced transport
+(`benchmarks/ot_speed.py`), ~40x for partial transport at full resolution (`benchmarks/table6.py`).
 """
 from __future__ import annotations
 
@@ -186,7 +188,7 @@ class InteriorPointSolver(_Solver):
         problem = _check_problem(problem)
         if problem.partial:
             raise ValueError("method='ipm' solves balanced transport only (mass_penalty=None); use "
-                             "method='anneal' for partial transport")
+                             "method='exact' or 'anneal' for partial transport")
         return solve_balanced_problem(problem, self.options, interior_point=True, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
@@ -209,9 +211,10 @@ class InteriorPointSolver(_Solver):
 
 @dataclass(frozen=True)
 class ExactSolver(_Solver):
-    """The transport LP itself (beta = infinity) by column generation: POT's network simplex on a sparse
-    support that Warp pricing passes over all N1 N2 entries grow until none has a negative reduced cost; the
-    last pass certifies the optimum (`wpot.ot.exact`). Balanced transport, stored cost or `FeatureCost`.
+    """The limit beta = infinity itself by column generation: the transport LP (balanced, POT's network
+    simplex; `wpot.ot.exact`) or the chi^2 QP (partial, Clarabel's interior point; `wpot.ot.exact_partial`)
+    on a sparse support that Warp pricing passes over all N1 N2 entries grow until none has a negative
+    reduced cost; the last pass certifies the optimum. Stored cost or `FeatureCost`.
     ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
     ``tol``, ``atol`` (the certified gap), ``max_iter`` (pricing rounds; 3-7 are measured), ``dense_plan``,
     ``plan_topk`` and ``verbose``."""
@@ -219,44 +222,47 @@ class ExactSolver(_Solver):
     name: ClassVar[str] = "exact"
 
     def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
-        """Solve ``problem`` (see `TransportSolver.solve`); ValueError for partial problems."""
-        return solve_exact_problem(_check_problem(problem), self.options, on_beta=on_beta)
+        """Solve ``problem``, balanced or partial (see `TransportSolver.solve`)."""
+        problem = _check_problem(problem)
+        kind = "solve_partial" if problem.partial else "solve_balanced"
+        return solve_exact_problem(problem, self.options, kind=kind, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
         """Peak bytes of a solve: the device copy of C (stored mode; counted always, although the CPU reads a
         C-contiguous float64 array in place) or the features, the dense plan when it
         is formed, the pricing pass's per-row lists and the sparse support with the network simplex's graph
-        of it (`wpot.ot.exact.support_bytes`)."""
+        of it (`wpot.ot.exact.support_bytes`), or for a partial problem the interior-point method's (the
+        larger, counted always)."""
         from wpot.ot.exact import support_bytes
+        from wpot.ot.exact_partial import qp_bytes
 
         n1, n2, dim = _check_size(n1, n2, dim)
         nn = _F64 * n1 * n2
         plan = nn if _dense_plan(self.options, matrix_free) else 0
         stored = 0 if matrix_free else nn
         features = _F64 * (n1 + n2) * dim if matrix_free else 0
-        return stored + plan + features + support_bytes(n1, n2)
+        return stored + plan + features + max(support_bytes(n1, n2), qp_bytes(n1, n2))
 
 
 @dataclass(frozen=True)
 class AutoSolver(_Solver):
-    """The exact LP (`ExactSolver`) for balanced transport, the annealing (`AnnealSolver`) for partial
-    transport. D(beta) along the annealing needs ``method="anneal"`` or ``"ipm"``."""
+    """The exact solver (`ExactSolver`), balanced or partial. D(beta) along the annealing needs
+    ``method="anneal"`` (or ``"ipm"``, balanced)."""
 
     name: ClassVar[str] = "auto"
 
     def method_for(self, problem: TransportProblem) -> str:
-        """The registry name of the solver ``problem`` gets ("exact" or "anneal")."""
-        return "anneal" if _check_problem(problem).partial else "exact"
+        """The registry name of the solver ``problem`` gets ("exact")."""
+        _check_problem(problem)
+        return "exact"
 
     def solve(self, problem: TransportProblem, *, on_beta: Callable[[BetaStep], None] | None = None) -> OTResult:
         """Solve ``problem`` with the solver `method_for` picks."""
         return SOLVERS[self.method_for(problem)](self.options).solve(problem, on_beta=on_beta)
 
     def memory_bytes(self, n1: int, n2: int, *, matrix_free: bool = False, dim: int = 0) -> int:
-        """Peak bytes of a solve of this size, balanced or partial: the larger of the annealing's
-        (`AnnealSolver.memory_bytes`) and the exact LP's (`ExactSolver.memory_bytes`)."""
-        return max(s(self.options).memory_bytes(n1, n2, matrix_free=matrix_free, dim=dim)
-                   for s in (AnnealSolver, ExactSolver))
+        """Peak bytes of a solve of this size, balanced or partial (`ExactSolver.memory_bytes`)."""
+        return ExactSolver(self.options).memory_bytes(n1, n2, matrix_free=matrix_free, dim=dim)
 
 
 #: the solvers by name (`make_solver`'s ``method``)
@@ -318,9 +324,11 @@ def solve_balanced(C, a=None, b=None, *, method: str = "auto", device: str | Non
     return solver.solve(TransportProblem(C, a, b, device=device))
 
 
-def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, device: str | None = None,
-                  options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
-    """Partial OT with a Pearson chi^2 mass penalty (Eq. 17-18), by annealing (`wpot.ot.partial`):
+def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, method: str = "auto",
+                  device: str | None = None, options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
+    """Partial OT with a Pearson chi^2 mass penalty (Eq. 17-18): by default its exact optimum (the
+    annealing's limit beta -> infinity, a convex QP, by column generation; `wpot.ot.exact_partial`), or by
+    annealing (Algorithm 1; `wpot.ot.partial`), which also gives U(beta) and F(beta) along the way:
 
         min_{G >= 0, m1, m2}  sum C G + sum_k alpha1(k) m1(k)^2 + sum_l alpha2(l) m2(l)^2
         s.t. G 1 = m1, G^T 1 = m2, sum G = 1,       alpha_i = mass_penalty / rho_i^2.
@@ -331,23 +339,29 @@ def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, device:
 
     Parameters are those of `solve_balanced` (``C`` may be a `FeatureCost`; ``options`` and the keyword
     overrides of `SolverOptions`), with rho1 (N1,), rho2 (N2,) positive reference measures (default
-    uniform; normalized to sum 1) instead of a, b, and no ``method`` (annealing).
+    uniform; normalized to sum 1) instead of a, b. ``method``: "auto" (default) or "exact" (the QP, certified
+    over every entry; ``history`` holds beta = inf only; ~40x faster than the annealing at 3,400 points a
+    side) or "anneal" (every grid beta solved and recorded).
 
     Returns OTResult with ``mass1``, ``mass2`` the plan's marginals (sum 1 together), ``cost`` the
-    transport part sum C G, ``objective`` Eq. 17 (cost + penalty), ``free_energy`` Eq. 23, ``x``.
+    transport part sum C G, ``objective`` Eq. 17 (cost + penalty), ``free_energy`` Eq. 23 (= ``objective``
+    at beta = inf), ``lam``, ``mu``, ``x`` the duals (Eq. 26's sign).
     """
     mass_penalty = positive_finite("mass_penalty", mass_penalty)
-    solver = AnnealSolver(_options(options, option_keywords, "solve_partial"))
+    if method == "ipm":
+        raise ValueError("method='ipm' solves balanced transport only; solve_partial takes method='auto', "
+                         "'exact' or 'anneal'")
+    solver = make_solver(method, _options(options, option_keywords, "solve_partial"))
     return solver.solve(TransportProblem(C, rho1, rho2, mass_penalty=mass_penalty, device=device))
 
 
 def solve_batch(problems, *, options: SolverOptions | None = None, **option_keywords: Any) -> list[OTResult]:
-    """Many balanced problems (`TransportProblem`s with stored costs of any sizes, on one device) solved
-    exactly (``method="exact"``) together: each round's pricing passes of every problem still running share
-    one kernel launch, so that a GPU stays busy with small problems (the LPs run on the host). Each result
-    equals that of ``solve_balanced(..., method="exact")`` on the problem alone, bit for bit.
+    """Many problems (`TransportProblem`s, balanced or partial, with stored costs of any sizes, on one device)
+    solved exactly (``method="exact"``) together: each round's pricing passes of every problem still running
+    share one kernel launch, so that a GPU stays busy with small problems (the restricted LPs and QPs are
+    solved on the host). Each result equals that of ``make_solver("exact").solve`` on the problem alone, bit
+    for bit.
 
-    ``options`` and ``**option_keywords`` as in `solve_balanced`; a partial problem or a `FeatureCost` is a
-    ValueError."""
+    ``options`` and ``**option_keywords`` as in `solve_balanced`; a `FeatureCost` is a ValueError."""
     problems = [_check_problem(p) for p in problems]
     return solve_exact_batch(problems, _options(options, option_keywords, "solve_batch"))
