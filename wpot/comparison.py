@@ -8,7 +8,7 @@ frozen dataclass, all described by one `wpot.config.ComparisonConfig`:
   to a dataset (WKS's energy grid, paper §3.2) are fitted once and shared by every shape;
 * a **sampler** (`wpot.sampling`): every vertex, or farthest-point samples with their cells;
 * a **transport solver** (`wpot.ot`): balanced (Eq. 6–16) or partial (Eq. 17–26) statistical-physics
-  transport, annealed in β (Algorithm 1), by the solver the configuration names.
+  transport, at β = ∞ exactly or annealed in β (Algorithm 1), by the solver the configuration names.
 
 What belongs to a comparison stays here: the cost between the two point sets (dense, or recomputed in the
 solver's kernels when the dense problem does not fit the device's memory), the relative mass penalty of
@@ -312,8 +312,8 @@ class Comparer:
         ``α(k) = mass_penalty / ρ(k)²``, exactly Eq. 17 for ``mass_penalty=1``.
     solver_options : the transport solver: ``method`` ("auto", default, or "exact": the exact limit β = ∞,
         the transport LP for balanced transport and the χ² QP for partial transport, whose history is D(∞)
-        alone; "anneal", and "ipm" for balanced transport, which also record D(β) along the annealing) and any `wpot.ot.SolverOptions` (``tol``,
-        ``max_newton``, ...)
+        alone; "anneal", and "ipm" for balanced transport, which also record D(β) along the annealing) and
+        any `wpot.ot.SolverOptions` (``tol``, ``max_newton``, ...)
     match_ratio : a pair (i, j) is matched when ``G(i, j) > match_ratio · m1(i)`` (paper: 0.9)
     **signature options : those of the chosen signature, e.g. ``n_eigen``, ``n_energies``,
         ``scale_invariant`` (WKS, HKS), ``ldsift_K``, ``ldsift_resolution``, ``ldsift_slab`` (LD-SIFT),
