@@ -26,8 +26,10 @@ optimum, and z1'(k) = z1(k) - min(0, min_l r(k, l)) makes any duals feasible; th
 minima. The upper bound is the objective of the plan itself (its entries >= 0, renormalized to sum 1, with
 m1, m2 its marginals): ``gap_bound`` = U - L.
 
-Measured at full resolution on TOSCA8 (3,400 x 3,400, the prototype of this module): 2-3 rounds; WKS
-cat0/cat1 7.7 s against 314 s for the annealing, LD-SIFT 8.6 s against 300 s, certified gaps ~1e-10.
+The interior-point method factorizes a matrix with the bipartite graph of S, so its time and memory grow
+with how well that graph separates: signatures of surfaces (low intrinsic dimension) give 2-3 rounds of a
+few seconds at 3,400 points a side; random points in R^100 need more. Timings: the README's tables
+(`benchmarks/table6.py`, `benchmarks/scale.py`).
 """
 from __future__ import annotations
 
