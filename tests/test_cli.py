@@ -53,6 +53,17 @@ def test_demo_prints_a_distance_and_saves_a_picture(tmp_path):
     assert np.load(tmp_path / "dz" / "correspondence.npz")["correspondence_zoomout"].shape == (200,)
 
 
+def test_compare_partial_is_exact_and_certified_against_its_objective(dataset, tmp_path):
+    r = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--transport", "partial",
+             "--out", str(tmp_path / "p"))
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"^converged: True, the exact optimum \(beta = inf; certified gap (\S+) of the objective, Eq. 17",
+                  r.stdout, re.M)
+    assert m and float(m.group(1)) <= 1e-6
+    info = json.loads((tmp_path / "p" / "comparison.json").read_text())
+    assert info["beta"] is None and len(info["history"]) == 1
+
+
 def test_compare_two_files(dataset, tmp_path):
     r = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--out", str(tmp_path / "c"))
     assert r.returncode == 0, r.stderr
