@@ -265,9 +265,9 @@ def support_bytes(n1: int, n2: int) -> int:
 
 @dataclass(frozen=True)
 class Round:
-    """One pricing round: the LP's objective on the support (normalized units), the support's size, the
-    entries priced out (below the threshold, see `PRICE_TOL`), the least reduced cost over all N1 N2 entries,
-    seconds in the LP and in the pass, and the host-device transfers since the previous round (device-to-host
+    """One pricing round: the restricted problem's optimum on the support (the LP's, or the partial QP's;
+    normalized units), the support's size, the entries priced out (below the threshold, see `PRICE_TOL`), the
+    least reduced cost over all N1 N2 entries, seconds in the restricted solve and in the pass, and the host-device transfers since the previous round (device-to-host
     reads are the synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device
     writes: the duals and the new entries' indices)."""
 
@@ -387,7 +387,7 @@ def first_of_each(major: np.ndarray, k: int) -> np.ndarray:
     return np.arange(len(major)) - first < k
 
 
-def threshold(c: np.ndarray, reduced_on_support: np.ndarray) -> float:
+def threshold(reduced_on_support: np.ndarray) -> float:
     """The pricing threshold after a restricted solve (see `PRICE_TOL`): -max(PRICE_TOL, ROUNDING_MARGIN x the
     support's most negative reduced cost), where the restricted problem is optimal up to its duals' rounding."""
     worst = float(np.max(-reduced_on_support, initial=0.0))
@@ -474,7 +474,7 @@ class ExactRun:
         rows, cols, vals, self.u, self.v, self.obj = transport_lp(cg, self.a, self.b, self._duals)
         self._duals = (self.u, self.v)
         self.plan_entries = (rows, cols, vals)
-        self.thresh = threshold(cg.c, cg.c - self.u[cg.rows] - self.v[cg.cols])
+        self.thresh = threshold(cg.c - self.u[cg.rows] - self.v[cg.cols])
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 

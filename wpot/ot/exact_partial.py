@@ -132,7 +132,7 @@ class PartialRun(ExactRun):
                                                           self.w1, self.w2)
         self.obj = self._objective(cg.c, np.maximum(self.g, 0.0), cg.rows, cg.cols)[1] + self.c1 + self.c2
         self.u, self.v = -(self.z1 + self.z3), -self.z2
-        self.thresh = threshold(cg.c, cg.c - self.u[cg.rows] - self.v[cg.cols])
+        self.thresh = threshold(cg.c - self.u[cg.rows] - self.v[cg.cols])
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 
