@@ -159,7 +159,8 @@ def main() -> None:
 
     print(f"OT, N x N, L2 costs of random signatures in R^{a.dim}, device {a.device}, "
           f"OPENBLAS_NUM_THREADS={blas_threads()}")
-    print(f"{'N':>7} {'method':<26} {'time s':>9} {'peak RSS MB':>12} {'dense C MB':>11} {'U':>14} {'gap vs emd':>11}  note")
+    print(f"{'N':>7} {'method':<26} {'time s':>9} {'peak RSS MB':>12} {'dense C MB':>11} {'U':>14} "
+          f"{'gap vs emd':>11}  note")
     rows = []
     dead: set[str] = set()
     for n in a.sizes:

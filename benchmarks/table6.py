@@ -8,8 +8,9 @@ For each pair of TOSCA8 shapes (TOSCA's low-resolution set, every vertex: ~3,400
 * ``cost``: the cost matrix (Eq. 29 for WKS, L2 for LD-SIFT);
 * ``transport``: wpot's transport as `Comparer` runs it (the default exact solver: the transport LP for
   balanced, the chi^2 QP for partial); with ``--anneal-peer``, partial combinations are also annealed
-  (``method="anneal"``, the solver that records D(beta)) in the same run; for partial also ``self``, the two self-comparisons of Eq. 27 (computed once per shape in an
-  all-vs-all run, so not part of the per-pair time there);
+  (``method="anneal"``, the solver that records D(beta)) in the same run; for partial also ``self``, the
+  two self-comparisons of Eq. 27 (computed once per shape in an all-vs-all run, so not part of the per-pair
+  time there);
 * the peer, ``ot.emd`` (numItermax 1e9, its warning checked) on the same cost with uniform masses: the same
   problem for balanced transport (the gap to it is printed), the time reference for partial.
 

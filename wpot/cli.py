@@ -83,7 +83,7 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
         "--ot-method", choices=tuple(SOLVERS), default=d.method,
         help=("'auto' (default) or 'exact': D(inf) alone, solved exactly (the transport LP for balanced transport, "
               "the chi^2 QP for partial) and certified over every pair of points; 'anneal': Algorithm 1 from the "
-              "first beta, D(beta) at every beta (slower: ~40x at full resolution); 'ipm' (balanced transport "
+              "first beta, D(beta) at every beta (50-180x slower at full resolution); 'ipm' (balanced transport "
               "only): an interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U"),
     )
 

@@ -267,9 +267,10 @@ def support_bytes(n1: int, n2: int) -> int:
 class Round:
     """One pricing round: the restricted problem's optimum on the support (the LP's, or the partial QP's;
     normalized units), the support's size, the entries priced out (below the threshold, see `PRICE_TOL`), the
-    least reduced cost over all N1 N2 entries, seconds in the restricted solve and in the pass, and the host-device transfers since the previous round (device-to-host
-    reads are the synchronisations on a GPU: the pass's results and the new entries' costs; host-to-device
-    writes: the duals and the new entries' indices)."""
+    least reduced cost over all N1 N2 entries, seconds in the restricted solve and in the pass, and the
+    host-device transfers since the previous round (device-to-host reads are the synchronisations on a GPU:
+    the pass's results and the new entries' costs; host-to-device writes: the duals and the new entries'
+    indices)."""
 
     objective: float
     support: int
@@ -327,6 +328,10 @@ class ColumnGeneration:
         self.n_h2d += 2
         self.n_d2h += 3
         return _candidates(idx.numpy(), rmin.numpy(), rcnt.numpy(), transposed)
+
+    def reduced(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(S,) the support's reduced costs r = C' - u - v at duals u (N1,), v (N2,)."""
+        return self.c - u[self.rows] - v[self.cols]
 
     def cost_of(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """C'(k, l) of the listed entries (normalized units), computed by the kernels' own cost function."""
@@ -456,15 +461,16 @@ class ExactRun:
 
     def first_support(self, row_pass: tuple, col_pass: tuple) -> None:
         """The first support: the first ``init_k`` of each row's (``row_pass``) and each column's (``col_pass``)
-        candidates, given as (rows, columns) pairs listed cheapest first, and the north-west corner (so that
-        the LP on it is feasible)."""
-        nw_r, nw_c = northwest_corner(self.a, self.b)
-        self._add_first(row_pass, col_pass, nw_r, nw_c)
-
-    def _add_first(self, row_pass: tuple, col_pass: tuple, *extra: np.ndarray) -> None:
+        candidates, given as (rows, columns) pairs listed cheapest first, and the entries the restricted
+        problem needs to be feasible (`feasible_entries`)."""
         r_ok, c_ok = first_of_each(row_pass[0], self.init_k), first_of_each(col_pass[1], self.init_k)
-        self.cg.add(np.concatenate([row_pass[0][r_ok], col_pass[0][c_ok], *extra[:1]]),
-                    np.concatenate([row_pass[1][r_ok], col_pass[1][c_ok], *extra[1:]]))
+        extra_r, extra_c = self.feasible_entries()
+        self.cg.add(np.concatenate([row_pass[0][r_ok], col_pass[0][c_ok], extra_r]),
+                    np.concatenate([row_pass[1][r_ok], col_pass[1][c_ok], extra_c]))
+
+    def feasible_entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, columns) that make the LP on any support feasible: the north-west-corner plan's."""
+        return northwest_corner(self.a, self.b)
 
     def lp(self) -> tuple[np.ndarray, np.ndarray]:
         """Solve the LP on the support; returns its duals (u, v) for the next pass, whose threshold is then
@@ -474,7 +480,7 @@ class ExactRun:
         rows, cols, vals, self.u, self.v, self.obj = transport_lp(cg, self.a, self.b, self._duals)
         self._duals = (self.u, self.v)
         self.plan_entries = (rows, cols, vals)
-        self.thresh = threshold(cg.c - self.u[cg.rows] - self.v[cg.cols])
+        self.thresh = threshold(cg.reduced(self.u, self.v))
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 
@@ -560,8 +566,8 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
                         on_round: Callable[[Round], None] | None = None,
                         gram: bool | GramBlocks | None = None) -> OTResult:
     """Solve ``problem`` exactly by column generation (see the module's docstring; balanced: `ExactRun.result`,
-    partial: `wpot.ot.exact_partial.PartialRun.result`). ``on_round`` gets each pricing round's `Round`; ``gram`` as in
-    `ColumnGeneration`."""
+    partial: `wpot.ot.exact_partial.PartialRun.result`). ``on_round`` gets each pricing round's `Round`;
+    ``gram`` as in `ColumnGeneration`."""
     run = exact_run(problem, options, kind, on_round, gram=gram)
     cg = run.cg
     z1, z2 = np.zeros(cg.n1), np.zeros(cg.n2)
@@ -576,8 +582,9 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
 
 
 class BatchPricer:
-    """The pricing passes of many problems (stored costs, one device; balanced or partial) in one launch of `price_rows_batch`:
-    their costs (the caller's C, scaled in the kernel) are copied once into one flat device array, and
+    """The pricing passes of many problems (stored costs, one device; balanced or partial) in one launch of
+    `price_rows_batch`: their costs (the caller's C, scaled in the kernel) are copied once into one flat device
+    array, and
     each launch covers the rows (or columns) of the problems asked for. Counts its host-device transfers
     (``n_d2h``, ``n_h2d``: per launch, whatever the number of problems)."""
 
@@ -633,8 +640,8 @@ class BatchPricer:
 def solve_exact_batch(problems: list[TransportProblem], options: SolverOptions | None = None) -> list[OTResult]:
     """Solve many problems (balanced or partial, stored costs of any sizes, one device) exactly, their pricing
     passes in shared launches: one launch a round for every problem still running, so that a GPU is kept busy
-    by small problems; the restricted problems are solved on the host. Each result equals `solve_exact_problem`'s on the problem alone (the
-    same passes, in the same order: bit for bit)."""
+    by small problems; the restricted problems are solved on the host. Each result equals
+    `solve_exact_problem`'s on the problem alone (the same passes, in the same order: bit for bit)."""
     options = SolverOptions() if options is None else options
     runs = [exact_run(p, options, "solve_exact_batch") for p in problems]
     if not runs:

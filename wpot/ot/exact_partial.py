@@ -118,11 +118,10 @@ class PartialRun(ExactRun):
         # the penalty's minimizers w_i under sum m_i = 1 and its values there c_i (the shift of step 2)
         self.c1, self.c2 = 1.0 / np.sum(1.0 / self.alpha1), 1.0 / np.sum(1.0 / self.alpha2)
         self.w1, self.w2 = self.c1 / self.alpha1, self.c2 / self.alpha2
-        self.total = 1.0
 
-    def first_support(self, row_pass: tuple, col_pass: tuple) -> None:
-        """The first support: the first ``init_k`` of each row's and each column's candidates."""
-        self._add_first(row_pass, col_pass)
+    def feasible_entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """None needed: the masses are free, so the QP on any nonempty support is feasible."""
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
 
     def lp(self) -> tuple[np.ndarray, np.ndarray]:
         """Solve the QP on the support; returns the pass's duals u = -(z1 + z3), v = -z2 (r = C' - u - v)."""
@@ -132,7 +131,8 @@ class PartialRun(ExactRun):
                                                           self.w1, self.w2)
         self.obj = self._objective(cg.c, np.maximum(self.g, 0.0), cg.rows, cg.cols)[1] + self.c1 + self.c2
         self.u, self.v = -(self.z1 + self.z3), -self.z2
-        self.thresh = threshold(cg.c - self.u[cg.rows] - self.v[cg.cols])
+        self.r = cg.reduced(self.u, self.v)  # on the QP's support (later rounds may add entries after it)
+        self.thresh = threshold(self.r)
         self.t_lp = time.perf_counter() - t0
         return self.u, self.v
 
@@ -153,8 +153,7 @@ class PartialRun(ExactRun):
         cost = self.cost
         n1, n2 = cost.n1, cost.n2
         s = len(self.g)  # the QP's support: the first s entries (a stop on max_iter has added more since)
-        s_rows, s_cols, s_c = self.cg.rows[:s], self.cg.cols[:s], self.cg.c[:s]
-        r = s_c - self.u[s_rows] - self.v[s_cols]
+        s_rows, s_cols, s_c, r = self.cg.rows[:s], self.cg.cols[:s], self.cg.c[:s], self.r
         g = np.maximum(self.g, 0.0)
         g[(g < _ZERO_REL * g.max()) | (r > _FACE_R)] = 0.0
         g /= g.sum()
@@ -164,8 +163,8 @@ class PartialRun(ExactRun):
         m2 = np.bincount(cols, weights=vals, minlength=n2)
         transport, shifted = self._objective(s_c[keep], vals, rows, cols)
         z1 = self.z1 - np.minimum(self.rmin, 0.0)  # feasible for every entry (the last pass's row minima)
-        lower = (-float(self.w1 @ z1) - float(self.w2 @ self.z2) - self.z3 - float(np.sum(z1 * z1 / (4.0 * self.alpha1)))
-                 - float(np.sum(self.z2 ** 2 / (4.0 * self.alpha2))))
+        lower = (-float(self.w1 @ z1) - float(self.w2 @ self.z2) - self.z3
+                 - float(np.sum(z1 * z1 / (4.0 * self.alpha1))) - float(np.sum(self.z2 ** 2 / (4.0 * self.alpha2))))
         gap = max(shifted - lower, 0.0)
         primal = shifted + self.c1 + self.c2
         unit = cost.scale

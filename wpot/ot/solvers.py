@@ -9,8 +9,8 @@ the function forms `solve_balanced` / `solve_partial`.
 - "auto": "exact", balanced or partial.
 
 The annealing solvers record D(beta), the paper's distance along beta (every recorded beta is that beta's saddle
-point); "exact" records beta = infinity only, 3-30x faster than the annealing for balanced transport
-(`benchmarks/ot_speed.py`), ~40x for partial transport at full resolution (`benchmarks/table6.py`).
+point); "exact" records beta = infinity only, and is faster than the annealing: 3-30x for balanced transport
+(`benchmarks/ot_speed.py`), 50-180x for partial transport at full resolution (`benchmarks/table6.py`).
 """
 from __future__ import annotations
 
@@ -340,17 +340,14 @@ def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, method:
     Parameters are those of `solve_balanced` (``C`` may be a `FeatureCost`; ``options`` and the keyword
     overrides of `SolverOptions`), with rho1 (N1,), rho2 (N2,) positive reference measures (default
     uniform; normalized to sum 1) instead of a, b. ``method``: "auto" (default) or "exact" (the QP, certified
-    over every entry; ``history`` holds beta = inf only; ~40x faster than the annealing at 3,400 points a
-    side) or "anneal" (every grid beta solved and recorded).
+    over every entry; ``history`` holds beta = inf only; 50-180x faster than the annealing at 3,400 points a
+    side) or "anneal" (every grid beta solved and recorded; "ipm" is a ValueError, as for the solver).
 
     Returns OTResult with ``mass1``, ``mass2`` the plan's marginals (sum 1 together), ``cost`` the
     transport part sum C G, ``objective`` Eq. 17 (cost + penalty), ``free_energy`` Eq. 23 (= ``objective``
     at beta = inf), ``lam``, ``mu``, ``x`` the duals (Eq. 26's sign).
     """
     mass_penalty = positive_finite("mass_penalty", mass_penalty)
-    if method == "ipm":
-        raise ValueError("method='ipm' solves balanced transport only; solve_partial takes method='auto', "
-                         "'exact' or 'anneal'")
     solver = make_solver(method, _options(options, option_keywords, "solve_partial"))
     return solver.solve(TransportProblem(C, rho1, rho2, mass_penalty=mass_penalty, device=device))
 
