@@ -10,9 +10,11 @@ a vertex of Y with
   of its nearest sample (`Comparer.compare`). One WKS energy grid is fitted to all 76 shapes (§3.2).
 * **wpot-zoomout** (``--methods wpot-zoomout``): the same map refined by `wpot.zoomout` (spectral upsampling,
   k = 10 to 100 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
-  default ``orient=True`` (the parts found mirrored are sent through the shape's left/right symmetry and
-  refined again; `wpot.orientation`). Its time per pair includes the symmetry detection of a shape the first
-  time the shape is a source (then cached).
+  defaults: ``orient=True`` (two candidates, the better-oriented returned: the map with the parts found
+  mirrored sent through the shape's left/right symmetry, and the map of an orientation-aware functional map
+  fitted from WKS; `wpot.orientation`, `wpot.fmap`) and ``samples=2000`` (rounds before the last on
+  farthest-point samples). Its time per pair includes the symmetry detection of a shape the first time the
+  shape is a source (then cached).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
   of its README quickstart: area-normalized, centred meshes, 200 Laplace-Beltrami eigenpairs, 100 WKS
   descriptors (every second one kept), a 30 x 30 functional map fitted with w_descr = 1, w_lap = 0.1,
@@ -72,8 +74,10 @@ FMAPS_SETTINGS = {
     "w_dcomm": 1.0, "w_orient": 1.0, "zoomout_nit": 16, "zoomout_step": 5,
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
-#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True; plain ZoomOut was "+zoomout")
-ZOOMOUT_SUFFIX = "+zoomout-orient"
+#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True with the functional-map candidate and
+#: sampled rounds; "+zoomout-orient" was the symmetry candidate alone, every vertex in every round, and
+#: "+zoomout" the plain ZoomOut)
+ZOOMOUT_SUFFIX = "+zoomout-orient-fmap"
 NORMS = ("sqrt_area", "shrec19")
 
 
@@ -160,12 +164,13 @@ class ZoomOutMatcher:
     time per pair is wpot's plus the refinement's."""
 
     def __init__(self, base: WpotMatcher) -> None:
-        from wpot.refine import ZOOMOUT_K_END
+        from wpot.refine import ZOOMOUT_K_END, ZOOMOUT_SAMPLES
 
         self.base = base
         self.tag = base.tag + ZOOMOUT_SUFFIX
         self.setup_seconds: dict[str, float] = {}
-        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": True}
+        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": True,
+                        "samples": ZOOMOUT_SAMPLES}
 
     def settings(self) -> dict:
         return {**self.base.settings(), "zoomout": self.options}

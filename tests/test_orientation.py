@@ -134,6 +134,22 @@ def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
     assert not flipped and np.array_equal(t, oriented) and score > 0.5
 
 
+def test_zoomout_rescues_a_map_wrong_beyond_mirroring():
+    # a start map that is noise: plain ZoomOut cannot recover, the orientation-aware functional map (the second
+    # candidate of orient=True) does not need it and keeps left from right
+    a = mirror_symmetric(900, seed=0)
+    b = mirror_symmetric(1100, seed=5)
+    truth = _nearest(b.vertices, a.vertices)
+    start = np.random.default_rng(0).integers(0, b.n_vertices, a.n_vertices)
+
+    def error(t):
+        return np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area)
+
+    assert error(zoomout(a, b, start, k_end=40, orient=False)) > 0.2
+    oriented = zoomout(a, b, start, k_end=40, samples=400)
+    assert error(oriented) < 0.03 and orientation_score(a, b, oriented) > 0.5
+
+
 def test_orient_argument_is_checked():
     m = wpot.example_mesh(100)
     with pytest.raises(ValueError, match="orient must be True or False"):

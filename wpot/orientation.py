@@ -49,7 +49,7 @@ EXCLUSION = 0.1
 #: `local_orientation`'s neighbourhood, times sqrt(area)
 LOCAL_RADIUS = 0.1
 #: version of the detection, part of the cache key
-_VERSION = 1
+_VERSION = 2
 
 
 class OrientationWarning(UserWarning):

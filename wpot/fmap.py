@@ -1,0 +1,220 @@
+"""Functional maps fitted from descriptors, with an orientation-aware term (Ovsjanikov et al. 2012; Ren et al.
+2018), as the start of an orientation-keeping ZoomOut (`wpot.zoomout`).
+
+A functional map C (k × k) carries a function on B, given by its coefficients b in B's first k Laplace–Beltrami
+eigenfunctions (g ≈ Φ_B b), to its pull-back on A: g ∘ T ≈ Φ_A (C b), for a vertex map T: A → B. It is the
+same (k, k) matrix ZoomOut computes from a point map (`wpot.refine`). Here it is fitted without any point map,
+from functions that a near-isometry carries over (descriptors f_A ≈ f_B ∘ T, WKS on a shared energy grid), by
+linear least squares in its k² entries over four terms, each zero for an exact isometry's map:
+
+* descriptors: ``‖C B − A‖²``, with A, B (k × p) the coefficients of the p descriptors on each shape;
+* Laplacian commutativity: ``‖C Λ_B − Λ_A C‖²`` (Λ the first k eigenvalues, over the larger k-th one);
+* descriptor commutativity: ``Σ_f ‖C M_B^f − M_A^f C‖²``, with ``M^f = Φᵀ M diag(f) Φ`` the product by f in
+  the basis (a map that carries f over carries the products by f);
+* orientation: ``Σ_f ‖C O_B^f − O_A^f C‖²``, with ``O^f`` the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis.
+  This is the term that tells left from right: WKS and the other three terms are intrinsic, so they are
+  satisfied as well by the map composed with a left/right symmetry, whereas a mirror map turns the
+  orientation operator around (``C O_B^f = −O_A^f C``). It needs both surfaces consistently wound with
+  a readable outside (`wpot.orientation.winding`); the normals are taken outward on both.
+
+Each operator pair (and the descriptor coefficients) is scaled to a unit mean Frobenius norm, so the weights
+are relative and independent of the meshes' size and sampling; the defaults (k = 30, 50 WKS descriptors,
+weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart, which scores 0.865 on the TOSCA test pairs (see the
+README's correspondence rows). The point map of C is read as in ZoomOut (`point_map`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from wpot.mesh import Mesh
+
+__all__ = ["SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS"]
+
+#: default spectral resolution of the fitted functional map
+FMAP_K = 30
+#: default number of WKS descriptors (every second one of a 2x finer grid, as pyfmaps does)
+FMAP_DESCRIPTORS = 50
+#: rows of A per block of the brute-force nearest-neighbour search (a block holds rows x N_B distances)
+_BLOCK = 1024
+#: faces per block of the orientation operators' per-face products (a block holds faces x m x k floats)
+_FACE_BLOCK = 4096
+
+
+def point_map(phi_a: np.ndarray, phi_b: np.ndarray, fmap: np.ndarray) -> np.ndarray:
+    """The vertex map A -> B of a functional map: each vertex of A goes to the vertex of B whose spectral
+    embedding, carried by ``fmap``, is nearest: ``T(i) = argmin_j ‖Φ_A(i) − Φ_B(j) Cᵀ‖``.
+
+    phi_a (N_A, k), phi_b (N_B, k): the bases; fmap (k, k), B's coefficients to A's. Returns (N_A,) int64.
+    Brute force by blocks of BLAS products (exact; a k-d tree is slow in the 30-100 dimensions used here)."""
+    points = phi_b @ fmap.T
+    pp = np.einsum("ij,ij->i", points, points)
+    out = np.empty(len(phi_a), dtype=np.int64)
+    for s in range(0, len(phi_a), _BLOCK):
+        q = phi_a[s:s + _BLOCK]
+        out[s:s + _BLOCK] = np.argmin(pp[None, :] - 2.0 * (q @ points.T), axis=1)  # |q|^2 is constant per row
+    return out
+
+
+def _face_gradients(mesh: Mesh, values: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(F, 3, m) per-face gradients of the piecewise-linear vertex functions ``values`` (N, m), on the mesh
+    scaled to area 1; ``normals`` (F, 3) the unit face normals that orient each face's edges."""
+    v = mesh.vertices / np.sqrt(mesh.area)
+    f = mesh.faces
+    area2 = 2.0 * mesh.face_areas / mesh.area
+    ok = area2 > 0
+    inv = np.where(ok, 1.0 / np.where(ok, area2, 1.0), 0.0)  # a degenerate face has no gradient
+    grad = np.zeros((len(f), 3, values.shape[1]))
+    for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        # the gradient of the hat function of corner a is n x (edge b -> c) / (2 area), the edge opposite a
+        # taken counter-clockwise about n
+        rot = np.cross(normals, v[f[:, c]] - v[f[:, b]]) * inv[:, None]
+        grad += rot[:, :, None] * values[f[:, a]][:, None, :]
+    return grad
+
+
+class SpectralOperators:
+    """One mesh's first k eigenpairs and what the functional-map terms need of them, computed once.
+
+    Parameters
+    ----------
+    mesh : the shape: one connected surface, consistently wound (`wpot.orientation.winding` ≠ 0) when the
+        orientation operators are asked for
+    spectrum : its `wpot.Spectrum` (area-normalized eigenpairs, at least k)
+    k : spectral resolution
+
+    Attributes
+    ----------
+    phi : (N, k) eigenfunctions, M-orthonormal for the mass over the area
+    evals : (k,) their eigenvalues
+    pinv : (k, N) ``Φᵀ M / area``, the coefficients of a vertex function
+    """
+
+    def __init__(self, mesh: Mesh, spectrum, k: int) -> None:
+        from wpot.spectral import laplace_beltrami
+
+        if spectrum.evecs.shape[1] < k:
+            raise ValueError(f"the spectrum has {spectrum.evecs.shape[1]} eigenpairs, fewer than k={k}")
+        self.mesh = mesh
+        self.phi = np.ascontiguousarray(spectrum.evecs[:, :k])
+        self.evals = np.asarray(spectrum.evals[:k], dtype=np.float64)
+        mass = laplace_beltrami(mesh)[1].diagonal()
+        self.pinv = (self.phi * (mass / mass.sum())[:, None]).T
+        self._grad_phi: np.ndarray | None = None
+        self._normals: np.ndarray | None = None
+
+    def coefficients(self, values: np.ndarray) -> np.ndarray:
+        """(k, m) coefficients of the vertex functions ``values`` (N, m)."""
+        return self.pinv @ values
+
+    def multiplication(self, values: np.ndarray) -> np.ndarray:
+        """(m, k, k): for each function f of ``values`` (N, m), the product by f in the basis, ``Φᵀ M diag(f) Φ``
+        (M over the area)."""
+        return np.stack([self.pinv @ (values[:, j, None] * self.phi) for j in range(values.shape[1])])
+
+    def orientation(self, values: np.ndarray) -> np.ndarray:
+        """(m, k, k): for each function f of ``values`` (N, m), the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis,
+        with n the outward normal (per face, integrated over the faces: each face gives a third of its area to
+        each corner). Raises ValueError on a mesh whose outside cannot be read."""
+        from wpot.orientation import winding
+
+        mesh = self.mesh
+        if self._grad_phi is None:
+            side = winding(mesh)
+            if side == 0:
+                raise ValueError("the orientation operators need a closed, consistently wound surface: this mesh "
+                                 "encloses no volume to tell its outside from its inside")
+            self._normals = mesh.face_normals * side
+            self._grad_phi = _face_gradients(mesh, self.phi, self._normals)
+        grad_f = _face_gradients(mesh, values, self._normals)  # (F, 3, m)
+        rotated = np.cross(self._normals[:, :, None], grad_f, axis=1)  # n x ∇f, (F, 3, m)
+        # per face <n x ∇f, ∇φ_l> = <n, ∇f x ∇φ_l>, given to the face's corners (a third of its normalized area
+        # each): row k of the operator sums φ_k over the corners
+        f = mesh.faces
+        share = mesh.face_areas / mesh.area / 3.0
+        corners = (self.phi[f[:, 0]] + self.phi[f[:, 1]] + self.phi[f[:, 2]]) * share[:, None]  # (F, k)
+        k, m = self.phi.shape[1], values.shape[1]
+        out = np.zeros((k, m * k))
+        for s in range(0, len(f), _FACE_BLOCK):  # (faces, m, k) products a block of faces at a time
+            per_face = np.matmul(rotated[s:s + _FACE_BLOCK].transpose(0, 2, 1), self._grad_phi[s:s + _FACE_BLOCK])
+            out += corners[s:s + _FACE_BLOCK].T @ per_face.reshape(-1, m * k)
+        return out.reshape(k, m, k).transpose(1, 0, 2)
+
+
+def _normalized(xs: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Operator pairs (m, k, k) each, each pair scaled to a unit mean Frobenius norm."""
+    s = 0.5 * (np.linalg.norm(xs, axis=(1, 2)) + np.linalg.norm(qs, axis=(1, 2)))
+    s = np.where(s > 0, s, 1.0)[:, None, None]
+    return xs / s, qs / s
+
+
+def _commutator_normal(xs: np.ndarray, qs: np.ndarray) -> np.ndarray:
+    """``Σ_f Lᵀ L`` for the linear maps ``L(C) = C X_f − Q_f C`` on vec(C) (column-major), (k², k²).
+
+    With ``vec(C X) = (Xᵀ ⊗ I) vec C`` and ``vec(Q C) = (I ⊗ Q) vec C``:
+    ``LᵀL = (X Xᵀ) ⊗ I + I ⊗ (QᵀQ) − X ⊗ Q − Xᵀ ⊗ Qᵀ``; the sums of Kronecker products over f are one matrix
+    product each."""
+    m, k, _ = xs.shape
+    eye = np.eye(k)
+    h = np.kron(np.einsum("fab,fcb->ac", xs, xs), eye) + np.kron(eye, np.einsum("fba,fbc->ac", qs, qs))
+
+    def kron_sum(x: np.ndarray, q: np.ndarray) -> np.ndarray:  # Σ_f x_f ⊗ q_f
+        prod = x.reshape(m, k * k).T @ q.reshape(m, k * k)  # [(a, b), (c, e)] = Σ_f x[a, b] q[c, e]
+        return prod.reshape(k, k, k, k).transpose(0, 2, 1, 3).reshape(k * k, k * k)
+
+    return h - kron_sum(xs, qs) - kron_sum(xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))
+
+
+def functional_map(
+    ops_a: SpectralOperators,
+    ops_b: SpectralOperators,
+    desc_a: np.ndarray,
+    desc_b: np.ndarray,
+    *,
+    w_descr: float = 1.0,
+    w_lap: float = 0.1,
+    w_dcomm: float = 1.0,
+    w_orient: float = 1.0,
+) -> np.ndarray:
+    """The functional map (k, k) from B's coefficients to A's that best carries the descriptors over (see the
+    module docstring for the four terms).
+
+    Parameters
+    ----------
+    ops_a, ops_b : the two shapes' `SpectralOperators`, at the same k
+    desc_a, desc_b : (N_A, p) and (N_B, p) descriptors, column f of one corresponding to column f of the other
+        (e.g. WKS on one shared energy grid)
+    w_descr, w_lap, w_dcomm, w_orient : the terms' weights (nonnegative; w_orient = 0 drops the orientation
+        term and then needs no readable outside)
+
+    Returns
+    -------
+    (k, k) float64 C, the least-squares minimizer (unique: the descriptor term alone is positive definite when
+    the p ≥ k descriptors span B's basis).
+    """
+    k = ops_a.phi.shape[1]
+    if ops_b.phi.shape[1] != k:
+        raise ValueError(f"the two shapes' operators have different k: {k} and {ops_b.phi.shape[1]}")
+    if desc_a.ndim != 2 or desc_b.ndim != 2 or desc_a.shape[1] != desc_b.shape[1]:
+        raise ValueError(f"desc_a and desc_b must be (N_A, p) and (N_B, p), got {desc_a.shape} and {desc_b.shape}")
+    for name, w in (("w_descr", w_descr), ("w_lap", w_lap), ("w_dcomm", w_dcomm), ("w_orient", w_orient)):
+        if not np.isfinite(w) or w < 0:
+            raise ValueError(f"{name} must be a finite number >= 0, got {w!r}")
+    p = desc_a.shape[1]
+    a, b = ops_a.coefficients(desc_a), ops_b.coefficients(desc_b)
+    s = np.maximum(0.5 * (np.linalg.norm(a, axis=0) + np.linalg.norm(b, axis=0)), 1e-300)
+    a, b = a / s, b / s
+    eye = np.eye(k)
+    # ‖C B − A‖²: normal matrix (B Bᵀ) ⊗ I, right-hand side vec(A Bᵀ)
+    h = (w_descr / p) * np.kron(b @ b.T, eye)
+    rhs = (w_descr / p) * (a @ b.T).reshape(-1, order="F")
+    scale = max(float(ops_a.evals[-1]), float(ops_b.evals[-1]), 1e-300)
+    if w_lap:
+        h += w_lap * _commutator_normal(np.diag(ops_b.evals / scale)[None], np.diag(ops_a.evals / scale)[None])
+    if w_dcomm:
+        h += (w_dcomm / p) * _commutator_normal(*_normalized(ops_b.multiplication(desc_b),
+                                                               ops_a.multiplication(desc_a)))
+    if w_orient:
+        h += (w_orient / p) * _commutator_normal(*_normalized(ops_b.orientation(desc_b),
+                                                                ops_a.orientation(desc_a)))
+    h += 1e-12 * np.trace(h) / h.shape[0] * np.eye(h.shape[0])  # guards a rank-deficient descriptor set
+    return np.linalg.solve(h, rhs).reshape(k, k, order="F")
