@@ -176,3 +176,18 @@ def test_two_components_map_onto_a_relabelled_copy():
     # a component's vertices stay in the component most of them were mapped to
     lb = b.component_labels
     assert np.all(lb[out] == lb[truth])
+
+
+def test_stretch_of_a_map():
+    from wpot.refine import _stretch
+
+    a = wpot.example_mesh(500, seed=3)
+    ident = np.arange(a.n_vertices)
+    assert _stretch(a, a, ident) == pytest.approx(1.0)
+    # a similarity of B changes nothing (lengths are over the square root of the area)
+    b = Mesh(3.0 * a.vertices @ Rotation.random(random_state=1).as_matrix().T, a.faces)
+    assert _stretch(a, b, ident) == pytest.approx(1.0)
+    # half the vertices sent to random places tears the map
+    rng = np.random.default_rng(0)
+    torn = np.where(rng.random(a.n_vertices) < 0.5, ident, rng.integers(0, a.n_vertices, a.n_vertices))
+    assert _stretch(a, a, torn) > 3.0

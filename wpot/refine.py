@@ -29,8 +29,10 @@ Laplace–Beltrami spectra match. Nor is it meant for a part against a whole, wh
 
 Left and right: ZoomOut alone cannot tell them apart. WKS maps mix the two sides of a symmetric body, and
 ZoomOut makes them consistent with one side, sometimes the mirror one, or the mirror one on a symmetric part
-only (both legs). So by default (``orient=True``) two candidates are refined and the one that keeps
-orientation better (`wpot.orientation.orientation_score`, read extrinsically) is returned:
+only (both legs). So by default (``orient=True``) two candidates are refined, and of those that keep
+orientation on the whole (`wpot.orientation.orientation_score` > 0, read extrinsically) the one that stretches
+the surface least is returned (a limb sent onto the other one with a half turn keeps orientation, but tears the
+map at its root); when neither keeps orientation, the better-oriented:
 
 1. the given map, refined; the parts found mirrored are sent through the shape's left/right symmetry and
    refined again (`wpot.orientation.keep_orientation`);
@@ -95,12 +97,12 @@ def zoomout(
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default: the cached
         spectrum of `ZOOMOUT_N_EIGEN` = 500 eigenpairs (the WKS default; the vertex count when smaller) when a
         WKS comparison has computed it, else k_end eigenpairs
-    orient : keep left and right apart (default): refine two candidates and return the one that keeps
-        orientation better (the module docstring): the given map, with the parts where it reverses orientation
-        (`wpot.orientation.local_orientation`) sent through A's left/right symmetry (or B's;
-        `wpot.orientation.keep_orientation`), and the map of an orientation-aware functional map fitted from
-        WKS descriptors (`wpot.fmap`; only for two connected surfaces with a readable outside). False: the
-        plain ZoomOut of the given map, which settles on either side
+    orient : keep left and right apart (default): refine two candidates and return, of those that keep
+        orientation, the least stretched (the module docstring): the given map, with the parts where it
+        reverses orientation (`wpot.orientation.local_orientation`) sent through A's left/right symmetry (or
+        B's; `wpot.orientation.keep_orientation`), and the map of an orientation-aware functional map fitted
+        from WKS descriptors (`wpot.fmap`; only for two connected surfaces with a readable outside). False:
+        the plain ZoomOut of the given map, which settles on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
 
@@ -149,12 +151,27 @@ def zoomout(
     # time (the README's correspondence table)
     out, score, _ = keep_orientation(mesh_a, mesh_b, out, refine=lambda init: refine(init, k_start, k_end, 2 * step))
     # 2. a second candidate that does not depend on the given map: the functional map fitted with the
-    # orientation term, refined from its resolution; the better-oriented of the two is returned
+    # orientation term, refined from its resolution
     start = _oriented_start(mesh_a, mesh_b, n_eigen, k_end)
     if start is None:
         return out
     alt = refine(start[0], start[1], k_end, step)
-    return alt if orientation_score(mesh_a, mesh_b, alt) > score else out
+    # of the candidates that keep orientation on the whole, the least stretched (a limb mapped onto the other
+    # one with a half turn keeps orientation but tears at its root); else the better-oriented
+    cands = [(out, score), (alt, orientation_score(mesh_a, mesh_b, alt))]
+    kept = [t for t, sc in cands if sc > 0]
+    if kept:
+        return min(kept, key=lambda t: _stretch(mesh_a, mesh_b, t))
+    return max(cands, key=lambda c: c[1])[0]
+
+
+def _stretch(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> float:
+    """How much a vertex map A -> B stretches A's edges: the mean length of the edges' images over the mean
+    edge length, each over the square root of its mesh's area (about 1 for a smooth map between two
+    similar samplings; a map torn along a seam sends some edges across the shape)."""
+    e = mesh_a.edges
+    image = np.linalg.norm(mesh_b.vertices[t[e[:, 0]]] - mesh_b.vertices[t[e[:, 1]]], axis=1).mean()
+    return float(image / np.sqrt(mesh_b.area)) / float(mesh_a.edge_lengths.mean() / np.sqrt(mesh_a.area))
 
 
 def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> tuple[np.ndarray, int] | None:
