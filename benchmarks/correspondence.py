@@ -74,10 +74,11 @@ FMAPS_SETTINGS = {
     "w_dcomm": 1.0, "w_orient": 1.0, "zoomout_nit": 16, "zoomout_step": 5,
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
-#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True with the functional-map candidate and
-#: sampled rounds; "+zoomout-orient" was the symmetry candidate alone, every vertex in every round, and
-#: "+zoomout" the plain ZoomOut)
-ZOOMOUT_SUFFIX = "+zoomout-orient-fmap"
+#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
+#: candidates, the least stretched of those that keep orientation; sampled rounds). Earlier tags:
+#: "+zoomout-orient-fmap" picked the better-oriented candidate, "+zoomout-orient" had the symmetry candidate
+#: alone with every vertex in every round, "+zoomout" was the plain ZoomOut
+ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-stretch"
 NORMS = ("sqrt_area", "shrec19")
 
 

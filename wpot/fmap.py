@@ -45,12 +45,14 @@ def point_map(phi_a: np.ndarray, phi_b: np.ndarray, fmap: np.ndarray) -> np.ndar
     embedding, carried by ``fmap``, is nearest: ``T(i) = argmin_j ‖Φ_A(i) − Φ_B(j) Cᵀ‖``.
 
     phi_a (N_A, k), phi_b (N_B, k): the bases; fmap (k, k), B's coefficients to A's. Returns (N_A,) int64.
-    Brute force by blocks of BLAS products (exact; a k-d tree is slow in the 30-100 dimensions used here)."""
-    points = phi_b @ fmap.T
+    Brute force by blocks of BLAS products, in float32 (twice as fast; a k-d tree is slow in the 30-100
+    dimensions used here)."""
+    points = (phi_b @ fmap.T).astype(np.float32)
     pp = np.einsum("ij,ij->i", points, points)
+    queries = phi_a.astype(np.float32)
     out = np.empty(len(phi_a), dtype=np.int64)
     for s in range(0, len(phi_a), _BLOCK):
-        q = phi_a[s:s + _BLOCK]
+        q = queries[s:s + _BLOCK]
         out[s:s + _BLOCK] = np.argmin(pp[None, :] - 2.0 * (q @ points.T), axis=1)  # |q|^2 is constant per row
     return out
 

@@ -46,6 +46,9 @@ correspondence table has the measured effect of both.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+from typing import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -136,10 +139,18 @@ def zoomout(
     orient = boolean("orient", orient)
     samples = None if samples is None else _positive_int(samples, "samples")
 
+    @lru_cache(maxsize=8)  # each mesh is sampled once per call, whatever the candidates and components
+    def sample(mesh: Mesh) -> np.ndarray | None:
+        if samples is None or samples >= mesh.n_vertices:
+            return None
+        from wpot.sampling import farthest_point_sampling
+
+        return farthest_point_sampling(mesh, samples, metric="euclidean").indices
+
     def refine(init: np.ndarray, k0: int, k1: int, dk: int) -> np.ndarray:
         if mesh_a.n_components == 1 and mesh_b.n_components == 1:
-            return _zoom(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, samples=samples)
-        return _zoom_components(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, samples)
+            return _zoom(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, sample=sample)
+        return _zoom_components(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, sample)
 
     out = refine(t, k_start, k_end, step)
     if not orient:
@@ -214,19 +225,19 @@ def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
 
 
 def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int, n_eigen: int | None,
-          valid: np.ndarray | None = None, samples: int | None = None) -> np.ndarray:
+          valid: np.ndarray | None = None, sample: Callable[[Mesh], np.ndarray | None] | None = None
+          ) -> np.ndarray:
     """ZoomOut between two connected meshes: t (N_A,) int64 → (N_A,) int64. ``valid`` (N_A,) bool, optional:
     the vertices of A whose map enters the first functional map (the others' entries of t are ignored).
-    ``samples``: the rounds before the last map only that many vertices of each mesh (farthest-point samples),
-    onto each other, and fit the functional map to them by least squares; the last round maps every vertex."""
+    ``sample``: a mesh's sampled vertices (or None: every vertex); with both meshes sampled, the rounds before
+    the last map only the samples onto each other, and fit the functional map to them by least squares; the
+    last round maps every vertex."""
     from wpot.spectral import laplace_beltrami
 
     phi_a, phi_b = (_spectrum(m, n_eigen, k_end).evecs[:, :k_end] for m in (mesh_a, mesh_b))
     ks = _schedule(k_start, k_end, step)
-    if samples is not None and samples < min(mesh_a.n_vertices, mesh_b.n_vertices) and len(ks) > 1:
-        from wpot.sampling import farthest_point_sampling
-
-        sa, sb = (farthest_point_sampling(m, samples, metric="euclidean").indices for m in (mesh_a, mesh_b))
+    sa, sb = (None, None) if sample is None else (sample(mesh_a), sample(mesh_b))
+    if sa is not None and sb is not None and len(ks) > 1:
         if valid is not None:
             sa = sa[valid[sa]]
         ts = t[sa]
@@ -255,7 +266,7 @@ def _component(mesh: Mesh, labels: np.ndarray, c: int) -> tuple[Mesh, np.ndarray
 
 
 def _zoom_components(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int,
-                     n_eigen: int | None, samples: int | None = None) -> np.ndarray:
+                     n_eigen: int | None, sample: Callable[[Mesh], np.ndarray | None] | None = None) -> np.ndarray:
     """ZoomOut component by component (see the module docstring): each component of A against the component of
     B that most of its vertices map to."""
     la, lb = mesh_a.component_labels, mesh_b.component_labels
@@ -275,5 +286,5 @@ def _zoom_components(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_
         t_loc = local_b[t[ia]]
         ke = min(k_end, n_loc if n_eigen is None else min(n_eigen, n_loc))
         out[ia] = ib[_zoom(sub_a, sub_b, t_loc, min(k_start, ke), ke, step,
-                           None if n_eigen is None else min(n_eigen, n_loc), valid=t_loc >= 0, samples=samples)]
+                           None if n_eigen is None else min(n_eigen, n_loc), valid=t_loc >= 0, sample=sample)]
     return out
