@@ -75,10 +75,10 @@ FMAPS_SETTINGS = {
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
-#: candidates, the least stretched of those that keep orientation; sampled rounds). Earlier tags:
+#: candidates, the least stretched of those oriented about as well as the better; sampled rounds). Earlier tags:
 #: "+zoomout-orient-fmap" picked the better-oriented candidate, "+zoomout-orient" had the symmetry candidate
 #: alone with every vertex in every round, "+zoomout" was the plain ZoomOut
-ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-stretch"
+ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-tie"
 NORMS = ("sqrt_area", "shrec19")
 
 

@@ -29,10 +29,10 @@ Laplace–Beltrami spectra match. Nor is it meant for a part against a whole, wh
 
 Left and right: ZoomOut alone cannot tell them apart. WKS maps mix the two sides of a symmetric body, and
 ZoomOut makes them consistent with one side, sometimes the mirror one, or the mirror one on a symmetric part
-only (both legs). So by default (``orient=True``) two candidates are refined, and of those that keep
-orientation on the whole (`wpot.orientation.orientation_score` > 0, read extrinsically) the one that stretches
-the surface least is returned (a limb sent onto the other one with a half turn keeps orientation, but tears the
-map at its root); when neither keeps orientation, the better-oriented:
+only (both legs). So by default (``orient=True``) two candidates are refined, and of those oriented about as
+well as the better one (`wpot.orientation.orientation_score`, read extrinsically, within `ORIENTATION_TIE`)
+the one that stretches the surface least is returned (a limb sent onto the other one with a half turn keeps
+orientation, but tears the map at its root):
 
 1. the given map, refined; the parts found mirrored are sent through the shape's left/right symmetry and
    refined again (`wpot.orientation.keep_orientation`);
@@ -56,7 +56,7 @@ from wpot._validate import boolean, vertex_map
 from wpot.fmap import point_map
 from wpot.mesh import Mesh
 
-__all__ = ["zoomout", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES"]
+__all__ = ["zoomout", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES", "ORIENTATION_TIE"]
 
 #: the spectrum size looked up in the cache first (fewer when a mesh has fewer vertices): the WKS default, so
 #: that the spectra a WKS comparison computed are reused
@@ -64,6 +64,10 @@ ZOOMOUT_N_EIGEN = 500
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). On 8 TOSCA test pairs, AUC
 #: 0.716 for k = 10..100 by 5, 0.699 by 2, 0.722 to 150, 0.672 from 20, 0.621 from 4 by 4
 ZOOMOUT_K_END = 100
+#: orientation scores within this of the best count as a tie between `zoomout`'s candidates, which the
+#: stretch then decides: good maps of one TOSCA pair score 0.5-0.8, a map mirrored on a limb or half the body
+#: (its score pulled towards 0 or below) is more than this behind
+ORIENTATION_TIE = 0.15
 #: default vertices per mesh in the rounds before the last (farthest-point samples; the last round maps every
 #: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round at a third of the time
 #: (the README's correspondence rows)
@@ -100,12 +104,12 @@ def zoomout(
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default: the cached
         spectrum of `ZOOMOUT_N_EIGEN` = 500 eigenpairs (the WKS default; the vertex count when smaller) when a
         WKS comparison has computed it, else k_end eigenpairs
-    orient : keep left and right apart (default): refine two candidates and return, of those that keep
-        orientation, the least stretched (the module docstring): the given map, with the parts where it
-        reverses orientation (`wpot.orientation.local_orientation`) sent through A's left/right symmetry (or
-        B's; `wpot.orientation.keep_orientation`), and the map of an orientation-aware functional map fitted
-        from WKS descriptors (`wpot.fmap`; only for two connected surfaces with a readable outside). False:
-        the plain ZoomOut of the given map, which settles on either side
+    orient : keep left and right apart (default): refine two candidates and return, of those oriented about
+        as well as the better one, the least stretched (the module docstring): the given map, with the parts
+        where it reverses orientation (`wpot.orientation.local_orientation`) sent through A's left/right
+        symmetry (or B's; `wpot.orientation.keep_orientation`), and the map of an orientation-aware functional
+        map fitted from WKS descriptors (`wpot.fmap`; only for two connected surfaces with a readable outside).
+        False: the plain ZoomOut of the given map, which settles on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
 
@@ -167,13 +171,11 @@ def zoomout(
     if start is None:
         return out
     alt = refine(start[0], start[1], k_end, step)
-    # of the candidates that keep orientation on the whole, the least stretched (a limb mapped onto the other
-    # one with a half turn keeps orientation but tears at its root); else the better-oriented
+    # of the candidates oriented about as well as the best one, the least stretched (a limb mapped onto the
+    # other one with a half turn keeps orientation but tears at its root)
     cands = [(out, score), (alt, orientation_score(mesh_a, mesh_b, alt))]
-    kept = [t for t, sc in cands if sc > 0]
-    if kept:
-        return min(kept, key=lambda t: _stretch(mesh_a, mesh_b, t))
-    return max(cands, key=lambda c: c[1])[0]
+    best = max(sc for _, sc in cands)
+    return min((t for t, sc in cands if sc >= best - ORIENTATION_TIE), key=lambda t: _stretch(mesh_a, mesh_b, t))
 
 
 def _stretch(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> float:
