@@ -10,10 +10,10 @@ a vertex of Y with
   of its nearest sample (`Comparer.compare`). One WKS energy grid is fitted to all 76 shapes (§3.2).
 * **wpot-zoomout** (``--methods wpot-zoomout``): the same map refined by `wpot.zoomout` (spectral upsampling,
   k = 10 to 100 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
-  defaults: ``orient=True`` (two candidates, the better-oriented returned: the map with the parts found
-  mirrored sent through the shape's left/right symmetry, and the map of an orientation-aware functional map
-  fitted from WKS; `wpot.orientation`, `wpot.fmap`) and ``samples=2000`` (rounds before the last on
-  farthest-point samples). Its time per pair includes the symmetry detection of a shape the first time the
+  defaults: ``orient=True`` (two candidates: the map with the parts found mirrored sent through the shape's
+  left/right symmetry, and the map of an orientation-aware functional map fitted from WKS; of those oriented
+  about as well as the better one, the least stretched; `wpot.orientation`, `wpot.fmap`) and ``samples=2000``
+  (rounds before the last on farthest-point samples). Its time per pair includes the symmetry detection of a shape the first time the
   shape is a source (then cached).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
   of its README quickstart: area-normalized, centred meshes, 200 Laplace-Beltrami eigenpairs, 100 WKS
@@ -75,9 +75,7 @@ FMAPS_SETTINGS = {
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
-#: candidates, the least stretched of those oriented about as well as the better; sampled rounds). Earlier tags:
-#: "+zoomout-orient-fmap" picked the better-oriented candidate, "+zoomout-orient" had the symmetry candidate
-#: alone with every vertex in every round, "+zoomout" was the plain ZoomOut
+#: candidates, the least stretched of those oriented about as well as the better; sampled rounds)
 ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-tie"
 NORMS = ("sqrt_area", "shrec19")
 

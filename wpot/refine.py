@@ -41,7 +41,7 @@ orientation, but tears the map at its root):
    is wrong beyond mirroring; the given map wins where the descriptors alone mislead.
 
 Each candidate's rounds before the last map only ``samples`` farthest-point samples of each mesh onto each
-other (the functional map fitted to them by least squares); the last round maps every vertex. The README's
+other (the functional map fitted to them by least squares); the last resolution maps every vertex. The README's
 correspondence table has the measured effect of both.
 """
 from __future__ import annotations
@@ -233,24 +233,23 @@ def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, s
     the vertices of A whose map enters the first functional map (the others' entries of t are ignored).
     ``sample``: a mesh's sampled vertices (or None: every vertex); with both meshes sampled, the rounds before
     the last map only the samples onto each other, and fit the functional map to them by least squares; the
-    last round maps every vertex."""
-    from wpot.spectral import laplace_beltrami
+    last round maps every vertex with that fit, and once more with the fit to every vertex."""
+    from wpot.fmap import SpectralOperators
 
-    phi_a, phi_b = (_spectrum(m, n_eigen, k_end).evecs[:, :k_end] for m in (mesh_a, mesh_b))
+    ops_a, ops_b = (SpectralOperators(m, _spectrum(m, n_eigen, k_end), k_end) for m in (mesh_a, mesh_b))
+    phi_a, phi_b = ops_a.phi, ops_b.phi
     ks = _schedule(k_start, k_end, step)
     sa, sb = (None, None) if sample is None else (sample(mesh_a), sample(mesh_b))
     if sa is not None and sb is not None and len(ks) > 1:
         if valid is not None:
             sa = sa[valid[sa]]
         ts = t[sa]
-        for k in ks[:-1]:
+        for n, k in enumerate(ks):
             fmap = np.linalg.lstsq(phi_a[sa, :k], phi_b[ts, :k], rcond=None)[0]
-            ts = sb[point_map(phi_a[sa, :k], phi_b[sb, :k], fmap)]
-        k = ks[-1]
-        fmap = np.linalg.lstsq(phi_a[sa, :k], phi_b[ts, :k], rcond=None)[0]
-        t, ks, valid = point_map(phi_a[:, :k], phi_b[:, :k], fmap), ks[-1:], None
-    mass_a = laplace_beltrami(mesh_a)[1].diagonal()
-    weighted_a = phi_a * (mass_a / mass_a.sum())[:, None]  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
+            if n < len(ks) - 1:
+                ts = sb[point_map(phi_a[sa, :k], phi_b[sb, :k], fmap)]
+        t, ks, valid = point_map(phi_a, phi_b, fmap), ks[-1:], None
+    weighted_a = ops_a.pinv.T  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
     first = weighted_a if valid is None else weighted_a * valid[:, None]
     t = np.where(valid, t, 0) if valid is not None else t
     for n, k in enumerate(ks):
