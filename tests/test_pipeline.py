@@ -226,6 +226,25 @@ def _count(db: Path, table: str) -> int:
         return 0
 
 
+def _write_lock_after(db: Path, n: int) -> sqlite3.Connection | None:
+    """The run's write lock, held on the returned connection, once at least `n` pairs are committed; None (lock
+    released) before. Holding it while the run is killed makes "killed mid-run" deterministic: the coordinator
+    waits on the lock (its timeout is 60 s) and cannot commit the remaining pairs however fast they are."""
+    if not db.is_file():
+        return None
+    con = sqlite3.connect(db, timeout=5, isolation_level=None)
+    try:
+        con.execute("BEGIN IMMEDIATE")
+        done = int(con.execute("SELECT COUNT(*) FROM pairs").fetchone()[0])
+    except sqlite3.OperationalError:  # table not created yet, or the lock is busy
+        con.close()
+        return None
+    if done >= n:
+        return con
+    con.close()  # rolls back, releasing the lock
+    return None
+
+
 def test_killed_parallel_run_resumes_without_recomputing(clean_run, dataset, tmp_path):
     run = tmp_path / "run"
     db = run / "wpot.sqlite"
@@ -233,14 +252,19 @@ def test_killed_parallel_run_resumes_without_recomputing(clean_run, dataset, tmp
         return [sys.executable, "-m", "wpot.cli", "all-vs-all", str(dataset), "--out", str(run), "--jobs", str(jobs), "--no-progress", *FAST_CLI]
 
     proc = subprocess.Popen(cmd(2), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    lock = None
     try:
         deadline = time.time() + 300
-        while _count(db, "pairs") < 3 and proc.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
+        while lock is None and proc.poll() is None and time.time() < deadline:
+            lock = _write_lock_after(db, 3)
+            time.sleep(0.02)
         assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-2000:]}"
+        assert lock is not None, "3 pairs were not committed within 300 s"
         os.killpg(proc.pid, signal.SIGKILL)  # the coordinator and its worker processes, mid-run
     finally:
         proc.wait(timeout=60)
+        if lock is not None:
+            lock.close()
     done_before = _count(db, "pairs")
     assert 3 <= done_before < 15
     # resume in one process (the parallel path was exercised above; this keeps the test short)
