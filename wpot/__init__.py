@@ -63,6 +63,10 @@ _EXPORTS: dict[str, str] = {
     "correspondence_error": "wpot.evaluate",
     "summarize_correspondence": "wpot.evaluate",
     "GeodesicDistances": "wpot.evaluate",
+    # a part located in a whole by geodesic consistency
+    "locate_part": "wpot.locate",
+    "LocateOptions": "wpot.locate",
+    "PartMap": "wpot.locate",
     "cumulative_curve": "wpot.evaluate",
     "curve_auc": "wpot.evaluate",
     "list_shapes": "wpot.datasets",

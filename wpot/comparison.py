@@ -630,6 +630,18 @@ class Comparer:
         return _assemble(res, pa.subsample, pb.subsample, mesh_a, mesh_b, distance, self_e, hist, self.config,
                          (pa.masses, pb.masses))
 
+    def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
+        """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.locate.locate_part`): this comparer's
+        signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
+        in another pose, where the transport's own ``correspondence`` lands on the true place for few
+        vertices; ``options`` is a `wpot.locate.LocateOptions`. Returns a `wpot.locate.PartMap`."""
+        from wpot.locate import locate_part
+
+        if self.stage.needs_fit and not self.stage.fitted:
+            self.fit([part, whole], labels=["part", "whole"])
+        return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
+                           options=options, device=self.device)
+
 
 def _matched_pairs(res: Any, m1: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows, columns and values of the plan entries above ``ratio · m1`` (row-major order), from the dense plan
