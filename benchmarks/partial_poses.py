@@ -38,7 +38,7 @@ Peers, computed in the same run on the same signatures (`Comparer.signatures`), 
 
 Also, on the same signatures: ``locate`` (`Comparer.locate`, `wpot.locate`: the signatures propose
 candidate matches, geodesic consistency picks a consistent set and fills in the map; default
-`wpot.locate.LocateOptions`); its distance for retrieval is the map's mean residual, its mass on the true
+`wpot.locate.LocateOptions`); its distance for retrieval is the map's mean signature cost, its mass on the true
 region the share of the part's area whose image lands there.
 
 **Ground truth** for P -> T: P's vertex v is S's vertex ``idx[v]``; template point i lies in P when
@@ -546,14 +546,14 @@ class Matchers:
         return np.asarray(comp.correspondence, dtype=np.int64), dt, info, comp
 
     def locate(self, p, t) -> tuple[np.ndarray, float, dict, object]:
-        """`Comparer.locate` on the same signatures; its distance (for retrieval) is the mean residual."""
+        """`Comparer.locate` on the same signatures; its distance (for retrieval) is `PartMap.cost`."""
         self.comparer.signatures(p), self.comparer.signatures(t)  # set-up, timed apart in prepare()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             t0 = time.perf_counter()
             pm = self.comparer.locate(p, t, options=self.locate_options)
             dt = time.perf_counter() - t0
-        info = {"distance": float(np.mean(pm.residual)), "n_anchors": int(len(pm.anchors)),
+        info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), "n_anchors": int(len(pm.anchors)),
                 "orientation": pm.orientation, "n_warnings": len(caught)}
         return pm.correspondence, dt, info, pm
 

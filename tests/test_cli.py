@@ -115,6 +115,26 @@ def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path
     assert json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout"] is True
 
 
+def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
+    import wpot as w
+
+    a, b = dataset / "blob1.off", dataset / "flat2.off"
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--out", str(tmp_path / "l"))
+    assert r.returncode == 0, r.stderr
+    z = np.load(tmp_path / "l" / "correspondence.npz")
+    ma, mb = w.load_mesh(a), w.load_mesh(b)
+    c = w.Comparer(transport="partial", n_eigen=30, n_energies=30, device="cpu", cache_dir=False)
+    c.compare(ma, mb)  # fits the WKS energies to the pair, as the CLI does
+    pm = c.locate(ma, mb)
+    np.testing.assert_array_equal(z["correspondence_locate"], pm.correspondence)
+    np.testing.assert_allclose(z["confidence_locate"], pm.confidence)
+    np.testing.assert_array_equal(z["region_locate"], pm.region())
+    n = int(re.search(r"^locate: (\d+) consistent anchor matches", r.stdout, re.M).group(1))
+    info = json.loads((tmp_path / "l" / "comparison.json").read_text())["locate"]
+    assert n == info["n_anchors"] == len(pm.anchors)
+    _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
+
+
 def test_all_vs_all_classify_report(dataset, tmp_path):
     run = tmp_path / "run"
     r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from wpot.cost import cost_matrix
+from wpot.cost import cost_matrix, paired_costs
 
 
 def _ref(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
@@ -36,6 +36,19 @@ def test_agrees_with_numpy_reference(sigs, metric, device):
     c = cost_matrix(a, b, metric=metric, device=device)
     assert isinstance(c, np.ndarray) and c.dtype == np.float64 and c.shape == (37, 29)
     np.testing.assert_allclose(c, _ref(a, b, metric), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("metric", ["wks", "l2", "l1"])
+def test_paired_costs_are_the_matrix_entries_a_map_picks(sigs, metric, device):
+    a, b = sigs
+    rows = np.random.default_rng(3).integers(0, len(b), size=len(a))
+    rows[2], rows[0] = 3, 1  # the zero guards: zeros against zeros, and a zero row against a zero row
+    got = paired_costs(a, b, rows, metric=metric, device=device)
+    np.testing.assert_array_equal(got, cost_matrix(a, b, metric=metric, device=device)[np.arange(len(a)), rows])
+    with pytest.raises(ValueError, match="rows_2 must be"):
+        paired_costs(a, b, rows[:-1], metric=metric, device=device)
+    with pytest.raises(ValueError, match="outside"):
+        paired_costs(a, b, np.full(len(a), len(b)), metric=metric, device=device)
 
 
 def test_wks_cost_properties(sigs, device):

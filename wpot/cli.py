@@ -112,7 +112,28 @@ def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> np.ndarray | None:
     return refined
 
 
+def _add_locate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--locate", action="store_true",
+                   help="also locate A in B by geodesic consistency (wpot.locate: A a part of a shape like B, in any "
+                   "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
+                   "saved as correspondence_locate, confidence_locate and region_locate, and drawn in the picture")
+
+
+def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> Any:
+    """`Comparer.locate` of A in B when ``--locate`` was given (printing what it found)."""
+    if not getattr(a, "locate", False):
+        return None
+    pm = comparer.locate(ma, mb)
+    print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
+          f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
+          f"{pm.orientation:.2f}")
+    return pm
+
+
 def _check_zoomout(a: argparse.Namespace) -> None:
+    if a.zoomout and getattr(a, "locate", False):
+        raise CliError("--zoomout and --locate each give a refined correspondence; choose one (--zoomout for two "
+                       "whole shapes, --locate for a part against a whole)")
     if a.zoomout and a.transport == "partial":
         raise CliError("--zoomout refines maps between whole, near-isometric shapes (their Laplace-Beltrami spectra "
                        "must match); with --transport partial, for a part against a whole, it would spread the part "
@@ -199,6 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     _add_match_ratio(p)
     _add_zoomout(p)
+    _add_locate(p)
     _add_progress(p)
     p.set_defaults(func=cmd_compare)
 
@@ -547,9 +569,10 @@ def _json_beta(beta: float) -> float | None:
 
 
 def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
-                     refined: np.ndarray | None = None) -> list[Path]:
-    """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given) and
-    correspondence.png (of ``refined`` when given, else of the plan's correspondence).
+                     refined: np.ndarray | None = None, located: Any = None) -> list[Path]:
+    """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given, and
+    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located``, a `wpot.locate.PartMap`,
+    is) and correspondence.png (of the refined or located map when there is one, else of the plan's).
 
     Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
     maps to -1, and ``index_map_a`` / ``index_map_b`` give the file index of each vertex used."""
@@ -594,6 +617,10 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         return per_input(a, b.to_input(corr).astype(np.int64), -1)
 
     arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined)}
+    if located is not None:
+        arrays.update(correspondence_locate=on_input(located.correspondence),
+                      confidence_locate=per_input(a, located.confidence, np.nan),
+                      region_locate=per_input(b, located.region(), False))
     for name, m in (("index_map_a", a), ("index_map_b", b)):
         if m.index_map is not None:
             arrays[name] = m.index_map
@@ -606,7 +633,11 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     if c.registration is not None:  # draw B in A's pose: undo the fitted similarity
         mb = c.registration.inverse().apply(mb)
         title_b = "B, moved onto A by the inverse of the fitted registration"
-    shown, what = (c.correspondence, "correspondence") if refined is None else (refined, "ZoomOut correspondence")
+    shown, what = (c.correspondence, "correspondence")
+    if refined is not None:
+        shown, what = refined, "ZoomOut correspondence"
+    elif located is not None:
+        shown, what = located.correspondence, "located correspondence"
     plot_correspondence(a.mesh, mb, shown, titles=(f"A, coloured through the {what}", title_b), path=files[2])
     return files
 
@@ -714,10 +745,15 @@ def cmd_compare(a: argparse.Namespace) -> None:
     if other:
         print(f"  (other settings than the run's: {'; '.join(other)}; so this is not the run's distance for the pair)")
     refined = _zoomout(a, ma.mesh, mb.mesh, c)
+    located = _locate(a, comparer, ma.mesh, mb.mesh)
     if a.out:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
                  "settings": config.describe(), "signature_state": info, "repair": bool(a.repair)}
-        files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined)
+        if located is not None:
+            extra["locate"] = {"n_anchors": int(len(located.anchors)),
+                               "median_residual": float(np.median(located.residual)),
+                               "orientation": located.orientation, "region_vertices": int(located.region().sum())}
+        files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))
 
 

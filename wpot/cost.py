@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 import warp as wp
 
 from wpot._warp import launch_rows, resolve_device
@@ -224,6 +225,32 @@ def cost_matrix(
     if out == "warp":
         return c
     return c.numpy()
+
+
+@wp.kernel
+def _paired(a: wp.array2d(dtype=wp.float64), b: wp.array2d(dtype=wp.float64), ib: wp.array(dtype=wp.int64),
+            metric: int, out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = pair_cost(metric, a, i, b, int(ib[i]))
+
+
+def paired_costs(S1, S2, rows_2: ArrayLike, *, metric: Literal["wks", "l2", "l1"] = "wks",
+                 device: str | None = None) -> np.ndarray:
+    """(N1,) float64, the cost between ``S1[i]`` and ``S2[rows_2[i]]`` for every i: the entries of
+    `cost_matrix` ``(S1, S2)`` that a vertex map picks (e.g. a correspondence's own cost), without the matrix.
+    Same validation as `cost_matrix`; ``rows_2`` (N1,) integer indices into S2."""
+    dev = resolve_device(device)
+    a, b = prepare_signatures(S1, S2, metric, dev)
+    r = np.asarray(rows_2)
+    if r.shape != (a.shape[0],) or (r.size and not np.issubdtype(r.dtype, np.integer)):
+        raise ValueError(f"rows_2 must be ({a.shape[0]},) integer indices, one per row of S1, got shape {r.shape} "
+                         f"and dtype {r.dtype}")
+    if r.size and (r.min() < 0 or r.max() >= b.shape[0]):
+        raise ValueError(f"rows_2 holds indices outside [0, {b.shape[0] - 1}]")
+    out = wp.empty(a.shape[0], dtype=wp.float64, device=dev)
+    wp.launch(_paired, dim=a.shape[0], inputs=[a, b, wp.array(r.astype(np.int64), dtype=wp.int64, device=dev),
+                                               METRIC_CODES[metric], out], device=dev)
+    return out.numpy()
 
 
 @wp.kernel

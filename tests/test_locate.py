@@ -1,0 +1,138 @@
+"""wpot.locate: a part located in a whole by geodesic consistency."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wpot.examples import example_partial
+from wpot.locate import LocateOptions, PartMap, consistent_matches, locate_part
+from wpot.mesh import Mesh
+
+
+@pytest.fixture(scope="module")
+def partial():
+    return example_partial(1500, fraction=0.4)
+
+
+def _planted_signatures(ex, outliers: float, seed: int = 0):
+    """Signatures that put the true match among an anchor's candidates only where they are not replaced by
+    noise: the whole's are random, the part's are its true images' plus a little noise, and a share
+    ``outliers`` of the part's vertices get unrelated rows (their nearest signatures are anywhere)."""
+    rng = np.random.default_rng(seed)
+    sw = rng.normal(size=(ex.full.n_vertices, 16))
+    sp = sw[ex.correspondence] + 0.05 * rng.normal(size=(ex.part.n_vertices, 16))
+    bad = rng.random(ex.part.n_vertices) < outliers
+    sp[bad] = rng.normal(size=(int(bad.sum()), 16))
+    return sp, sw
+
+
+def _errors_in_edges(ex, pred):
+    full = ex.full
+    return np.linalg.norm(full.vertices[pred] - full.vertices[ex.correspondence], axis=1) / full.edge_lengths.mean()
+
+
+def test_consistent_matches_recovers_a_planted_isometry():
+    # points in the plane, moved rigidly: Euclidean distances are the geodesics of a flat sheet
+    rng = np.random.default_rng(1)
+    a = rng.random((30, 2))
+    rot = np.array([[0.6, -0.8], [0.8, 0.6]])
+    b_true = a @ rot.T + 5.0
+    k = 6
+    owner = np.repeat(np.arange(30), k)
+    targets = rng.random((30 * k, 2)) * 1.6 + 4.2  # decoys over the same area
+    true_slot = rng.integers(0, k, size=30)
+    targets[np.arange(30) * k + true_slot] = b_true
+    pa = a[owner]
+    d_part = np.linalg.norm(pa[:, None] - pa[None], axis=2)
+    d_whole = np.linalg.norm(targets[:, None] - targets[None], axis=2)
+    kept = consistent_matches(d_part, d_whole, owner, sigma0=0.01, rel_tol=0.02)
+    assert sorted(kept.tolist()) == sorted((np.arange(30) * k + true_slot).tolist())
+
+
+def test_part_found_through_noisy_candidates(partial):
+    sp, sw = _planted_signatures(partial, outliers=0.4)
+    pm = locate_part(partial.part, partial.full, sp, sw)
+    assert isinstance(pm, PartMap) and pm.correspondence.shape == (partial.part.n_vertices,)
+    err = _errors_in_edges(partial, pm.correspondence)
+    assert np.median(err) < 1.5 and np.quantile(err, 0.9) < 3.0
+    # every kept anchor pair is a true match (to within the triangulations' difference)
+    ex_err = np.linalg.norm(partial.full.vertices[pm.anchors[:, 1]]
+                            - partial.full.vertices[partial.correspondence[pm.anchors[:, 0]]], axis=1)
+    assert len(pm.anchors) >= 20 and np.all(ex_err < 6.0 * partial.full.edge_lengths.mean())
+    # the region is the cap's place in the whole (by area, against the true images and their neighbours)
+    truth = np.zeros(partial.full.n_vertices, dtype=bool)
+    truth[partial.correspondence] = True
+    truth |= (partial.full.adjacency @ truth.astype(float)) > 0
+    area = partial.full.vertex_areas
+    found = pm.region()
+    precision = area[found & truth].sum() / area[found].sum()
+    recall = area[found & truth].sum() / area[truth].sum()
+    assert precision > 0.9 and recall > 0.8
+    assert np.all((pm.confidence > 0) & (pm.confidence <= 1)) and np.all(pm.residual >= 0)
+
+
+def test_rigid_motion_of_the_whole_changes_nothing(partial):
+    sp, sw = _planted_signatures(partial, outliers=0.3, seed=2)
+    base = locate_part(partial.part, partial.full, sp, sw, options=LocateOptions(orient=False))
+    rot = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]
+    rot *= np.sign(np.linalg.det(rot))  # proper
+    moved = Mesh(partial.full.vertices @ rot.T + [3.0, -1.0, 2.0], partial.full.faces)
+    other = locate_part(partial.part, moved, sp, sw, options=LocateOptions(orient=False))
+    assert np.mean(other.correspondence == base.correspondence) > 0.99
+    np.testing.assert_allclose(other.residual, base.residual, atol=1e-3)
+
+
+def test_cat_head_found_in_another_pose(tosca5k):
+    """A cat's head cut from one pose, located in another pose (a different triangulation) with LD-SIFT:
+    far nearer the truth than the partial transport's own map on the same signatures."""
+    import warnings
+
+    from wpot.comparison import Comparer
+    from wpot.datasets import clean_region, geodesic_from, region_fraction_radius, tosca_ground_truth
+    from wpot.evaluate import GeodesicDistances
+    from wpot.io import load_mesh
+    from wpot.mesh import cut
+
+    folder = tosca5k / "vtx_5k" if (tosca5k / "vtx_5k").is_dir() else tosca5k
+    src, whole = load_mesh(folder / "cat0.off"), load_mesh(folder / "cat1.off")
+    snout = int(np.argmin(src.vertices[:, 1]))  # TOSCA's animals face -y
+    d = geodesic_from(src, snout)
+    part, idx = cut(src, clean_region(src, d <= region_fraction_radius(src, d, 0.25), snout))
+    vts_s, vts_t = tosca_ground_truth(folder, "cat0", "cat1")
+    inv = np.full(src.n_vertices, -1)
+    inv[idx] = np.arange(len(idx))
+    in_part = inv[vts_s] >= 0
+    p_vertices, truth = inv[vts_s][in_part], vts_t[in_part]
+    geo = GeodesicDistances(whole)
+    c = Comparer(signature="ldsift", transport="partial", max_vertices=300, vertices_per_sample=20, pooling="cell",
+                 device="cpu", cache_dir=False)
+    pm = c.locate(part, whole)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        transport_map = c.compare(part, whole).correspondence
+    err = geo.pairwise(pm.correspondence[p_vertices], truth) / np.sqrt(whole.area)
+    err_transport = geo.pairwise(transport_map[p_vertices], truth) / np.sqrt(whole.area)
+    assert err.mean() < 0.08 and err.mean() < err_transport.mean() / 3
+    # the matched region holds most of the head's true place, and little else
+    true_region = np.zeros(whole.n_vertices, dtype=bool)
+    true_region[truth] = True
+    area = whole.vertex_areas
+    found = pm.region()
+    hull = (whole.adjacency @ true_region.astype(float) > 0) | true_region
+    assert area[found & hull].sum() / area[found].sum() > 0.8
+
+
+def test_bad_input_is_named(partial):
+    sp, sw = _planted_signatures(partial, outliers=0.0)
+    with pytest.raises(ValueError, match="part_signatures must be"):
+        locate_part(partial.part, partial.full, sp[:-1], sw)
+    with pytest.raises(ValueError, match="different widths"):
+        locate_part(partial.part, partial.full, sp[:, :8], sw)
+    with pytest.raises(TypeError, match="whole must be a wpot.Mesh"):
+        locate_part(partial.part, "full", sp, sw)
+    with pytest.raises(ValueError, match="n_anchors"):
+        LocateOptions(n_anchors=2)
+    with pytest.raises(ValueError, match="tol"):
+        LocateOptions(tol=0.0)
+    with pytest.raises(TypeError, match="LocateOptions"):
+        locate_part(partial.part, partial.full, sp, sw, options={"n_anchors": 10})
