@@ -58,6 +58,8 @@ PROBES = {
         "mass_in_head": mass_in_head,
         "mass_in_head_density": mass_in_head_density,
         "class_accuracy": retrieval.class_accuracy,
+        "locate_error": locate_error,
+        "transport_error": transport_error,
     }""",
 }
 _PROBE_TAG = "WPOT_PROBE "
@@ -187,6 +189,10 @@ def test_partial_heads(kernel_env, tosca5k, monkeypatch):
     assert set(dens) == set(s["mass_in_head"]) and min(dens.values()) > 0.5
     assert sum(dens.values()) > sum(s["mass_in_head"].values())
     assert s["class_accuracy"] >= 0.5
+    # a head against another pose of its class: the located map lands near the truth, the transport's does not
+    assert set(s["locate_error"]) == set(s["transport_error"]) and s["locate_error"]
+    for h, e in s["locate_error"].items():
+        assert e < 0.1 and e < s["transport_error"][h] / 2, (h, e, s["transport_error"][h])
 
 
 # ------------------------------------------------------------------------------------------- storing
