@@ -824,7 +824,7 @@ def figure(store: Store, by_method: dict, common: set, parts: dict, methods: lis
     import matplotlib.pyplot as plt
 
     thr = np.linspace(0.0, TMAX, 251)
-    fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
+    fig, axes = plt.subplots(1, 4, figsize=(22, 4.6))
     colours = ["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange"]
     for ax, (title, cond) in zip(axes[:2], (("parts ≥ 20 % of the area", True), ("parts < 20 % of the area", False))):
         for c, m in zip(colours, methods):
@@ -835,7 +835,7 @@ def figure(store: Store, by_method: dict, common: set, parts: dict, methods: lis
             ax.plot(thr, 100 * cur, c=c, lw=2, label=f"{_short(m)} (AUC {cur.mean():.3f})")
             ax.plot(thr, 100 * sym, c=c, lw=1.2, ls="--", label=f"  symmetric-tolerant (AUC {sym.mean():.3f})")
         ax.set_title(f"{title}: {len({k[0] for k in common if (parts[k[0]]['fraction'] >= LARGE) == cond})} parts")
-    w = methods[0]
+    w = next((m for m in methods if m.startswith("locate-")), methods[0])
     for c, k in zip(colours, KINDS):
         rs = [by_method[w][key] for key in sorted(common) if parts[key[0]]["kind"] == k]
         if rs:
@@ -845,7 +845,22 @@ def figure(store: Store, by_method: dict, common: set, parts: dict, methods: lis
             ax.plot(thr, 100 * _curve(store, rs, "sym_errors", thr), c=c, lw=1.2, ls="--")
     axes[2].set_title(f"{_short(w)} by part kind (dashed: symmetric-tolerant)")
     fig.suptitle(f"{_short(w)}: {w}", fontsize=9)
-    for ax in axes:
+    ax = axes[3]
+    for c, m in zip(colours, methods):
+        rs = [by_method[m][k] for k in sorted(common)]
+        z = [np.load(store.npz_path(r["method"], r["part"], r["target"])) for r in rs]
+        if not z or any("confidence" not in x for x in z):
+            continue
+        e = np.concatenate([x["errors"] for x in z])
+        order = np.argsort(-np.concatenate([x["confidence"] for x in z]), kind="stable")
+        deciles = [e[chunk].mean() for chunk in np.array_split(order, 10)]
+        ax.plot(np.arange(1, 11), deciles, "o-", c=c, label=_short(m))
+    ax.set_title("error against confidence (all pairs' points pooled)")
+    ax.set_xlabel("confidence decile (1: the most confident tenth)")
+    ax.set_ylabel("mean geodesic error / √area(T)")
+    ax.grid(alpha=0.4)
+    ax.legend(fontsize=7)
+    for ax in axes[:3]:
         ax.set_xlim(0, TMAX)
         ax.set_ylim(0, 100)
         ax.grid(alpha=0.4)

@@ -134,6 +134,19 @@ def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
     assert not flipped and np.array_equal(t, oriented) and score > 0.5
 
 
+def test_a_part_mapped_onto_the_mirror_side_is_sent_back_through_the_wholes_symmetry():
+    b = mirror_symmetric(1100, seed=5)
+    a = mirror_symmetric(900, seed=0)
+    part, _ = wpot.cut(a, a.vertices[:, 0] > 0.3 * a.vertices[:, 0].max())  # one side only: no symmetry of its own
+    truth = _nearest(b.vertices, part.vertices)
+    mirror = _nearest(b.vertices, part.vertices * np.array([-1.0, 1.0, 1.0]))
+    t, score, flipped = keep_orientation(part, b, mirror, symmetry_of="b")
+    err = np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area)
+    assert flipped and score > 0.5 and err < 0.03
+    with pytest.raises(ValueError, match="symmetry_of"):
+        keep_orientation(part, b, mirror, symmetry_of="both")
+
+
 def test_zoomout_rescues_a_map_wrong_beyond_mirroring():
     # a start map that is noise: plain ZoomOut cannot recover, the orientation-aware functional map (the second
     # candidate of orient=True) does not need it and keeps left from right

@@ -272,7 +272,8 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         if opt.orient:
-            t, score, _ = keep_orientation(part, whole, t, refine=lambda t0: rounds((t0,), max(1, opt.n_rounds))[0])
+            t, score, _ = keep_orientation(part, whole, t, refine=lambda t0: rounds((t0,), max(1, opt.n_rounds))[0],
+                                           symmetry_of="b")
         else:
             score = orientation_score(part, whole, t)
 

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from wpot._validate import vertex_map
+from wpot._validate import one_of, vertex_map
 from wpot.cache import Cache
 from wpot.mesh import Mesh
 
@@ -272,13 +272,16 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int = 100, min_score: float = MI
 
 
 def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
-                     refine: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float, bool]:
+                     refine: Callable[[np.ndarray], np.ndarray] | None = None, *, symmetry_of: str = "a"
+                     ) -> tuple[np.ndarray, float, bool]:
     """A map A -> B that keeps orientation.
 
     Where the map reverses orientation (`local_orientation` < 0: the whole map, or a symmetric part of it such
     as both legs), those vertices of A are sent where the map sends their mirror images under A's symmetry
     (``t[S_A(i)]``; with no symmetry found on A, B's: ``S_B(t[i])``); the result is passed through ``refine``
     (e.g. ZoomOut, which also smooths the seams) and kept when its `orientation_score` is higher.
+    ``symmetry_of="b"`` uses B's symmetry only: for a part A of a whole B, whose own symmetry (a limb's, a
+    head's) need not be the whole's left/right.
 
     Returns
     -------
@@ -292,7 +295,8 @@ def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     wrong = _spread(mesh_a, *terms, LOCAL_RADIUS) < 0
     if not wrong.any():
         return t, score, False
-    sym = reflection_symmetry(mesh_a)
+    one_of("symmetry_of", symmetry_of, ("a", "b"))
+    sym = reflection_symmetry(mesh_a) if symmetry_of == "a" else None
     if sym is not None:
         flipped = np.where(wrong, t[sym.map], t)
     else:
