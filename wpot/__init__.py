@@ -67,6 +67,7 @@ _EXPORTS: dict[str, str] = {
     "locate_part": "wpot.locate",
     "LocateOptions": "wpot.locate",
     "PartMap": "wpot.locate",
+    "LocateWarning": "wpot.locate",
     "cumulative_curve": "wpot.evaluate",
     "curve_auc": "wpot.evaluate",
     "list_shapes": "wpot.datasets",

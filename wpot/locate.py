@@ -21,8 +21,10 @@ geodesic distances to choose among them and to fill in the map:
    ``n_rounds`` times, ``n_refine`` farthest-point samples of the part and their current images serve as the
    anchors, which spreads them evenly.
 4. **Orientation** (``orient=True``): where the map reverses orientation (a map onto the mirror image), the
-   mirrored vertices are sent through the left/right symmetry and the map is recomputed
-   (`wpot.orientation.keep_orientation`, kept only when it scores better).
+   mirrored vertices are sent through the whole's left/right symmetry and the map is recomputed
+   (`wpot.orientation.keep_orientation` with ``symmetry_of="b"``, kept only when it scores better). A whole
+   whose symmetry is not detected keeps such a map; so does one whose mirrored stretch the score misreads
+   (a noisy map's image triangles fold at the scale of an edge, which blurs the score).
 
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
