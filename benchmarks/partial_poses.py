@@ -167,13 +167,6 @@ def largest_piece(mesh, mask: np.ndarray, areas: np.ndarray | None = None) -> np
     return mask & (lab == int(np.argmax(tot)))
 
 
-def edge_graph(mesh) -> sp.csr_matrix:
-    e = mesh.edges
-    w = np.maximum(mesh.edge_lengths, np.finfo(float).tiny)
-    n = mesh.n_vertices
-    return sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-
-
 # ----------------------------------------------------------------------------- landmarks
 @dataclass(frozen=True)
 class Landmarks:
@@ -386,7 +379,7 @@ def true_region(target, vts_target: np.ndarray, in_part: np.ndarray, exact: np.n
         from scipy.sparse.csgraph import dijkstra
 
         hit_idx = np.nonzero(hit)[0]
-        _, _, src = dijkstra(edge_graph(target), directed=False, indices=hit_idx, min_only=True,
+        _, _, src = dijkstra(target.edge_graph, directed=False, indices=hit_idx, min_only=True,
                              return_predecessors=True)
         miss = ~hit & (src >= 0)
         label[miss] = label[src[miss]]

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from wpot.comparison import ProblemTooLargeError, choose_cost_mode
 from wpot.history import debias_history, history_at
 from wpot.registration import Registration, fit_similarity
-from wpot.sampling import _edge_graph, farthest_point_sampling
+from wpot.sampling import farthest_point_sampling
 from wpot.mesh import Mesh
 
 
@@ -134,7 +134,7 @@ def test_fps_spreads_samples_and_extension_map_is_nearest(metric):
     assert s.nearest.shape == (mesh.n_vertices,)
     np.testing.assert_array_equal(s.nearest[s.indices], np.arange(k))
     if metric == "geodesic":
-        d = dijkstra(_edge_graph(mesh), directed=False, indices=s.indices)  # (k, N)
+        d = dijkstra(mesh.edge_graph, directed=False, indices=s.indices)  # (k, N)
     else:
         d = cdist(mesh.vertices[s.indices], mesh.vertices)
     # the map sends every vertex to a nearest sample
@@ -146,7 +146,7 @@ def test_fps_spreads_samples_and_extension_map_is_nearest(metric):
     assert pair.min() >= radius - 1e-12
     # and the sample is far better spread than a random one of the same size
     rand = np.random.default_rng(0).choice(mesh.n_vertices, k, replace=False)
-    d_rand = dijkstra(_edge_graph(mesh), directed=False, indices=rand) if metric == "geodesic" else cdist(mesh.vertices[rand], mesh.vertices)
+    d_rand = dijkstra(mesh.edge_graph, directed=False, indices=rand) if metric == "geodesic" else cdist(mesh.vertices[rand], mesh.vertices)
     assert d_rand.min(0).max() > 1.2 * radius
 
 

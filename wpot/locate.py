@@ -178,23 +178,11 @@ def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarra
     return np.asarray(taken, dtype=np.int64)
 
 
-def _profile_map(fp: np.ndarray, fw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3's nearest profiles: for each row of fp (N_P, K) the nearest row of fw (N_W, K), and the distance
-    to it divided by √K."""
-    from wpot.fmap import nearest_rows
-
-    t, _ = nearest_rows(fp, fw)
-    return t, np.linalg.norm(fp - fw[t], axis=1) / np.sqrt(fp.shape[1])
-
-
 def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
     """(N_W,) distance along the edges of ``whole`` from each vertex to the nearest of ``images``."""
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    e, w, n = whole.edges, np.maximum(whole.edge_lengths, np.finfo(float).tiny), whole.n_vertices
-    graph = coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    return dijkstra(graph, directed=False, indices=np.unique(images), min_only=True)
+    return dijkstra(whole.edge_graph, directed=False, indices=np.unique(images), min_only=True)
 
 
 def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signatures: ArrayLike, *,
@@ -216,6 +204,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     unreliable, as its residuals say.
     """
     from wpot.cost import paired_costs
+    from wpot.fmap import nearest_rows
     from wpot.sampling import farthest_point_sampling
 
     for name, m in (("part", part), ("whole", whole)):
@@ -256,17 +245,17 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # step 3
     src = farthest_point_sampling(part, min(opt.n_refine, part.n_vertices)).indices
 
-    def dense(from_part: np.ndarray, to_whole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fp = g_part.from_sources(from_part).T.astype(np.float64)
-        fw = g_whole.from_sources(to_whole).T.astype(np.float64)
-        return _profile_map(fp, fw)
+    def dense(from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
+        """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
+        nearest its own to ``from_part``."""
+        return nearest_rows(g_part.from_sources(from_part).T, g_whole.from_sources(to_whole).T)[0]
 
-    def rounds(out: tuple, n: int) -> tuple[np.ndarray, np.ndarray]:
+    def rounds(t: np.ndarray, n: int) -> np.ndarray:
         for _ in range(n):
-            out = dense(src, out[0][src])
-        return out
+            t = dense(src, t[src])
+        return t
 
-    t = rounds(dense(a, b), opt.n_rounds)[0]
+    t = rounds(dense(a, b), opt.n_rounds)
 
     # step 4
     from wpot.orientation import keep_orientation, orientation_score
@@ -274,7 +263,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         if opt.orient:
-            t, score, _ = keep_orientation(part, whole, t, refine=lambda t0: rounds((t0,), max(1, opt.n_rounds))[0],
+            t, score, _ = keep_orientation(part, whole, t, refine=lambda t0: rounds(t0, max(1, opt.n_rounds)),
                                            symmetry_of="b")
         else:
             score = orientation_score(part, whole, t)

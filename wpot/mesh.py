@@ -294,6 +294,16 @@ class Mesh:
         a.sort_indices()
         return a
 
+    @cached_property
+    def edge_graph(self) -> sp.csr_matrix:
+        """(N, N) symmetric CSR graph of the edges weighted by their lengths, for shortest paths along the
+        surface (`scipy.sparse.csgraph`). A zero-length edge gets the smallest positive float instead, since
+        csgraph reads 0 as no edge."""
+        e = self.edges
+        n = self.n_vertices
+        w = np.maximum(self.edge_lengths, np.finfo(float).tiny)
+        return sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+
     def one_ring(self, i: int) -> np.ndarray:
         """Indices of the vertices sharing an edge with vertex ``i`` (sorted, read-only)."""
         n = self.n_vertices

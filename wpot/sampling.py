@@ -93,18 +93,6 @@ class Points(NamedTuple):
     subsample: Subsample | None
 
 
-def _edge_graph(mesh: Mesh):
-    import scipy.sparse as sp
-
-    e = mesh.edges
-    n = mesh.n_vertices
-    w = mesh.edge_lengths
-    # zero-length edges would be dropped by csgraph (0 = no edge); give them a tiny positive length
-    w = np.maximum(w, np.finfo(float).tiny)
-    g = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    return g
-
-
 def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", start: int | None = None) -> Subsample:
     """Farthest-point sampling of ``k`` vertices of ``mesh``, spread over the surface.
 
@@ -154,7 +142,7 @@ def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", sta
 
     from scipy.sparse.csgraph import dijkstra
 
-    g = _edge_graph(mesh)
+    g = mesh.edge_graph
     mind = np.full(n, np.inf)
     for t in range(k):
         radius = float(mind.max())
