@@ -102,7 +102,11 @@ class PartMap:
         matches of step 2: how far the vertex's geodesic distances to them are from its image's (small: the
         match agrees with the anchors; large: the map strays from them there, or the anchors themselves are
         wrong, which raises it everywhere)
-    confidence : (N_P,) float64 in (0, 1], ``exp(−residual / tol)``: ranks the matches by trust
+    confidence : (N_P,) float64 in [0, 1], ``exp(−residual / tol) · (1 + o) / 2`` with o the map's orientation
+        score around the vertex (`wpot.orientation.local_orientation`: 1 where the map keeps orientation, −1
+        where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust. Both factors
+        count: on the development pairs, by the residual alone the more confident half of each pair's points
+        was 0.127 √area off and the other 0.145; with the orientation, 0.111 and 0.161
     image_distance : (N_W,) float64, per vertex of the whole the distance along its edges to the nearest image
         of a vertex of the part, over √area(whole) (0 on the images)
     cost : the mean signature cost between each vertex of the part and its image (`wpot.cost.paired_costs`):
@@ -258,7 +262,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     t = rounds(dense(a, b), opt.n_rounds)
 
     # step 4
-    from wpot.orientation import keep_orientation, orientation_score
+    from wpot.orientation import keep_orientation, local_orientation, orientation_score
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
@@ -267,12 +271,14 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                                            symmetry_of="b")
         else:
             score = orientation_score(part, whole, t)
+        local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0 = g_part.from_sources(a).T.astype(np.float64)
     fw0 = g_whole.from_sources(b).T.astype(np.float64)
     res = np.linalg.norm(fp0 - fw0[t], axis=1) / np.sqrt(max(len(a), 1)) / scale
-    return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=np.exp(-res / opt.tol),
+    confidence = np.exp(-res / opt.tol) * (1.0 + np.clip(local, -1.0, 1.0)) / 2.0
+    return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=confidence,
                    image_distance=_image_distance(whole, t) / scale,
                    cost=float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device))),
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
