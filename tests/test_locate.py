@@ -6,7 +6,7 @@ import pytest
 
 from wpot.examples import example_partial
 from wpot.locate import LocateOptions, PartMap, consistent_matches, locate_part
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, MeshWarning
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +69,23 @@ def test_part_found_through_noisy_candidates(partial):
     recall = area[found & truth].sum() / area[truth].sum()
     assert precision > 0.9 and recall > 0.8
     assert np.all((pm.confidence >= 0) & (pm.confidence <= 1)) and np.all(pm.residual >= 0)
+
+
+def test_a_whole_with_a_second_component(partial):
+    """A loose piece in the whole (a scan's debris): the distances to it are infinite, the map must not notice."""
+    from wpot.examples import example_mesh
+
+    debris = example_mesh(120)
+    full = partial.full
+    with pytest.warns(MeshWarning, match="2 connected components"):
+        whole = Mesh(np.r_[full.vertices, 0.2 * debris.vertices + [6.0, 0.0, 0.0]],
+                     np.r_[full.faces, debris.faces + full.n_vertices])
+    sp, sw = _planted_signatures(partial, outliers=0.4)
+    sw = np.r_[sw, np.random.default_rng(5).normal(size=(debris.n_vertices, sw.shape[1]))]
+    pm = locate_part(partial.part, whole, sp, sw)
+    assert pm.correspondence.max() < full.n_vertices  # nothing lands on the debris
+    err = _errors_in_edges(partial, pm.correspondence)
+    assert np.median(err) < 1.5 and np.all(np.isfinite(pm.residual)) and not pm.region()[full.n_vertices:].any()
 
 
 def test_rigid_motion_of_the_whole_changes_nothing(partial):

@@ -182,6 +182,17 @@ def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarra
     return np.asarray(taken, dtype=np.int64)
 
 
+def _distances(geo, sources: np.ndarray) -> np.ndarray:
+    """(S, N) float64 geodesic distances from ``sources`` (`wpot.evaluate.GeodesicDistances`), with the
+    distance to another connected component (infinite) replaced by twice the largest finite one: far, so
+    that matches across components disagree, but finite, so that profiles can be compared."""
+    d = geo.from_sources(sources).astype(np.float64)
+    bad = ~np.isfinite(d)
+    if bad.any():
+        d[bad] = 2.0 * (d[~bad].max() if (~bad).any() else 1.0)
+    return d
+
+
 def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
     """(N_W,) distance along the edges of ``whole`` from each vertex to the nearest of ``images``."""
     from scipy.sparse.csgraph import dijkstra
@@ -235,9 +246,9 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     cand = _candidates(sp_, sw, anchors, opt.n_candidates, metric, device)
     owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
     target = cand.ravel()
-    d_anchor = g_part.from_sources(anchors)[:, anchors].astype(np.float64)
+    d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
-    d_target = g_whole.from_sources(uniq)[:, uniq].astype(np.float64)[np.ix_(inv, inv)]
+    d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
     kept = consistent_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, sigma0=opt.tol * scale,
                               rel_tol=opt.rel_tol)
     a, b = anchors[owner[kept]], target[kept]
@@ -252,7 +263,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     def dense(from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``."""
-        return nearest_rows(g_part.from_sources(from_part).T, g_whole.from_sources(to_whole).T)[0]
+        return nearest_rows(_distances(g_part, from_part).T, _distances(g_whole, to_whole).T)[0]
 
     def rounds(t: np.ndarray, n: int) -> np.ndarray:
         for _ in range(n):
@@ -274,8 +285,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
-    fp0 = g_part.from_sources(a).T.astype(np.float64)
-    fw0 = g_whole.from_sources(b).T.astype(np.float64)
+    fp0, fw0 = _distances(g_part, a).T, _distances(g_whole, b).T
     res = np.linalg.norm(fp0 - fw0[t], axis=1) / np.sqrt(max(len(a), 1)) / scale
     confidence = np.exp(-res / opt.tol) * (1.0 + np.clip(local, -1.0, 1.0)) / 2.0
     return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=confidence,
