@@ -3,8 +3,9 @@
 Meshes (from ../shared/data, never copied):
 * ``tosca_lowres/cat0.mat``: 3,400 vertices (the paper's TOSCA8 resolution);
 * ``tosca_isometric_5k/vtx_5k/cat0.off``: 5,000 vertices;
-* with ``--scan``: the 5,000-vertex cat refined twice by midpoint subdivision, 79,970 vertices (issue 21's
-  scan size: eigenpairs <= 60 s at 60,000 vertices);
+* with ``--scan``: the 5,000-vertex cat refined by midpoint subdivision (19,994 vertices) then by one √3 step
+  (below), 59,978 vertices (issue 21's scan size: eigenpairs <= 60 s at 60,000 vertices), and refined twice by
+  midpoint subdivision, 79,970 vertices;
 * with ``--refined``: ``cat0.mat`` refined by one √3-subdivision step *without smoothing* (a vertex at each
   face centroid, then every original interior edge flipped to join the two adjacent centroids): 3,400 +
   6,768 = 10,168 vertices, 20,304 triangles, the original vertices unmoved.
@@ -81,7 +82,9 @@ def meshes(data: Path, *, refined: bool = False, scan: bool = False) -> list[tup
     if refined:
         out.append(("cat0.mat + sqrt3 refine", sqrt3_refine(low)))
     if scan:
-        out.append(("cat0.off midpoint x2", midpoint_refine(midpoint_refine(five))))
+        mid = midpoint_refine(five)
+        out.append(("cat0.off midpoint+sqrt3", sqrt3_refine(mid)))
+        out.append(("cat0.off midpoint x2", midpoint_refine(mid)))
     return out
 
 
@@ -164,13 +167,14 @@ def main() -> None:
     ap.add_argument("--solvers", action="store_true", help="also time the solver 'auto' did not pick")
     ap.add_argument("--refined", action="store_true", help="also the 10,168-vertex refined cat0")
     ap.add_argument("--scan", action="store_true",
-                    help="also the 5,000-vertex cat refined twice by midpoint subdivision (79,970 vertices)")
+                    help="also the 5,000-vertex cat refined to 59,978 and 79,970 vertices (see the docstring)")
     ap.add_argument("--no-ldsift", action="store_true", help="skip LD-SIFT even if ldsift_parts.py exists")
     ap.add_argument("--no-peers", action="store_true", help="skip the peers (scipy eigsh, numpy z-buffer)")
     ap.add_argument("--device", default=None, help="Warp device for LD-SIFT")
     ap.add_argument("--n-eigen", type=int, default=500)
     ap.add_argument("--goal", type=float, default=10.0, help="seconds per shape and signature to compare against")
-    ap.add_argument("--only", type=int, default=None, help="only the i-th mesh (0, 1, 2 = --refined, 3 = --scan)")
+    ap.add_argument("--only", type=int, default=None,
+                    help="only mesh i: 0, 1 the TOSCA meshes, 2 the --refined one, 3 the two --scan ones")
     args = ap.parse_args()
     if not args.data.is_dir():
         sys.exit(f"data folder not found: {args.data} (set --data or WPOT_DATA)")
@@ -182,9 +186,10 @@ def main() -> None:
     if ldsift is not None and hasattr(parts, "_warm_up"):
         parts._warm_up(args.device)
     items = meshes(args.data, refined=args.refined or args.only == 2, scan=args.scan or args.only == 3)
-    if args.only is not None:  # 0, 1: the two TOSCA meshes; 2: the refined one; 3: the scan-size one
-        items = [items[0], items[1], items[-1]][min(args.only, 2)] if args.only >= 2 else items[args.only]
-        items = [items]
+    if args.only is not None:  # 0, 1: the two TOSCA meshes; 2: the refined one; 3: the two scan-size ones
+        groups = [items[:1], items[1:2], [x for x in items[2:] if "sqrt3 refine" in x[0]],
+                  [x for x in items[2:] if "midpoint" in x[0]]]
+        items = groups[min(max(args.only, 0), 3)]
 
     cols = (f"{'mesh':24s} {'N':>6s} | {'laplacian':>9s} {'eigen (solver)':>18s} {'wks':>6s} {'parts':>6s}"
             f" {'wpot.wks':>8s}")

@@ -186,6 +186,43 @@ def test_sliced_agrees_with_dense_on_degenerate_clusters():
         lb.eigenpairs(100, solver="sliced", per_slice=1)
 
 
+def test_sliced_defaults_agree_with_scipy_eigsh(monkeypatch):
+    # the "auto" path for k > LANCZOS_MAX_PAIRS: runs of SLICE_PAIRS pairs; eigenvalues, M-orthonormality and the
+    # WKS they feed must match one scipy eigsh run at machine precision. A perturbed sphere (no exact clusters)
+    import scipy.sparse.linalg as sla
+
+    import wpot.spectral as spectral
+    from wpot.signatures._wks import wks_energies, wks_from_eigenpairs
+
+    m0 = icosphere(3)
+    rng = np.random.default_rng(3)
+    m = Mesh(m0.vertices * (1 + 0.05 * rng.standard_normal((m0.n_vertices, 1))), m0.faces)
+    lb = LaplaceBeltrami(m)
+    k = 3 * spectral.SLICE_PAIRS
+    runs = []
+    eigsh = sla.eigsh
+
+    def spy(*args, **kwargs):
+        runs.append(kwargs["k"])
+        return eigsh(*args, **kwargs)
+
+    with monkeypatch.context() as mp:
+        mp.setattr(spectral.sla, "eigsh", spy)
+        s = lb.eigenpairs(k, solver="sliced")
+    assert len(runs) >= 4 and set(runs) == {spectral.SLICE_PAIRS}  # several runs, each of the default size
+    w, v = sla.eigsh(lb.W, k=k + 10, M=lb.M.tocsr(), sigma=spectral.DEFAULT_SHIFT, which="LM", tol=0,
+                     v0=np.random.default_rng(0).standard_normal(lb.n_vertices))
+    order = np.argsort(w)[:k]
+    w, v = w[order], v[:, order]
+    np.testing.assert_allclose(s.evals[1:], w[1:], rtol=1e-10)
+    gram = s.evecs.T @ (lb.mass[:, None] * s.evecs)
+    np.testing.assert_allclose(gram, np.eye(k), atol=1e-9)
+    grid = wks_energies(s, n_energies=100, scale_invariant=True)
+    ours = wks_from_eigenpairs(s.evals[1:], s.evecs[:, 1:], grid.energies, grid.sigma)
+    ref = wks_from_eigenpairs(w[1:], v[:, 1:], grid.energies, grid.sigma)
+    assert np.abs(ours - ref).max() <= 1e-8 * np.abs(ref).max()
+
+
 def test_choose_solver_rule():
     assert choose_solver(500, 500) == "dense"  # k >= N - 1: ARPACK cannot
     assert choose_solver(200, 20) == "dense"  # small N
@@ -193,7 +230,8 @@ def test_choose_solver_rule():
     assert choose_solver(2000, 500) == "dense"  # N <= 4k
     assert choose_solver(3400, 500) == "sliced"
     assert choose_solver(5000, 500) == "sliced"
-    assert choose_solver(5000, 100) == "lanczos"  # one run of <= SLICE_PAIRS
+    assert choose_solver(5000, 100) == "lanczos"  # one run of <= LANCZOS_MAX_PAIRS
+    assert choose_solver(5000, 101) == "sliced"
 
 
 def test_k_larger_than_n_is_an_error():

@@ -22,7 +22,7 @@ Solvers (chosen by `choose_solver`, always reported in `Spectrum.solver`; never 
 * ``"lanczos"``: ARPACK (``scipy.sparse.linalg.eigsh``) in shift-invert mode around a small negative
   shift σ, with the sparse LU factorization of ``W − σM`` computed once and reused (`LaplaceBeltrami`
   keeps it across calls). Cost ~ N·k² (orthogonalization) plus the solves.
-* ``"sliced"``: spectrum slicing, shift-invert Lanczos runs of ``SLICE_PAIRS`` = 100 eigenpairs around
+* ``"sliced"``: spectrum slicing, shift-invert Lanczos runs of ``SLICE_PAIRS`` = 60 eigenpairs around
   shifts that walk up the spectrum (`LaplaceBeltrami._sliced`). Cost ~ N·k·m plus one factorization a run.
 
 All factorizations are symmetric, without pivoting (SuperLU's partial pivoting triples the fill and makes
@@ -30,9 +30,11 @@ solves 7x slower on these matrices); inside the spectrum, where ``W − σM`` is
 checks the accuracy (refined, or refactorized with pivoting, when it falls short).
 
 ``"auto"`` uses dense when ``N ≤ max(DENSE_MIN_N, DENSE_RATIO · k)`` or when ``k ≥ N − 1`` (ARPACK
-needs k < N − 1), else Lanczos for ``k ≤ SLICE_PAIRS`` and sliced above. Timed on the 2-core machine with
-k = 500 (`benchmarks/signatures.py`): 3,400 vertices, dense 7.6 s, sliced 1.3 s; 5,000 vertices, one
-Lanczos run 16.6 s, sliced 2.6 s; 20,000 vertices sliced 24 s; 80,000 vertices sliced 227 s.
+needs k < N − 1), else Lanczos for ``k ≤ LANCZOS_MAX_PAIRS`` and sliced above. Timed on the 2-core machine
+with k = 500 (`benchmarks/signatures.py`): 3,400 vertices, dense 7.6 s, sliced 1.1 s; 5,000 vertices, one
+Lanczos run 16.6 s, sliced 1.7 s; 59,978 vertices sliced 39 s and 79,970 vertices 65 s (scipy's eigsh:
+146 s and 186 s). At those sizes the time is about half ARPACK's own work (reorthogonalization against the
+Lanczos basis, memory bound) and half the sparse triangular solves, one per Lanczos step.
 """
 from __future__ import annotations
 
@@ -208,7 +210,7 @@ def choose_solver(n_vertices: int, k: int) -> str:
     """The solver ``"auto"`` picks for N vertices and k eigenpairs (see the module docstring)."""
     if k >= n_vertices - 1 or n_vertices <= max(DENSE_MIN_N, DENSE_RATIO * k):
         return "dense"
-    return "lanczos" if k <= SLICE_PAIRS else "sliced"
+    return "lanczos" if k <= LANCZOS_MAX_PAIRS else "sliced"
 
 
 @dataclass(eq=False)
@@ -457,13 +459,17 @@ class LaplaceBeltrami:
 
 def _splu_symmetric(A: sp.csc_matrix):
     """SuperLU of a symmetric matrix in symmetric mode, no pivoting, ordered by minimum degree on A + Aᵀ at
-    every size: COLAMD factorizes an 80,000-vertex matrix faster (1.4 s and 51 ms solves against 7.6 s and
-    80 ms) but does not make 500 eigenpairs faster there (141 s against 124 s)."""
+    every size: on a 79,970-vertex mesh COLAMD factorizes a little faster (0.6 s against 0.8 s) with 26% more
+    fill and the same 14 ms solves, and on 59,978 vertices it is slower on both counts."""
     return sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
 
 
-#: eigenpairs per shift-invert run of the "sliced" solver (timed on a 5,000-vertex TOSCA mesh, k = 500)
-SLICE_PAIRS = 100
+#: "auto" uses one Lanczos run up to this many eigenpairs, spectrum slicing above
+LANCZOS_MAX_PAIRS = 100
+#: eigenpairs per shift-invert run of the "sliced" solver. Fewer pairs a run: less orthogonalization, more runs
+#: and factorizations. With k = 500, 60 against 100: 1.7 s against 2.2 s at 5,000 vertices, 39 s against 41 s
+#: at 59,978, even at 79,970
+SLICE_PAIRS = 60
 #: a run's range is planned to start this fraction of its radius below the previous cut (the density is estimated)
 SLICE_OVERLAP = 0.2
 #: eigenvalues within this relative distance of a run's farthest one count as its cluster
