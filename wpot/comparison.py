@@ -597,6 +597,7 @@ class Comparer:
 
             return self.solver.solve(problem, on_beta=step)
         finally:
+            bar.refresh()  # the last beta and U drawn at least once: tqdm redraws at most every 0.1 s
             bar.close()
 
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
