@@ -453,28 +453,6 @@ def score_map(geo, pred_all: np.ndarray, truth: Truth) -> tuple[dict, dict]:
 
 
 # ----------------------------------------------------------------------------- matchers
-def _nearest(X: np.ndarray, Y: np.ndarray, metric: str, device: str, chunk: int = 1000) -> tuple[np.ndarray, np.ndarray]:
-    """For each row of X: the row of Y with the smallest cost, and that cost."""
-    arg = np.empty(len(X), dtype=np.int64)
-    best = np.empty(len(X))
-    y2 = np.einsum("ij,ij->i", Y, Y) if metric == "l2" else None
-    for s in range(0, len(X), chunk):
-        x = X[s:s + chunk]
-        if metric == "l2":
-            c = np.maximum(np.einsum("ij,ij->i", x, x)[:, None] + y2[None, :] - 2.0 * x @ Y.T, 0.0)
-            a = np.argmin(c, axis=1)
-            arg[s:s + chunk] = a
-            best[s:s + chunk] = np.sqrt(c[np.arange(len(x)), a])
-        else:
-            from wpot.cost import cost_matrix
-
-            c = cost_matrix(x, Y, metric=metric, device=device)
-            a = np.argmin(c, axis=1)
-            arg[s:s + chunk] = a
-            best[s:s + chunk] = c[np.arange(len(x)), a]
-    return arg, best
-
-
 class Matchers:
     """wpot (one caching `Comparer`) and the two nearest-signature peers on its signatures."""
 
@@ -551,16 +529,20 @@ class Matchers:
         return pm.correspondence, dt, info, pm
 
     def nn_vertex(self, p, t) -> tuple[np.ndarray, float, dict]:
+        from wpot.cost import nearest_costs
+
         t0 = time.perf_counter()
         sp_, st = self.comparer.signatures(p), self.comparer.signatures(t)
-        arg, best = _nearest(np.asarray(sp_), np.asarray(st), self.comparer.stage.metric, self.device)
+        arg, best = nearest_costs(sp_, st, metric=self.comparer.stage.metric, device=self.device)
         return arg, time.perf_counter() - t0, {"distance": float(best.mean())}
 
     def nn_samples(self, p, t) -> tuple[np.ndarray, float, dict, np.ndarray, object]:
+        from wpot.cost import nearest_costs
+
         t0 = time.perf_counter()
         pa, pb = self.comparer.points(p), self.comparer.points(t)
-        arg, best = _nearest(np.asarray(pa.signatures), np.asarray(pb.signatures), self.comparer.stage.metric,
-                             self.device)
+        arg, best = nearest_costs(pa.signatures, pb.signatures, metric=self.comparer.stage.metric,
+                                  device=self.device)
         ma = np.full(len(arg), 1.0 / len(arg)) if pa.masses is None else np.asarray(pa.masses) / np.sum(pa.masses)
         jb = np.arange(t.n_vertices) if pb.subsample is None else pb.subsample.indices
         corr = jb[arg]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from wpot.cost import cost_matrix, paired_costs
+from wpot.cost import cost_matrix, nearest_costs, paired_costs
 
 
 def _ref(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
@@ -49,6 +49,18 @@ def test_paired_costs_are_the_matrix_entries_a_map_picks(sigs, metric, device):
         paired_costs(a, b, rows[:-1], metric=metric, device=device)
     with pytest.raises(ValueError, match="outside"):
         paired_costs(a, b, np.full(len(a), len(b)), metric=metric, device=device)
+
+
+@pytest.mark.parametrize("metric", ["wks", "l2", "l1"])
+def test_nearest_costs_are_the_row_minima(sigs, metric, device):
+    a, b = sigs
+    c = cost_matrix(a, b, metric=metric, device=device)
+    for block in (5, 1024):  # several blocks and one
+        idx, best = nearest_costs(a, b, metric=metric, device=device, block=block)
+        np.testing.assert_allclose(best, c.min(axis=1), rtol=1e-7, atol=1e-7)
+        np.testing.assert_allclose(c[np.arange(len(a)), idx], c.min(axis=1), rtol=1e-7, atol=1e-7)
+    with pytest.raises(ValueError, match="same signature length"):
+        nearest_costs(a, b[:, :5], metric=metric, device=device)
 
 
 def test_wks_cost_properties(sigs, device):

@@ -141,6 +141,11 @@ def test_cat_head_found_in_another_pose(tosca5k):
     found = pm.region()
     hull = (whole.adjacency @ true_region.astype(float) > 0) | true_region
     assert area[found & hull].sum() / area[found].sum() > 0.8
+    # retrieval: the mean nearest-signature cost is that of the signatures' cost matrix
+    from wpot.cost import cost_matrix
+
+    chamfer = cost_matrix(c.signatures(part), c.signatures(whole), metric="l2").min(axis=1).mean()
+    assert c.nearest_signature_distance(part, whole) == pytest.approx(chamfer, rel=1e-6)
 
 
 def test_bad_input_is_named(partial):

@@ -113,7 +113,8 @@ class PartMap:
         As a distance for retrieval, on the development benchmark (all eight classes), the pose of the part's
         own class was nearer than every other class's whole for 78 % of part-to-pose pairs by this cost,
         against 57 % by the partial transport's distance (Eq. 27), 63 % by the mean residual, and 88 % by the
-        mean distance from each vertex's signature to the nearest signature of the whole (no map at all)
+        mean distance from each vertex's signature to the nearest signature of the whole (no map at all;
+        `Comparer.nearest_signature_distance`)
     anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
     orientation : the final map's `wpot.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`
