@@ -136,7 +136,7 @@ def test_registered_and_built_from_flat_keywords():
 
 def test_a_pair_shares_its_times_and_one_spectrum_with_wks(blob):
     bigger = blob.transformed(scale=1.13)
-    cache = Cache("spectrum")  # memory only, counts hits and misses
+    cache = Cache("spectrum", cache_dir=False)  # memory only (whatever $WPOT_CACHE_DIR says), counts hits and misses
     sig = HKS(HKSOptions(n_eigen=60, n_times=30), spectrum_cache=cache)
     assert not sig.fitted and sig.times is None
     sig.fit([blob, bigger])

@@ -177,7 +177,7 @@ def test_two_triangulations_of_one_surface():
 # ------------------------------------------------------------------------------ the registered signature
 def test_signature_fits_the_shared_grid_and_evaluates_wks(blob):
     bigger = blob.transformed(scale=1.13)
-    cache = Cache("spectrum")  # memory only
+    cache = Cache("spectrum", cache_dir=False)  # memory only, whatever $WPOT_CACHE_DIR says
     sig = WKS(WKSOptions(n_eigen=60, n_energies=40), spectrum_cache=cache)
     with pytest.raises(ValueError, match="WKS is not fitted: call fit"):
         sig(blob)
