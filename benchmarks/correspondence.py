@@ -13,8 +13,8 @@ a vertex of Y with
   defaults: ``orient=True`` (two candidates: the map with the parts found mirrored sent through the shape's
   left/right symmetry, and the map of an orientation-aware functional map fitted from WKS; of those oriented
   about as well as the better one, the least stretched; `wpot.orientation`, `wpot.fmap`) and ``samples=2000``
-  (rounds before the last on farthest-point samples). Its time per pair includes the symmetry detection of a shape the first time the
-  shape is a source (then cached).
+  (rounds before the last on farthest-point samples). Its time per pair includes the symmetry detection of a
+  shape the first time the shape is a source (then cached).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
   of its README quickstart: area-normalized, centred meshes, 200 Laplace-Beltrami eigenpairs, 100 WKS
   descriptors (every second one kept), a 30 x 30 functional map fitted with w_descr = 1, w_lap = 0.1,

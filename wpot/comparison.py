@@ -600,6 +600,11 @@ class Comparer:
             bar.refresh()  # the last beta and U drawn at least once: tqdm redraws at most every 0.1 s
             bar.close()
 
+    def _fit_to_pair(self, mesh_a: Mesh, mesh_b: Mesh, labels: tuple[str, str]) -> None:
+        """Fit a signature that needs fitting and is not fitted yet to the two meshes of a lone pair."""
+        if self.stage.needs_fit and not self.stage.fitted:
+            self.fit([mesh_a, mesh_b], labels=list(labels))
+
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
         """Compare A with B; see `Comparison`. A signature that needs fitting and is not fitted yet is fitted
         to A and B."""
@@ -610,8 +615,7 @@ class Comparer:
             if not isinstance(m, Mesh):
                 raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
             check_mesh_size(m, self.config, name)
-        if self.stage.needs_fit and not self.stage.fitted:
-            self.fit([mesh_a, mesh_b], labels=["A", "B"])
+        self._fit_to_pair(mesh_a, mesh_b, ("A", "B"))
         self.sampler.check_cells(mesh_a, mesh_b)
         pa, pb = self._reported_points(mesh_a, "A"), self._reported_points(mesh_b, "B")
         what = "every vertex" if pa.subsample is None and pb.subsample is None else "farthest-point samples"
@@ -640,8 +644,7 @@ class Comparer:
         partial transport's SU (Eq. 27) and 77.7 % by `PartMap.cost`."""
         from wpot.cost import nearest_costs
 
-        if self.stage.needs_fit and not self.stage.fitted:
-            self.fit([part, whole], labels=["part", "whole"])
+        self._fit_to_pair(part, whole, ("part", "whole"))
         _, best = nearest_costs(self.signatures(part), self.signatures(whole), metric=self.stage.metric,
                                 device=self.device)
         return float(best.mean())
@@ -653,8 +656,7 @@ class Comparer:
         vertices; ``options`` is a `wpot.locate.LocateOptions`. Returns a `wpot.locate.PartMap`."""
         from wpot.locate import locate_part
 
-        if self.stage.needs_fit and not self.stage.fitted:
-            self.fit([part, whole], labels=["part", "whole"])
+        self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
 

@@ -243,8 +243,10 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     scale = float(np.sqrt(whole.area))
     g_part, g_whole = _geodesics(part), _geodesics(whole)
 
-    # steps 1-2
-    anchors = farthest_point_sampling(part, min(opt.n_anchors, part.n_vertices)).indices
+    # steps 1-2; farthest-point sampling is greedy, so one run gives both the anchors and step 3's sources as
+    # its first n_anchors and n_refine samples
+    spread = farthest_point_sampling(part, min(max(opt.n_anchors, opt.n_refine), part.n_vertices)).indices
+    anchors, src = spread[:opt.n_anchors], spread[:opt.n_refine]
     cand = _candidates(sp_, sw, anchors, opt.n_candidates, metric, device)
     owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
     target = cand.ravel()
@@ -260,8 +262,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                       LocateWarning, stacklevel=2)
 
     # step 3
-    src = farthest_point_sampling(part, min(opt.n_refine, part.n_vertices)).indices
-
     def dense(from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``."""

@@ -284,25 +284,26 @@ class Mesh:
         und, counts = self._edge_face_count
         return _ro(und[counts > 2])
 
+    def _edge_matrix(self, values: np.ndarray) -> sp.csr_matrix:
+        """(N, N) symmetric CSR matrix with ``values[k]`` at both (i, j) and (j, i) of edge k, indices sorted."""
+        e = self.edges
+        n = self.n_vertices
+        m = sp.coo_matrix((np.r_[values, values], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                          shape=(n, n)).tocsr()
+        m.sort_indices()
+        return m
+
     @cached_property
     def adjacency(self) -> sp.csr_matrix:
         """(N, N) symmetric CSR vertex adjacency (one-ring), entries 1."""
-        e = self.edges
-        n = self.n_vertices
-        a = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
-        a = a.tocsr()
-        a.sort_indices()
-        return a
+        return self._edge_matrix(np.ones(len(self.edges)))
 
     @cached_property
     def edge_graph(self) -> sp.csr_matrix:
         """(N, N) symmetric CSR graph of the edges weighted by their lengths, for shortest paths along the
         surface (`scipy.sparse.csgraph`). A zero-length edge gets the smallest positive float instead, since
         csgraph reads 0 as no edge."""
-        e = self.edges
-        n = self.n_vertices
-        w = np.maximum(self.edge_lengths, np.finfo(float).tiny)
-        return sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+        return self._edge_matrix(np.maximum(self.edge_lengths, np.finfo(float).tiny))
 
     def one_ring(self, i: int) -> np.ndarray:
         """Indices of the vertices sharing an edge with vertex ``i`` (sorted, read-only)."""

@@ -287,6 +287,7 @@ def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     -------
     (map (N_A,) int64, its orientation score, whether it was changed).
     """
+    one_of("symmetry_of", symmetry_of, ("a", "b"))
     t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
     terms = _terms(mesh_a, mesh_b, t)  # once: the score and where the map is mirrored
     score = float("nan") if terms is None else _mean(*terms)
@@ -295,7 +296,6 @@ def keep_orientation(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     wrong = _spread(mesh_a, *terms, LOCAL_RADIUS) < 0
     if not wrong.any():
         return t, score, False
-    one_of("symmetry_of", symmetry_of, ("a", "b"))
     sym = reflection_symmetry(mesh_a) if symmetry_of == "a" else None
     if sym is not None:
         flipped = np.where(wrong, t[sym.map], t)
