@@ -277,3 +277,30 @@ def test_killed_parallel_run_resumes_without_recomputing(clean_run, dataset, tmp
         assert rows == []
         np.testing.assert_allclose(s.distance_matrix(), clean_run.distance_matrix(), rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(s.get("energies"), clean_run.get("energies"), rtol=1e-12)
+
+
+def test_shape_warnings_from_workers_are_said_once_with_the_shape_name(tmp_path):
+    """A warning raised while a worker process computes one shape's spectrum reaches the caller once,
+    naming that shape (a worker would print it with no name, and a rerun would not say it again)."""
+    import warnings
+
+    from wpot.examples import example_mesh
+    from wpot.io import save_mesh
+    from wpot.mesh import Mesh
+    from wpot.pipeline import run_all_vs_all
+    from wpot.spectral import SpectralWarning
+
+    folder = tmp_path / "data"
+    folder.mkdir()
+    m = example_mesh(90, seed=0)
+    save_mesh(m, folder / "one.off")
+    save_mesh(example_mesh(97, seed=1), folder / "other.off")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the MeshWarning about the two components, said when it is read
+        twin = Mesh(np.vstack([m.vertices, m.vertices + [5.0, 0, 0]]), np.vstack([m.faces, m.faces + m.n_vertices]))
+    save_mesh(twin, folder / "twin.off")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_all_vs_all(folder, tmp_path / "run", jobs=2, progress=False, cache_dir=tmp_path / "cache", **FAST)
+    said = [str(w.message) for w in caught if issubclass(w.category, SpectralWarning)]
+    assert len(said) == 1 and said[0].startswith("twin: ") and "2 connected components" in said[0], said

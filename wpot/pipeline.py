@@ -762,17 +762,27 @@ def repair_mesh(mesh: Mesh) -> tuple[Mesh, np.ndarray, str]:
     return fixed, index_map, ", ".join(f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0)
 
 
-def _signature_task(spec: Any, config: Mapping[str, Any]) -> int:
+def _shape_task(fn: Any, spec: Any, config: Mapping[str, Any]) -> tuple[Any, list[tuple[type, str]]]:
+    """``fn(mesh, config)`` on one shape's mesh, with the warnings it raised returned beside its result rather
+    than printed where it ran (a worker process prints them without saying which shape they are about):
+    `_map` says each again, once, in the coordinator, prefixed with the shape's file name."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        value = fn(_worker_mesh(spec, config), config)
+    said = [(w.category, str(w.message)) for w in caught]
+    return value, list(dict.fromkeys(said))
+
+
+def _signatures_of(mesh: Mesh, config: Mapping[str, Any]) -> int:
     """Compute (and cache on disk) one shape's signatures; returns its vertex count."""
-    mesh = _worker_mesh(spec, config)
     _worker_comparer(config).signatures(mesh)
     return mesh.n_vertices
 
 
-def _fit_input_task(spec: Any, config: Mapping[str, Any]) -> Any:
+def _fit_input_of(mesh: Mesh, config: Mapping[str, Any]) -> Any:
     """One shape's contribution to fitting the signature to the dataset (`Signature.fit_input`: for WKS, its
     eigenvalues; the eigenvectors stay in the run's spectrum cache, on disk)."""
-    return _worker_comparer(config).stage.fit_input(_worker_mesh(spec, config))
+    return _worker_comparer(config).stage.fit_input(mesh)
 
 
 def _pair_task(i: int, j: int, spec_i: Any, spec_j: Any, config: Mapping[str, Any]) -> dict[str, Any]:
@@ -970,13 +980,14 @@ def run_all_vs_all(
 
             stage = get_signature(config.signature)(config.signature_options)
             if stage.needs_fit and task_config["state"] is None:
-                inputs = _map(executor, _fit_input_task, [(sp, task_config) for sp in task_specs],
-                              fit_phase(stage), reporter)
+                inputs = _map(executor, _shape_task, [(_fit_input_of, sp, task_config) for sp in task_specs],
+                              fit_phase(stage), reporter, [s.name for s in specs])
                 stage.fit_from(inputs)
                 task_config["state"] = stage.state()
                 store.set_signature_state(task_config["state"])
             needed = sorted({i for t in todo for i in t})
-            _map(executor, _signature_task, [(task_specs[i], task_config) for i in needed], "signatures", reporter)
+            _map(executor, _shape_task, [(_signatures_of, task_specs[i], task_config) for i in needed], "signatures",
+                 reporter, [specs[i].name for i in needed])
             _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
         finally:
             if own_pool is not None:
@@ -1097,21 +1108,27 @@ def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -
             f.cancel()
 
 
-def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: Any) -> list[Any]:
-    """Run ``fn(*args)`` for each args (inline or on the executor), in order, with a progress bar."""
+def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str, progress: Any,
+         names: Sequence[str]) -> list[Any]:
+    """Run `_shape_task` (``fn`` is it) for each args (inline or on the executor), with a progress bar; returns
+    the values in the order of ``arglist``, and says each task's warnings as they arrive, prefixed with the
+    name of its shape (``names``, one per args)."""
     bar = progress.bar(len(arglist), what, "shape")
+
+    def take(k: int, told: tuple[Any, list[tuple[type, str]]]) -> Any:
+        value, said = told
+        for category, message in said:
+            warnings.warn(f"{names[k]}: {message}", category, stacklevel=3)
+        bar.update()
+        return value
+
     try:
         if executor is None:
-            out = []
-            for a in arglist:
-                out.append(fn(*a))
-                bar.update()
-            return out
+            return [take(k, fn(*a)) for k, a in enumerate(arglist)]
         results: list[Any] = [None] * len(arglist)
         with contextlib.closing(_completed(executor, ((k, fn, a) for k, a in enumerate(arglist)))) as finished:
             for k, f in finished:
-                results[k] = f.result()
-                bar.update()
+                results[k] = take(k, f.result())
         return results
     finally:
         bar.close()
