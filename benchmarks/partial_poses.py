@@ -722,7 +722,8 @@ def report(store: Store, out: Path, log, tags: dict[str, str] | None, keep_parts
             lines.append(f"| {g} | {row['parts']} | {row['pairs']} | {row['mean']:.3f} | {row['share']:.1%} | "
                          f"{row['auc']:.3f} | {row['sym_mean']:.3f} | {row['sym_share']:.1%} | {row['sym_auc']:.3f} | "
                          f"{row['flipped']:.1%} | {row['mass']:.3f} | {row['uniform']:.3f} | "
-                         f"{row['retrieval']:.1%} ({row['n_retrieval']}) | {row['sec_median']:.2f} |")
+                         + (f"{row['retrieval']:.1%} ({row['n_retrieval']})" if row["n_retrieval"] else "–")
+                         + f" | {row['sec_median']:.2f} |")
         trusted = [r["trust"] for r in recs if "trust" in r]
         if trusted:
             t = {k: float(np.mean([x[k] for x in trusted])) for k in trusted[0]}
@@ -872,6 +873,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ldsift-slab", type=float, default=1.0)
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
+    ap.add_argument("--no-retrieval", action="store_true",
+                    help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--report-all", action="store_true", help="report every method stored in --out")
@@ -882,6 +885,8 @@ def main(argv=None) -> int:
     store = Store(out)
     members = class_members(a.tosca)
     sources, targets, others = plan(a, members)
+    if a.no_retrieval:
+        others = {s: [] for s in others}
     matchers = Matchers(a, log)
     tags = {m: matchers.tags[m] for m in a.methods}
     if not a.report_only:
