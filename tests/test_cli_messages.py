@@ -306,6 +306,33 @@ def test_all_vs_all_repair(dataset, capsys, tmp_path):
     assert "--repair: stored on, requested off" in line
 
 
+def test_largest_component_drops_stray_pieces(dataset, capsys, tmp_path):
+    """--largest-component keeps each mesh's largest piece (after --repair's fixes): the run's distances are
+    those of the meshes without their stray pieces, and a resume must ask for the same repair."""
+    import shutil
+
+    import wpot
+    from wpot.pipeline import RunStore
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    m = wpot.load_mesh(dataset / "blob2.off")
+    piece = m.vertices[m.faces[0]] + [10.0, 0.0, 0.0]  # a detached triangle beside the blob
+    wpot.save_mesh(wpot.Mesh(np.vstack([m.vertices, piece]), np.vstack([m.faces, m.n_vertices + np.arange(3)[None]]),
+                             warn=False), data / "blob2.off")
+    code, out, err = cli(capsys, "all-vs-all", data, "--out", tmp_path / "big", "--largest-component", *FAST)
+    assert code == 0, err
+    assert "--largest-component: blob2: removed 1 smaller component (3 vertices)" in out
+    code, _, err = cli(capsys, "all-vs-all", dataset, "--out", tmp_path / "clean", *FAST)
+    assert code == 0, err
+    with RunStore(tmp_path / "big") as big, RunStore(tmp_path / "clean") as clean:
+        assert big.get("repair") == "largest" and big.names == clean.names
+        np.testing.assert_allclose(big.distance_matrix(), clean.distance_matrix(), rtol=1e-9, atol=0)
+    for flags, said in ((["--repair"], "--repair alone"), ([], "neither")):
+        line = one_line_error(*cli(capsys, "all-vs-all", data, "--out", tmp_path / "big", *flags, *FAST)[::2])
+        assert f"--repair/--largest-component: stored --largest-component, requested {said}" in line
+
+
 def test_repair_mesh_says_what_it_removed(pair):
     import wpot
     from wpot.pipeline import repair_mesh
@@ -315,6 +342,21 @@ def test_repair_mesh_says_what_it_removed(pair):
     assert removed == "" and same == m and np.array_equal(index_map, np.arange(m.n_vertices))
     doubled = wpot.Mesh(m.vertices, np.vstack([m.faces, m.faces[:2]]), warn=False)
     assert repair_mesh(doubled)[2] == "2 duplicate triangles"
+    # the mesh, a duplicate triangle, and a piece of a shifted copy (its other vertices unreferenced): "largest"
+    # keeps the mesh, with no warning about the piece it drops, and its index map points into the input
+    piece = m.faces[(m.faces == 0).any(axis=1)] + m.n_vertices  # the fan around a vertex: one piece
+    twin = wpot.Mesh(np.vstack([m.vertices, m.vertices + 5.0]), np.vstack([m.faces, m.faces[:1], piece]), warn=False)
+    n_piece = len(np.unique(piece))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kept, index_map, removed = repair_mesh(twin, "largest")
+    assert removed == (f"1 duplicate triangle, {m.n_vertices - n_piece} unreferenced vertices, "
+                       f"1 smaller component ({n_piece} vertices)")
+    assert kept.n_vertices == m.n_vertices and np.array_equal(kept.vertices, twin.vertices[index_map])
+    assert np.array_equal(index_map, np.arange(m.n_vertices))
+    assert repair_mesh(twin, "none")[0] is twin
+    with pytest.raises(ValueError, match="repair must be"):
+        repair_mesh(twin, "all")
 
 
 # ------------------------------------------------------------------------------------ 4. too small a mesh
@@ -441,8 +483,9 @@ def test_library_messages_are_worded_with_flags():
     assert cli_words("balanced transport must converge; transport must be one of") == \
         "balanced transport must converge; --transport must be one of"
     assert cli_words("Repair the mesh with Mesh.cleaned().") == "Repair the mesh with --repair."
-    assert "wpot.Mesh.cleaned(keep_largest_component=True) in Python" in \
-        cli_words("consider Mesh.cleaned(keep_largest_component=True).")
+    assert cli_words("consider Mesh.cleaned(keep_largest_component=True).") == "consider --largest-component."
+    assert cli_words("Mesh.cleaned() removes them (keep_largest_component=True drops the smaller components) and "
+                     "returns the index map.") == "--repair removes them (--largest-component drops the smaller components)."
     assert cli_words("fps_metric must be one of ('geodesic',)") == "fps_metric must be one of ('geodesic',)"  # no flag
 
 

@@ -79,6 +79,9 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
                    help="repair each mesh first: remove zero-area and duplicate triangles and unreferenced vertices "
                         "(wpot.Mesh.cleaned), and say what was removed; saved correspondences keep the input's "
                         "vertex numbering")
+    p.add_argument("--largest-component", action="store_true",
+                   help="keep only each mesh's largest connected component (stray pieces of a scan, detached "
+                        "parts), after --repair's fixes, which it implies")
     p.add_argument(
         "--ot-method", choices=tuple(SOLVERS), default=d.method,
         help=("'auto' (default) or 'exact': D(inf) alone, solved exactly (the transport LP for balanced transport, "
@@ -304,9 +307,8 @@ def _switches() -> set[str]:
 #: library advice with no keyword in it, and what the command offers instead
 _PHRASES = (
     (r"\s*\(CLI --[\w-]+\)", ""),  # "pass scale_invariant=True (CLI --scale-invariant)": the flag is said already
-    (r"Mesh\.cleaned\(keep_largest_component=True\)",
-     "wpot.Mesh.cleaned(keep_largest_component=True) in Python (--repair keeps every component)"),
-    (r"\s*\(keep_largest_component=True drops the smaller components\)", ""),
+    (r"Mesh\.cleaned\(keep_largest_component=True\)", "--largest-component"),
+    (r"keep_largest_component=True", "--largest-component"),
     (r"(?<!wpot\.)Mesh\.cleaned\(\)", "--repair"),
     (r"`?(?<!wpot\.)Mesh\.cleaned`?(?!\()", "--repair"),
     (r" and returns the index map", ""),
@@ -360,6 +362,10 @@ def _mismatch_words(exc: Any) -> str:
     table, switches = flag_table(), _switches()
     parts = []
     for key, stored, requested in exc.differences:
+        if key == "repair" and "largest" in (stored, requested):  # two flags set this one setting
+            said = {"largest": "--largest-component", True: "--repair alone", False: "neither"}
+            parts.append(f"--repair/--largest-component: stored {said[stored]}, requested {said[requested]}")
+            continue
         flag = table.get(key)
         name = flag if flag is not None else f"{key} (Python only, no flag)"
         parts.append(f"{name}: stored {_value_words(stored, flag, switches)}, "
@@ -441,25 +447,34 @@ class _Loaded:
         return np.asarray(vertices) if self.index_map is None else self.index_map[np.asarray(vertices)]
 
 
-def _repaired(mesh: Any, path: str, label: str, repair: bool) -> _Loaded:
-    """The mesh, repaired when ``repair`` (printing what was removed from it)."""
-    if not repair:
+def _repair(a: argparse.Namespace) -> str:
+    """The repair the flags ask for (`wpot.pipeline.REPAIR_MODES`)."""
+    return "largest" if getattr(a, "largest_component", False) else ("defects" if a.repair else "none")
+
+
+def _repair_flag(mode: str) -> str:
+    return "--largest-component" if mode == "largest" else "--repair"
+
+
+def _repaired(mesh: Any, path: str, label: str, repair: str) -> _Loaded:
+    """The mesh, repaired as ``repair`` (`_repair`) asks (printing what was removed from it)."""
+    if repair == "none":
         return _Loaded(mesh, path)
     from wpot.pipeline import repair_mesh
 
-    fixed, index_map, removed = repair_mesh(mesh)
-    print(f"--repair {label}: " + (f"removed {removed}" if removed else "nothing to repair"))
+    fixed, index_map, removed = repair_mesh(mesh, repair)
+    print(f"{_repair_flag(repair)} {label}: " + (f"removed {removed}" if removed else "nothing to repair"))
     if not removed:
         return _Loaded(mesh, path)
     return _Loaded(fixed, path, index_map, mesh.n_vertices)
 
 
-def _load(path: str, label: str, repair: bool = False) -> _Loaded:
+def _load(path: str, label: str, repair: str = "none") -> _Loaded:
     from wpot.io import load_mesh
 
     if not Path(path).is_file():
         raise CliError(f"mesh file not found: {path}")
-    return _repaired(load_mesh(path, warn=not repair), path, label, repair)
+    return _repaired(load_mesh(path, warn=repair == "none"), path, label, repair)
 
 
 def _summary_lines(c: Any, match_ratio: float) -> list[str]:
@@ -668,6 +683,7 @@ def _check_size(m: _Loaded, config: Any, label: str) -> None:
 def cmd_demo(a: argparse.Namespace) -> None:
     from wpot.comparison import Comparer
     from wpot.examples import example_pair
+    from wpot.pipeline import repair_setting
 
     t0 = time.perf_counter()
     config = config_from_args(a)
@@ -679,8 +695,8 @@ def cmd_demo(a: argparse.Namespace) -> None:
         pair = example_pair(a.n, seed=0, n_target=a.n)
     except ValueError as exc:  # "n must be an integer >= 50, ...": n is --n here
         raise CliError(re.sub(r"^n must", "--n must", str(exc))) from None
-    src = _repaired(pair.source, "example A", "A", a.repair)
-    tgt = _repaired(pair.target, "example B", "B", a.repair)
+    src = _repaired(pair.source, "example A", "A", _repair(a))
+    tgt = _repaired(pair.target, "example B", "B", _repair(a))
     for m, label in ((src, "A"), (tgt, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, progress=_progress(a))
@@ -704,7 +720,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
         return float(np.median(err))
 
     extra = {"median_error_edge_lengths": median_error(c.correspondence, "correspondence error vs ground truth"),
-             "signature_state": state, "repair": bool(a.repair)}
+             "signature_state": state, "repair": repair_setting(_repair(a))}
     refined = _zoomout(a, src.mesh, tgt.mesh, c)
     if refined is not None:
         extra["median_error_edge_lengths_zoomout"] = median_error(refined, "after ZoomOut")
@@ -719,6 +735,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
 
 def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import Comparer
+    from wpot.pipeline import repair_setting
 
     config = config_from_args(a)  # option errors before any file is read
     _check_zoomout(a)
@@ -726,14 +743,14 @@ def cmd_compare(a: argparse.Namespace) -> None:
     state, n_run, other = None, None, []
     if a.energies_from is not None:
         state, n_run, other = _run_state(a.energies_from, config)
-    ma, mb = _load(a.mesh_a, "A", a.repair), _load(a.mesh_b, "B", a.repair)
+    ma, mb = _load(a.mesh_a, "A", _repair(a)), _load(a.mesh_b, "B", _repair(a))
     for m, label in ((ma, "A"), (mb, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, signature_state=state, progress=_progress(a))
     c = comparer.compare(ma.mesh, mb.mesh)
     def size(m: _Loaded) -> str:
         return (f"{m.mesh.n_vertices} vertices" if m.index_map is None
-                else f"{m.mesh.n_vertices} of its {m.n_input} vertices after --repair")
+                else f"{m.mesh.n_vertices} of its {m.n_input} vertices after {_repair_flag(_repair(a))}")
 
     print(f"A: {a.mesh_a} ({size(ma)})   B: {a.mesh_b} ({size(mb)})")
     print(f"settings: {config.describe()}")
@@ -748,7 +765,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
     located = _locate(a, comparer, ma.mesh, mb.mesh)
     if a.out:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
-                 "settings": config.describe(), "signature_state": info, "repair": bool(a.repair)}
+                 "settings": config.describe(), "signature_state": info, "repair": repair_setting(_repair(a))}
         if located is not None:
             extra["locate"] = {"n_anchors": int(len(located.anchors)),
                                "median_residual": float(np.median(located.residual)),
@@ -777,7 +794,7 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
     try:
         store = run_all_vs_all(
             a.source, a.out, jobs=(jobs or None), scheduler=a.scheduler, labels=a.labels,
-            progress=_progress(a), config=config, device=a.device, repair=a.repair,
+            progress=_progress(a), config=config, device=a.device, repair=_repair(a),
         )
     except ImportError as exc:
         if a.scheduler is None:
@@ -788,8 +805,8 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         fails = store.failures()
         conv = sum(1 for r in store.pair_rows() if r["converged"])
         repairs = store.get("repairs") or {}
-    if a.repair:
-        print("--repair: " + ("; ".join(f"{name}: removed {what}" for name, what in repairs.items())
+    if _repair(a) != "none":
+        print(f"{_repair_flag(_repair(a))}: " + ("; ".join(f"{name}: removed {what}" for name, what in repairs.items())
                               if repairs else "nothing to repair"))
     print(f"{done} of {total} pairs in {a.out} ({conv} converged), {time.perf_counter() - t0:.1f} s this session")
     if fails:

@@ -69,7 +69,7 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, MeshWarning
 
 __all__ = [
     "CorruptRunError",
@@ -84,6 +84,9 @@ __all__ = [
     "discover_shapes",
     "param_differences",
     "repair_mesh",
+    "repair_mode",
+    "repair_setting",
+    "REPAIR_MODES",
     "run_all_vs_all",
     "run_lock",
 ]
@@ -719,12 +722,11 @@ def _worker_comparer(config: Mapping[str, Any]):
 
 
 @functools.lru_cache(maxsize=64)
-def _mesh_at(path: str, repair: bool = False) -> Mesh:
+def _mesh_at(path: str, repair: str = "none") -> Mesh:
     from wpot.io import load_mesh
 
-    if repair:
-        return repair_mesh(load_mesh(path, warn=False))[0]
-    return load_mesh(path, warn=False)  # the coordinator said its defects once, when it read the shapes
+    # the coordinator said the mesh's defects once, when it read the shapes
+    return repair_mesh(load_mesh(path, warn=False), repair)[0]
 
 
 def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
@@ -736,7 +738,7 @@ def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
     if isinstance(spec, Mesh):
         return spec
     path, fingerprint = spec if isinstance(spec, tuple) else (spec, None)
-    mesh = _mesh_at(path, bool(config.get("repair", False)))
+    mesh = _mesh_at(path, repair_mode(config.get("repair", False)))
     if fingerprint is not None and mesh.fingerprint != fingerprint:
         _mesh_at.cache_clear()
         raise ValueError(f"{path} changed while the run was going (its content is not the one the run began "
@@ -744,22 +746,60 @@ def _worker_mesh(spec: Any, config: Mapping[str, Any]) -> Mesh:
     return mesh
 
 
-def repair_mesh(mesh: Mesh) -> tuple[Mesh, np.ndarray, str]:
-    """`Mesh.cleaned` with an account of what it removed.
+#: what ``repair`` asks for (`repair_mode`): nothing; the defects `Mesh.validate` warns about (zero-area and
+#: duplicate triangles, unreferenced vertices); or those and then every connected component but the largest
+#: (scans with stray pieces, TOSCA's seahorses with their two detached eyes)
+REPAIR_MODES = ("none", "defects", "largest")
+
+
+def repair_mode(repair: bool | str | None) -> str:
+    """``repair`` as one of `REPAIR_MODES`: False or None is "none", True is "defects"."""
+    if repair is None or repair is False:
+        return "none"
+    if repair is True:
+        return "defects"
+    if isinstance(repair, str) and repair in REPAIR_MODES:
+        return repair
+    raise ValueError(f"repair must be True, False or one of {', '.join(map(repr, REPAIR_MODES))}, got {repair!r}")
+
+
+def repair_setting(repair: bool | str | None) -> bool | str:
+    """``repair`` as a run stores it and a saved comparison records it: False, True or "largest" (the values
+    of runs made before "largest" existed, unchanged)."""
+    mode = repair_mode(repair)
+    return {"none": False, "defects": True}.get(mode, mode)
+
+
+def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndarray, str]:
+    """`Mesh.cleaned` with an account of what it removed (``mode``: `repair_mode`; "none" returns the mesh).
 
     Returns
     -------
     mesh, index_map : as `Mesh.cleaned` (``index_map[i]`` is the input index of the repaired mesh's vertex i)
-    removed : what was removed, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"``; "" when nothing was
+    removed : what was removed, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"`` or ``"2 smaller
+        components (58 vertices)"``; "" when nothing was
     """
-    fixed, index_map = mesh.cleaned()
+    mode = repair_mode(mode)
+    if mode == "none":
+        return mesh, np.arange(mesh.n_vertices, dtype=np.int64), ""
+    with warnings.catch_warnings():
+        if mode == "largest":  # its components are about to go: no MeshWarning about them
+            warnings.simplefilter("ignore", MeshWarning)
+        fixed, index_map = mesh.cleaned()
     n_degenerate = int(mesh.degenerate_faces.size)
     counts = [
         (n_degenerate, "zero-area triangle", "zero-area triangles"),
         (mesh.n_faces - fixed.n_faces - n_degenerate, "duplicate triangle", "duplicate triangles"),
         (mesh.n_vertices - fixed.n_vertices, "unreferenced vertex", "unreferenced vertices"),
     ]
-    return fixed, index_map, ", ".join(f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0)
+    removed = [f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0]
+    if mode == "largest" and fixed.n_components > 1:
+        n_pieces, n_before = fixed.n_components - 1, fixed.n_vertices
+        fixed, inner = fixed.cleaned(keep_largest_component=True)
+        index_map = index_map[inner]
+        removed.append(f"{n_pieces} smaller component{'s' if n_pieces > 1 else ''} "
+                       f"({n_before - fixed.n_vertices} vertices)")
+    return fixed, index_map, ", ".join(removed)
 
 
 def _shape_task(fn: Any, spec: Any, config: Mapping[str, Any]) -> tuple[Any, list[tuple[type, str]]]:
@@ -859,7 +899,7 @@ def run_all_vs_all(
     progress: Any = True,
     max_pairs: int | None = None,
     config: Any = None,
-    repair: bool = False,
+    repair: bool | str = False,
     **comparer_options: Any,
 ) -> RunStore:
     """Compare every pair of ``shapes`` and store the results in the run folder ``out`` (resumable).
@@ -885,10 +925,11 @@ def run_all_vs_all(
     progress : a `tqdm.auto` bar for every phase (reading the meshes, fitting the signature, the signatures, the
         pairs with their rate and ETA) on standard error: True, False, or a `wpot.progress.Progress`
     max_pairs : stop after committing this many new pairs (for tests and partial runs)
-    repair : repair every mesh with `wpot.Mesh.cleaned` (zero-area and duplicate triangles, unreferenced
-        vertices) before it is used, here and in the workers; what was removed from which shape is stored
-        with the run (``store.get("repairs")``: name -> what was removed) and reported. The shapes' stored
-        fingerprints are those of the repaired meshes, so a resume must repair too.
+    repair : repair every mesh with `wpot.Mesh.cleaned` before it is used, here and in the workers: True (or
+        "defects") removes zero-area and duplicate triangles and unreferenced vertices, "largest" also every
+        connected component but the largest (`repair_mesh`); what was removed from which shape is stored with
+        the run (``store.get("repairs")``: name -> what was removed) and reported. The shapes' stored
+        fingerprints are those of the repaired meshes, so a resume must repair the same way.
 
     Returns
     -------
@@ -916,6 +957,7 @@ def run_all_vs_all(
                 device=device, progress=progress, max_pairs=max_pairs, config=config, repair=repair,
                 **comparer_options,
             )
+    mode = repair_mode(repair)
     reporter = as_progress(progress)
     if labels is not None and not isinstance(labels, (str, Path)):
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
@@ -933,9 +975,9 @@ def run_all_vs_all(
     bar = reporter.bar(len(specs), "reading meshes", "mesh")
     try:
         for s in specs:
-            m = s.load(warn=not repair)
-            if repair:
-                m, _, what = repair_mesh(m)
+            m = s.load(warn=mode == "none")
+            if mode != "none":
+                m, _, what = repair_mesh(m, mode)
                 if what:
                     repairs[s.name] = what
                     reporter.write(f"repaired {s.name}: removed {what}")
@@ -949,16 +991,18 @@ def run_all_vs_all(
 
     with run_lock(out):
         store = RunStore(out, create=True)
-        stored_repair = bool(store.get("repair", False))
+        stored_repair = store.get("repair", False)
+        stored_mode = repair_mode(stored_repair)
         try:
             store.initialize(params, shape_rows, lab)
         except RunMismatchError as exc:
-            if exc.differences or stored_repair == bool(repair):
+            if exc.differences or stored_mode == mode:
                 raise
-            raise RunMismatchError(f"{exc} The run was made with repair={stored_repair}; rerun with repair={stored_repair} "
-                                   "to resume it.", folder=out, differences=[("repair", stored_repair, bool(repair))]) from None
-        store.set("repair", bool(repair))
-        if repair:
+            raise RunMismatchError(f"{exc} The run was made with repair={stored_repair!r}; rerun with "
+                                   f"repair={stored_repair!r} to resume it.", folder=out,
+                                   differences=[("repair", stored_repair, repair_setting(mode))]) from None
+        store.set("repair", repair_setting(mode))
+        if mode != "none":
             store.set("repairs", repairs)
         todo = [t for t in store.tasks() if t not in store.done()]
         if not todo:
@@ -975,7 +1019,7 @@ def run_all_vs_all(
             # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
             # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
             task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
-                           "device": device, "repair": bool(repair)}
+                           "device": device, "repair": mode}
             from wpot.signatures import get_signature
 
             stage = get_signature(config.signature)(config.signature_options)
