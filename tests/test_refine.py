@@ -71,7 +71,7 @@ def test_bad_input():
         zoomout(a, a, ident + 0.5)
     with pytest.raises(ValueError, match="k_start must be <= k_end"):
         zoomout(a, a, ident, k_start=50, k_end=40)
-    with pytest.raises(ValueError, match="k_end=300 exceeds the 200 eigenpairs"):
+    with pytest.raises(ValueError, match="k_end=300 exceeds the 100 eigenpairs"):
         zoomout(a, a, ident, k_end=300)
     with pytest.raises(ValueError, match="step must be a positive integer, got 0"):
         zoomout(a, a, ident, step=0)
@@ -94,10 +94,13 @@ def test_cached_eigenpairs_reads_without_computing(tmp_path):
     assert cached_eigenpairs(m, 40, cache=False) is None
 
 
-def test_zoomout_reuses_a_cached_larger_spectrum_else_computes_only_k_end(monkeypatch):
+def test_zoomout_uses_its_own_spectrum_size_whatever_is_cached(monkeypatch):
+    """ZoomOut (and the WKS descriptors of its oriented candidate) read `spectrum_size` eigenpairs per
+    mesh, computed once and then read from the cache; what else is cached, such as the smaller spectrum of a
+    WKS comparison with fewer eigenpairs, changes neither what it computes nor its result."""
     from wpot import spectral
 
-    a = wpot.example_mesh(300, seed=7)  # fewer vertices than 500: the spectrum looked up has 300 eigenpairs
+    a = wpot.example_mesh(300, seed=7)
     b = wpot.example_mesh(320, seed=8)
     asked: list[int] = []
     real = spectral.LaplaceBeltrami.eigenpairs
@@ -110,15 +113,17 @@ def test_zoomout_reuses_a_cached_larger_spectrum_else_computes_only_k_end(monkey
     monkeypatch.delenv("WPOT_CACHE_DIR", raising=False)  # memory only, emptied
     spectral.spectrum_cache.clear()
     start = np.random.default_rng(0).integers(0, b.n_vertices, a.n_vertices)
-    # orient=False: the orientation step's symmetry detection asks for its own spectrum (tests/test_orientation.py)
-    zoomout(a, b, start, k_end=30, orient=False)
-    assert asked == [30, 30]  # nothing cached: only the 30 eigenpairs needed, per mesh
+    first = zoomout(a, b, start, k_end=30)
+    assert sorted(set(asked)) == [100]  # spectrum_size: a tenth of the vertices, at least 100
     asked.clear()
-    spectral.eigenpairs(a, 300)
-    spectral.eigenpairs(b, 320)
+    for k in (40, 300):  # what WKS comparisons with n_eigen=40 and n_eigen >= 300 cache
+        spectral.eigenpairs(a, k)
+        spectral.eigenpairs(b, k)
     asked.clear()
-    zoomout(a, b, start, k_end=30, orient=False)
-    assert asked == []  # the larger cached spectra serve
+    np.testing.assert_array_equal(zoomout(a, b, start, k_end=30), first)
+    assert asked == []  # its own spectra come from the cache
+    spectral.spectrum_cache.clear()
+    np.testing.assert_array_equal(zoomout(a, b, start, k_end=30), first)  # and computed again, the same
 
 
 def _disjoint(parts: list[Mesh], spacing: float = 3.0) -> Mesh:

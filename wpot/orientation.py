@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from wpot._validate import one_of, vertex_map
+from wpot._validate import integer_at_least, one_of, vertex_map
 from wpot.cache import Cache
 from wpot.mesh import Mesh
 
@@ -49,7 +49,7 @@ EXCLUSION = 0.1
 #: `local_orientation`'s neighbourhood, times sqrt(area)
 LOCAL_RADIUS = 0.1
 #: version of the detection, part of the cache key
-_VERSION = 2
+_VERSION = 3
 
 
 class OrientationWarning(UserWarning):
@@ -180,11 +180,10 @@ class Symmetry:
 
 
 def _spectrum(mesh: Mesh, n_eigen: int):
-    """A cached 500-eigenpair spectrum (WKS's) when there is one, else ``n_eigen`` eigenpairs."""
-    from wpot.spectral import cached_eigenpairs, eigenpairs
+    """``n_eigen`` eigenpairs (the vertex count when fewer), from the spectrum cache when they are there."""
+    from wpot.spectral import eigenpairs
 
-    spec = cached_eigenpairs(mesh, min(500, mesh.n_vertices))
-    return spec if spec is not None else eigenpairs(mesh, min(n_eigen, mesh.n_vertices))
+    return eigenpairs(mesh, min(n_eigen, mesh.n_vertices))
 
 
 def _signature(spec) -> np.ndarray:
@@ -221,14 +220,16 @@ def _mirror_candidates(mesh: Mesh, sig: np.ndarray, exclusion: float, block: int
     return out
 
 
-def reflection_symmetry(mesh: Mesh, *, n_eigen: int = 100, min_score: float = MIN_SCORE,
+def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: float = MIN_SCORE,
                         exclusion: float = EXCLUSION, cache: bool = True) -> Symmetry | None:
     """The self-map exchanging left and right of a mirror-symmetric shape, or None when none is found.
 
     Parameters
     ----------
     mesh : the shape (one connected, consistently wound surface)
-    n_eigen : eigenpairs for the WKS and ZoomOut when no 500-eigenpair spectrum is cached
+    n_eigen : eigenpairs for the WKS and ZoomOut (the vertex count when fewer); default
+        `wpot.refine.spectrum_size` (500, WKS's, from 5,000 vertices up, so that a WKS comparison's cached
+        spectrum serves). Whatever else is cached, the result depends on the mesh and these options alone
     min_score : the map must score below ``-min_score`` (`orientation_score` of the mesh against itself)
     exclusion : a vertex's mirror candidate lies at least this far from it, times sqrt(area)
     cache : reuse (and store) the result in `symmetry_cache`
@@ -240,10 +241,11 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int = 100, min_score: float = MI
     self-map that is far from an isometry: its ``residual`` says so (`keep_orientation` only uses a flip that
     scores better than the map it replaces).
     """
-    from wpot.refine import zoomout
+    from wpot.refine import spectrum_size, zoomout
 
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
+    n_eigen = spectrum_size(mesh.n_vertices) if n_eigen is None else integer_at_least("n_eigen", n_eigen, 2)
     params = {"n_eigen": int(n_eigen), "min_score": float(min_score), "exclusion": float(exclusion),
               "version": _VERSION}
     if cache:

@@ -56,11 +56,13 @@ from wpot._validate import boolean, vertex_map
 from wpot.fmap import point_map
 from wpot.mesh import Mesh
 
-__all__ = ["zoomout", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES", "ORIENTATION_TIE"]
+__all__ = ["zoomout", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES", "ORIENTATION_TIE"]
 
-#: the spectrum size looked up in the cache first (fewer when a mesh has fewer vertices): the WKS default, so
-#: that the spectra a WKS comparison computed are reused
+#: the most eigenpairs `spectrum_size` gives a mesh: the WKS default, so that on meshes of 5,000 vertices and
+#: more the spectrum a WKS comparison computed (and cached) serves
 ZOOMOUT_N_EIGEN = 500
+#: the fewest (the vertex count when smaller)
+ZOOMOUT_MIN_EIGEN = 100
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). On 8 TOSCA test pairs, AUC
 #: 0.716 for k = 10..100 by 5, 0.699 by 2, 0.722 to 150, 0.672 from 20, 0.621 from 4 by 4
 ZOOMOUT_K_END = 100
@@ -72,6 +74,17 @@ ORIENTATION_TIE = 0.15
 #: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round at a third of the time
 #: (the README's correspondence rows)
 ZOOMOUT_SAMPLES = 2000
+
+
+def spectrum_size(n_vertices: int) -> int:
+    """Eigenpairs that `zoomout` and `wpot.orientation.reflection_symmetry` read for a mesh of ``n_vertices``:
+    a tenth of the vertices, at least `ZOOMOUT_MIN_EIGEN` and at most `ZOOMOUT_N_EIGEN` (never more than the
+    vertices). An eigenfunction beyond about N/10 has a wavelength of a few edges, which the mesh resolves
+    poorly: on meshes of about 800 vertices, WKS descriptors from 500 eigenpairs lose the left/right symmetry
+    that 100 find. The count depends on the mesh alone, never on what a cache holds, so results do not depend
+    on which comparisons ran before."""
+    n = int(n_vertices)
+    return min(n, max(ZOOMOUT_MIN_EIGEN, min(ZOOMOUT_N_EIGEN, n // 10)))
 
 
 def _positive_int(value, name: str) -> int:
@@ -101,9 +114,9 @@ def zoomout(
     k_start, k_end, step : spectral resolutions k_start, k_start + step, ..., then k_end (defaults 10, 5, and
         k_end = `ZOOMOUT_K_END` = 100, or the eigenpairs available when fewer: 19 rounds). With several
         connected components they apply to each pair of components, clamped to its smaller vertex count
-    n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default: the cached
-        spectrum of `ZOOMOUT_N_EIGEN` = 500 eigenpairs (the WKS default; the vertex count when smaller) when a
-        WKS comparison has computed it, else k_end eigenpairs
+    n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default `spectrum_size`
+        of each mesh (500 from 5,000 vertices up: WKS's, so that the spectrum a WKS comparison computed
+        serves); the oriented candidate's WKS descriptors use them all
     orient : keep left and right apart (default): refine two candidates and return, of those oriented about
         as well as the better one, the least stretched (the module docstring): the given map, with the parts
         where it reverses orientation (`wpot.orientation.local_orientation`) sent through A's left/right
@@ -133,7 +146,7 @@ def zoomout(
         n_eigen = _positive_int(n_eigen, "n_eigen")
         if n_eigen > n_avail:
             raise ValueError(f"n_eigen={n_eigen} exceeds the smaller mesh's {n_avail} vertices")
-    k_max = n_eigen if n_eigen is not None else min(ZOOMOUT_N_EIGEN, n_avail)
+    k_max = n_eigen if n_eigen is not None else spectrum_size(n_avail)
     k_end = min(ZOOMOUT_K_END, k_max) if k_end is None else _positive_int(k_end, "k_end")
     if k_start > k_end:
         raise ValueError(f"k_start must be <= k_end, got k_start={k_start}, k_end={k_end}")
@@ -200,7 +213,7 @@ def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int)
     if any(m.n_components != 1 or winding(m) == 0 for m in meshes):
         return None
     k = min(FMAP_K, k_end)
-    specs = [_spectrum(m, n_eigen, k_end) for m in meshes]
+    specs = [_spectrum(m, n_eigen) for m in meshes]
     # scale-invariant WKS on one grid for both shapes, every second energy of a grid twice as fine (pyfmaps')
     grid = wks_energies(specs, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
     desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in specs]
@@ -208,15 +221,13 @@ def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int)
     return point_map(ops[0].phi, ops[1].phi, functional_map(*ops, *desc)), k
 
 
-def _spectrum(mesh: Mesh, n_eigen: int | None, k_end: int):
-    """The eigenpairs ZoomOut uses: ``n_eigen`` when given; else a cached larger spectrum (WKS's) when there is
-    one, else only the k_end needed (about 8x faster than 500 on a 5,000-vertex mesh: 2 s against 16 s)."""
-    from wpot.spectral import cached_eigenpairs, eigenpairs
+def _spectrum(mesh: Mesh, n_eigen: int | None):
+    """The eigenpairs ZoomOut uses: ``n_eigen``, by default `spectrum_size`, from the spectrum cache when they
+    are there. Always that many, whatever else is cached (a larger cached spectrum would change the WKS
+    descriptors of `_oriented_start` and with them the map)."""
+    from wpot.spectral import eigenpairs
 
-    if n_eigen is not None:
-        return eigenpairs(mesh, n_eigen)
-    spec = cached_eigenpairs(mesh, min(ZOOMOUT_N_EIGEN, mesh.n_vertices))
-    return spec if spec is not None else eigenpairs(mesh, k_end)
+    return eigenpairs(mesh, spectrum_size(mesh.n_vertices) if n_eigen is None else n_eigen)
 
 
 def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
@@ -236,7 +247,7 @@ def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, s
     last round maps every vertex with that fit, and once more with the fit to every vertex."""
     from wpot.fmap import SpectralOperators
 
-    ops_a, ops_b = (SpectralOperators(m, _spectrum(m, n_eigen, k_end), k_end) for m in (mesh_a, mesh_b))
+    ops_a, ops_b = (SpectralOperators(m, _spectrum(m, n_eigen), k_end) for m in (mesh_a, mesh_b))
     phi_a, phi_b = ops_a.phi, ops_b.phi
     ks = _schedule(k_start, k_end, step)
     sa, sb = (None, None) if sample is None else (sample(mesh_a), sample(mesh_b))
