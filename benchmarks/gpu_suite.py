@@ -18,7 +18,8 @@ Sections, each printed as a table and saved to ``DIR/gpu_suite.json`` when ``--o
    devices agree to rounding);
 3. a TOSCA-sized pair (two generated shapes of 5,000 vertices, or 800 with ``--small``; WKS cost): wpot's default
    solver (the exact LP) and the interior-point annealing beside ``ot.emd`` and MDOT-TNT (when installed:
-   ``pip install mdot-tnt`` with PyTorch; `_mdot`) on the same cost, with the gaps; and partial transport on the same cost (the comparison's default mass penalty), exact (the default);
+   ``pip install mdot-tnt`` with PyTorch; `_mdot`) on the same cost, with the gaps; and partial transport on
+   the same cost (the comparison's default mass penalty), exact (the default);
 4. large matrix-free problems (random L2 costs in R^100, N = 20,000 and 50,000 on a GPU, 300 with ``--small``):
    the exact LP to the end, with its certified gap (the dual bound over all N^2 entries), and the annealing
    for its first 12 (4) betas;
@@ -327,8 +328,8 @@ def main() -> None:
     print(f"\n{r['problem']}: {r['seconds']:.2f} s, converged {r['converged']}, certified gap "
           f"{r['gap_bound_rel']:.1e}; ipm {r['ipm_seconds']:.2f} s ({r['n_newton']} Newton steps); {peer}")
     if "mdot_seconds" in r:
-        print(f"  MDOT-TNT (gamma {MDOT_GAMMA:g} on costs scaled to [0, 1]) on the same cost: {r['mdot_seconds']:.2f} s, "
-              f"its plan {r['mdot_gap']:.1e} above the exact optimum")
+        print(f"  MDOT-TNT (gamma {MDOT_GAMMA:g} on costs scaled to [0, 1]) on the same cost: "
+              f"{r['mdot_seconds']:.2f} s, its plan {r['mdot_gap']:.1e} above the exact optimum")
     print(f"  partial transport on the same cost (exact, the default): {r['partial_seconds']:.2f} s, "
           f"{r['partial_rounds']} rounds, converged {r['partial_converged']}, certified gap "
           f"{r['partial_gap_bound_rel']:.1e} of the objective")

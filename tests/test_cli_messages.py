@@ -485,7 +485,8 @@ def test_library_messages_are_worded_with_flags():
     assert cli_words("Repair the mesh with Mesh.cleaned().") == "Repair the mesh with --repair."
     assert cli_words("consider Mesh.cleaned(keep_largest_component=True).") == "consider --largest-component."
     assert cli_words("Mesh.cleaned() removes them (keep_largest_component=True drops the smaller components) and "
-                     "returns the index map.") == "--repair removes them (--largest-component drops the smaller components)."
+                     "returns the index map.") == \
+        "--repair removes them (--largest-component drops the smaller components)."
     assert cli_words("fps_metric must be one of ('geodesic',)") == "fps_metric must be one of ('geodesic',)"  # no flag
 
 
