@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import importlib.util
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -134,8 +135,11 @@ def test_damaged_signature_and_spectrum_cache_files_are_recomputed_to_the_same_n
         warnings.simplefilter("always")
         with run_all_vs_all(data, tmp_path / "run2", progress=False, cache_dir=cache, **TINY) as s:
             np.testing.assert_array_equal(s.distance_matrix(), reference)
-    named = {str(w.message).split(" (")[0] for w in caught if issubclass(w.category, CacheWarning)}
-    assert {f"corrupt cache entry {p}" for p in files} <= named  # every damaged file detected, by name
+    # every damaged file detected, by name, and said with the shape it belongs to ("blob1: corrupt cache ...")
+    named = {str(w.message).split(" (")[0].split(": ", 1)[-1] for w in caught if issubclass(w.category, CacheWarning)}
+    assert {f"corrupt cache entry {p}" for p in files} <= named
+    assert all(re.match(r"\w+: corrupt cache entry ", str(w.message)) for w in caught
+               if issubclass(w.category, CacheWarning))
 
 
 def test_a_flipped_data_byte_is_caught_by_the_checksum(tmp_path):
