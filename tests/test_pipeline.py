@@ -304,3 +304,20 @@ def test_shape_warnings_from_workers_are_said_once_with_the_shape_name(tmp_path)
         run_all_vs_all(folder, tmp_path / "run", jobs=2, progress=False, cache_dir=tmp_path / "cache", **FAST)
     said = [str(w.message) for w in caught if issubclass(w.category, SpectralWarning)]
     assert len(said) == 1 and said[0].startswith("twin: ") and "2 connected components" in said[0], said
+
+
+def test_a_shape_that_repeats_another_is_named(tmp_path):
+    """Two files holding the same mesh make a distance of 0 that flatters any 1-NN score: the run says which."""
+    import shutil
+    import warnings
+
+    from wpot.pipeline import run_all_vs_all
+
+    data = make_dataset(tmp_path / "data", n_per_class=2, n=60)
+    shutil.copy(data / "blob1.off", data / "blob9.off")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run = run_all_vs_all(data, tmp_path / "run", progress=False, max_pairs=1, cache_dir=tmp_path / "c", **FAST)
+    said = [str(w.message) for w in caught if "the same mesh" in str(w.message)]
+    assert len(said) == 1 and "mesh (the same vertices and triangles): blob1 = blob9. " in said[0], said
+    assert run.names == ["blob1", "blob2", "blob9", "flat1", "flat2"]

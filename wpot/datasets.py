@@ -307,7 +307,9 @@ def tosca8(folder: str | Path, *, per_class: int = TOSCA8_PER_CLASS, classes: Se
     the file names, and does not change if shapes with higher numbers are added; it is also the choice issue
     20's first TOSCA8 measurements used. It is not claimed to be the paper's choice, which is why accuracies
     on TOSCA8 should also be reported over random draws of six from ``full`` (`tosca8_draws`). Centaur and
-    seahorse have exactly six shapes in the low-resolution set, so only the other six classes vary.
+    seahorse have exactly six shapes in the low-resolution set, so only the other six classes vary. Two
+    pairs of files hold the same mesh, victoria0 = victoria1 (both in the six) and victoria13 = victoria22:
+    the rule keeps them, as the file names are all it reads, and `wpot.run_all_vs_all` warns about them.
 
     Returns `Tosca8` with labels at level ``"class"`` (the name without its trailing digits). Files are
     listed, not read: ``wpot.io.load_mesh`` reads them (MATLAB ``.mat``). Raises ValueError when a class has

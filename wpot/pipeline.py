@@ -802,6 +802,21 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
     return fixed, index_map, ", ".join(removed)
 
 
+def _warn_duplicates(names: Sequence[str], fingerprints: Sequence[str]) -> None:
+    """Say which shapes of a dataset are the same mesh (equal fingerprints: the same vertices and triangles;
+    TOSCA's low-resolution set has two such pairs, victoria0 / victoria1 and victoria13 / victoria22): their
+    distance is 0, so each is the other's nearest neighbour and classification scores come out flattered."""
+    groups: dict[str, list[str]] = {}
+    for name, fp in zip(names, fingerprints):
+        groups.setdefault(fp, []).append(name)
+    same = [g for g in groups.values() if len(g) > 1]
+    if same:
+        warnings.warn(f"these shapes are the same mesh (the same vertices and triangles): "
+                      f"{'; '.join(' = '.join(g) for g in same)}. Their distance is 0, so each is the other's "
+                      "nearest neighbour, which flatters leave-one-out and one-shot scores; leave out all but one "
+                      "of each", UserWarning, stacklevel=3)
+
+
 def _shape_task(fn: Any, spec: Any, config: Mapping[str, Any]) -> tuple[Any, list[tuple[type, str]]]:
     """``fn(mesh, config)`` on one shape's mesh, with the warnings it raised returned beside its result rather
     than printed where it ran (a worker process prints them without saying which shape they are about):
@@ -987,6 +1002,7 @@ def run_all_vs_all(
     finally:
         bar.close()
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
+    _warn_duplicates([s.name for s in specs], [m.fingerprint for m in meshes])
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
     with run_lock(out):
