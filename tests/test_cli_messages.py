@@ -579,3 +579,17 @@ def test_help_describes_arguments_defaults_and_formats():
     assert "required" in helps("all-vs-all")["--out"]
     for command in ("demo", "compare", "all-vs-all"):
         assert {"--progress", "--no-progress", "--repair"} <= set(helps(command))
+
+
+def test_classify_names_shapes_that_are_the_same_mesh(dataset, capsys, tmp_path):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    shutil.copy(dataset / "blob1.off", data / "blob7.off")
+    code, _, err = cli(capsys, "all-vs-all", data, "--out", tmp_path / "run", *FAST)
+    assert code == 0 and "warning: these shapes are the same mesh (the same vertices and triangles): blob1 = blob7" \
+        in err
+    code, out, err = cli(capsys, "classify", tmp_path / "run")
+    assert code == 0 and "the same mesh (the same vertices and triangles): blob1 = blob7. Their distance is 0" in err
+    assert "leave-one-out" in out

@@ -311,7 +311,7 @@ def test_a_shape_that_repeats_another_is_named(tmp_path):
     import shutil
     import warnings
 
-    from wpot.pipeline import run_all_vs_all
+    from wpot.pipeline import repeated_shapes, run_all_vs_all
 
     data = make_dataset(tmp_path / "data", n_per_class=2, n=60)
     shutil.copy(data / "blob1.off", data / "blob9.off")
@@ -321,3 +321,6 @@ def test_a_shape_that_repeats_another_is_named(tmp_path):
     said = [str(w.message) for w in caught if "the same mesh" in str(w.message)]
     assert len(said) == 1 and "mesh (the same vertices and triangles): blob1 = blob9. " in said[0], said
     assert run.names == ["blob1", "blob2", "blob9", "flat1", "flat2"]
+    rows = run.shape_rows()
+    assert repeated_shapes([r[1] for r in rows], [r[3] for r in rows]) == [["blob1", "blob9"]]
+    assert repeated_shapes(["a", "b"], ["x", "y"]) == []

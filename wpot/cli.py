@@ -816,11 +816,13 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
 
 def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.evaluate import format_percent
-    from wpot.pipeline import RunStore
+    from wpot.pipeline import RunStore, repeated_shapes, warn_repeated_shapes
     from wpot.report import PAPER_TABLE1, classify_run, confusions, misses_text
 
     _check_trials(a)
     with RunStore(a.run) as store:
+        rows = store.shape_rows()
+        warn_repeated_shapes(repeated_shapes([r[1] for r in rows], [r[3] for r in rows]))
         r = classify_run(store, trials=a.trials, seed=a.seed)
         p = store.params
         draws = None

@@ -86,6 +86,8 @@ __all__ = [
     "repair_mesh",
     "repair_mode",
     "repair_setting",
+    "repeated_shapes",
+    "warn_repeated_shapes",
     "REPAIR_MODES",
     "run_all_vs_all",
     "run_lock",
@@ -802,17 +804,22 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
     return fixed, index_map, ", ".join(removed)
 
 
-def _warn_duplicates(names: Sequence[str], fingerprints: Sequence[str]) -> None:
-    """Say which shapes of a dataset are the same mesh (equal fingerprints: the same vertices and triangles;
-    TOSCA's low-resolution set has two such pairs, victoria0 / victoria1 and victoria13 / victoria22): their
-    distance is 0, so each is the other's nearest neighbour and classification scores come out flattered."""
+def repeated_shapes(names: Sequence[str], fingerprints: Sequence[str]) -> list[list[str]]:
+    """The groups of ``names`` whose meshes are the same (equal `Mesh.fingerprint`: the same vertices and
+    triangles), in order; [] when every mesh is distinct. TOSCA's low-resolution set has two such pairs,
+    victoria0 / victoria1 and victoria13 / victoria22."""
     groups: dict[str, list[str]] = {}
     for name, fp in zip(names, fingerprints):
         groups.setdefault(fp, []).append(name)
-    same = [g for g in groups.values() if len(g) > 1]
-    if same:
+    return [g for g in groups.values() if len(g) > 1]
+
+
+def warn_repeated_shapes(groups: Sequence[Sequence[str]]) -> None:
+    """Warn about `repeated_shapes`' groups: their distance is 0, so each is the other's nearest neighbour and
+    classification scores come out flattered (said by `run_all_vs_all` and by `wpot classify`)."""
+    if groups:
         warnings.warn(f"these shapes are the same mesh (the same vertices and triangles): "
-                      f"{'; '.join(' = '.join(g) for g in same)}. Their distance is 0, so each is the other's "
+                      f"{'; '.join(' = '.join(g) for g in groups)}. Their distance is 0, so each is the other's "
                       "nearest neighbour, which flatters leave-one-out and one-shot scores; leave out all but one "
                       "of each", UserWarning, stacklevel=3)
 
@@ -1002,7 +1009,7 @@ def run_all_vs_all(
     finally:
         bar.close()
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
-    _warn_duplicates([s.name for s in specs], [m.fingerprint for m in meshes])
+    warn_repeated_shapes(repeated_shapes([s.name for s in specs], [m.fingerprint for m in meshes]))
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
     with run_lock(out):
