@@ -449,7 +449,7 @@ class _Loaded:
 
 def _repair(a: argparse.Namespace) -> str:
     """The repair the flags ask for (`wpot.pipeline.REPAIR_MODES`)."""
-    return "largest" if getattr(a, "largest_component", False) else ("defects" if a.repair else "none")
+    return "largest" if a.largest_component else ("defects" if a.repair else "none")
 
 
 def _repair_flag(mode: str) -> str:
@@ -695,8 +695,9 @@ def cmd_demo(a: argparse.Namespace) -> None:
         pair = example_pair(a.n, seed=0, n_target=a.n)
     except ValueError as exc:  # "n must be an integer >= 50, ...": n is --n here
         raise CliError(re.sub(r"^n must", "--n must", str(exc))) from None
-    src = _repaired(pair.source, "example A", "A", _repair(a))
-    tgt = _repaired(pair.target, "example B", "B", _repair(a))
+    repair = _repair(a)
+    src = _repaired(pair.source, "example A", "A", repair)
+    tgt = _repaired(pair.target, "example B", "B", repair)
     for m, label in ((src, "A"), (tgt, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, progress=_progress(a))
@@ -720,7 +721,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
         return float(np.median(err))
 
     extra = {"median_error_edge_lengths": median_error(c.correspondence, "correspondence error vs ground truth"),
-             "signature_state": state, "repair": repair_setting(_repair(a))}
+             "signature_state": state, "repair": repair_setting(repair)}
     refined = _zoomout(a, src.mesh, tgt.mesh, c)
     if refined is not None:
         extra["median_error_edge_lengths_zoomout"] = median_error(refined, "after ZoomOut")
@@ -743,14 +744,15 @@ def cmd_compare(a: argparse.Namespace) -> None:
     state, n_run, other = None, None, []
     if a.energies_from is not None:
         state, n_run, other = _run_state(a.energies_from, config)
-    ma, mb = _load(a.mesh_a, "A", _repair(a)), _load(a.mesh_b, "B", _repair(a))
+    repair = _repair(a)
+    ma, mb = _load(a.mesh_a, "A", repair), _load(a.mesh_b, "B", repair)
     for m, label in ((ma, "A"), (mb, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, signature_state=state, progress=_progress(a))
     c = comparer.compare(ma.mesh, mb.mesh)
     def size(m: _Loaded) -> str:
         return (f"{m.mesh.n_vertices} vertices" if m.index_map is None
-                else f"{m.mesh.n_vertices} of its {m.n_input} vertices after {_repair_flag(_repair(a))}")
+                else f"{m.mesh.n_vertices} of its {m.n_input} vertices after {_repair_flag(repair)}")
 
     print(f"A: {a.mesh_a} ({size(ma)})   B: {a.mesh_b} ({size(mb)})")
     print(f"settings: {config.describe()}")
@@ -765,7 +767,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
     located = _locate(a, comparer, ma.mesh, mb.mesh)
     if a.out:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
-                 "settings": config.describe(), "signature_state": info, "repair": repair_setting(_repair(a))}
+                 "settings": config.describe(), "signature_state": info, "repair": repair_setting(repair)}
         if located is not None:
             extra["locate"] = {"n_anchors": int(len(located.anchors)),
                                "median_residual": float(np.median(located.residual)),
@@ -791,10 +793,11 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         raise CliError(f"no such folder or list file: {a.source}")
     t0 = time.perf_counter()
     config = config_from_args(a)
+    repair = _repair(a)
     try:
         store = run_all_vs_all(
             a.source, a.out, jobs=(jobs or None), scheduler=a.scheduler, labels=a.labels,
-            progress=_progress(a), config=config, device=a.device, repair=_repair(a),
+            progress=_progress(a), config=config, device=a.device, repair=repair,
         )
     except ImportError as exc:
         if a.scheduler is None:
@@ -805,8 +808,8 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         fails = store.failures()
         conv = sum(1 for r in store.pair_rows() if r["converged"])
         repairs = store.get("repairs") or {}
-    if _repair(a) != "none":
-        print(f"{_repair_flag(_repair(a))}: " + ("; ".join(f"{name}: removed {what}" for name, what in repairs.items())
+    if repair != "none":
+        print(f"{_repair_flag(repair)}: " + ("; ".join(f"{name}: removed {what}" for name, what in repairs.items())
                               if repairs else "nothing to repair"))
     print(f"{done} of {total} pairs in {a.out} ({conv} converged), {time.perf_counter() - t0:.1f} s this session")
     if fails:
@@ -816,13 +819,13 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
 
 def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.evaluate import format_percent
-    from wpot.pipeline import RunStore, repeated_shapes, warn_repeated_shapes
+    from wpot.pipeline import RunStore, warn_repeated_shapes
     from wpot.report import PAPER_TABLE1, classify_run, confusions, misses_text
 
     _check_trials(a)
     with RunStore(a.run) as store:
         rows = store.shape_rows()
-        warn_repeated_shapes(repeated_shapes([r[1] for r in rows], [r[3] for r in rows]))
+        warn_repeated_shapes([r[1] for r in rows], [r[3] for r in rows])
         r = classify_run(store, trials=a.trials, seed=a.seed)
         p = store.params
         draws = None

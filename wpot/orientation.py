@@ -179,13 +179,6 @@ class Symmetry:
     residual: float
 
 
-def _spectrum(mesh: Mesh, n_eigen: int):
-    """``n_eigen`` eigenpairs (the vertex count when fewer), from the spectrum cache when they are there."""
-    from wpot.spectral import eigenpairs
-
-    return eigenpairs(mesh, min(n_eigen, mesh.n_vertices))
-
-
 def _signature(spec) -> np.ndarray:
     """WKS on 100 energies, each energy scaled to unit RMS (the mirror test compares shapes of the signature,
     not its magnitude)."""
@@ -242,6 +235,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     scores better than the map it replaces).
     """
     from wpot.refine import spectrum_size, zoomout
+    from wpot.spectral import eigenpairs
 
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
@@ -257,7 +251,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
                             float(hit["residual"]))
     found = None
     if winding(mesh) != 0 and mesh.n_vertices >= 8:
-        spec = _spectrum(mesh, n_eigen)
+        spec = eigenpairs(mesh, min(n_eigen, mesh.n_vertices))  # from the spectrum cache when it is there
         cand = _mirror_candidates(mesh, _signature(spec), exclusion)
         sym = zoomout(mesh, mesh, cand, orient=False)
         score = _score(mesh, mesh, sym)

@@ -814,9 +814,10 @@ def repeated_shapes(names: Sequence[str], fingerprints: Sequence[str]) -> list[l
     return [g for g in groups.values() if len(g) > 1]
 
 
-def warn_repeated_shapes(groups: Sequence[Sequence[str]]) -> None:
-    """Warn about `repeated_shapes`' groups: their distance is 0, so each is the other's nearest neighbour and
-    classification scores come out flattered (said by `run_all_vs_all` and by `wpot classify`)."""
+def warn_repeated_shapes(names: Sequence[str], fingerprints: Sequence[str]) -> None:
+    """Warn about the `repeated_shapes` among ``names``: their distance is 0, so each is the other's nearest
+    neighbour and classification scores come out flattered (said by `run_all_vs_all` and by `wpot classify`)."""
+    groups = repeated_shapes(names, fingerprints)
     if groups:
         warnings.warn(f"these shapes are the same mesh (the same vertices and triangles): "
                       f"{'; '.join(' = '.join(g) for g in groups)}. Their distance is 0, so each is the other's "
@@ -1009,7 +1010,7 @@ def run_all_vs_all(
     finally:
         bar.close()
     shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
-    warn_repeated_shapes(repeated_shapes([s.name for s in specs], [m.fingerprint for m in meshes]))
+    warn_repeated_shapes([s.name for s in specs], [m.fingerprint for m in meshes])
     lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
 
     with run_lock(out):
