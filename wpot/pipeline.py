@@ -766,8 +766,8 @@ def repair_mode(repair: bool | str | None) -> str:
 
 
 def repair_setting(repair: bool | str | None) -> bool | str:
-    """``repair`` as a run stores it and a saved comparison records it: False, True or "largest" (the values
-    of runs made before "largest" existed, unchanged)."""
+    """``repair`` as a run stores it and a saved comparison records it: False, True or "largest" (booleans for
+    the first two, so that every stored run reads the same way)."""
     mode = repair_mode(repair)
     return {"none": False, "defects": True}.get(mode, mode)
 
