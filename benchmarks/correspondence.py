@@ -9,7 +9,7 @@ a vertex of Y with
   sampling; signatures are computed on the full meshes, and the correspondence of every vertex of X is that
   of its nearest sample (`Comparer.compare`). One WKS energy grid is fitted to all 76 shapes (§3.2).
 * **wpot-zoomout** (``--methods wpot-zoomout``): the same map refined by `wpot.zoomout` (spectral upsampling,
-  k = 10 to 100 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
+  k = 10 to 200 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
   defaults: ``orient=True`` (two candidates: the map with the parts found mirrored sent through the shape's
   left/right symmetry, and the map of an orientation-aware functional map fitted from WKS; of those oriented
   about as well as the better one, the least stretched; `wpot.orientation`, `wpot.fmap`) and ``samples=2000``
@@ -75,8 +75,9 @@ FMAPS_SETTINGS = {
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
-#: candidates, the least stretched of those oriented about as well as the better; sampled rounds)
-ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-tie"
+#: candidates, the least stretched of those oriented about as well as the better, chosen at k = 100 and refined
+#: on to k = 200; sampled rounds)
+ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-tie-k200"
 NORMS = ("sqrt_area", "shrec19")
 
 
@@ -159,7 +160,7 @@ class WpotMatcher:
 
 
 class ZoomOutMatcher:
-    """wpot's correspondence refined by `wpot.zoomout` (defaults: k = 10, 15, ..., 100), on the full meshes; its
+    """wpot's correspondence refined by `wpot.zoomout` (defaults: k = 10, 15, ..., 200), on the full meshes; its
     time per pair is wpot's plus the refinement's."""
 
     def __init__(self, base: WpotMatcher) -> None:

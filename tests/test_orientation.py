@@ -13,7 +13,7 @@ import wpot
 from wpot.mesh import Mesh
 from wpot.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
                               winding)
-from wpot.refine import zoomout
+from wpot.refine import ZOOMOUT_K_SELECT, zoomout
 
 #: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
 _BUMPS = (((0.7, 0.5, 0.3), 0.8, 0.35), ((0.0, -0.6, 0.8), 0.5, 0.4), ((0.4, -0.3, -0.85), 0.45, 0.3),
@@ -132,6 +132,24 @@ def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
     # keep_orientation leaves a map that already keeps orientation untouched
     t, score, flipped = keep_orientation(a, b, oriented)
     assert not flipped and np.array_equal(t, oriented) and score > 0.5
+
+
+def test_zoomout_chooses_at_k_select_and_refines_only_the_chosen_map_on_to_k_end():
+    # the candidates are compared at ZOOMOUT_K_SELECT; beyond it the chosen one alone goes on, so the result is
+    # plain ZoomOut continued from the map chosen there, and keeps its orientation
+    a = mirror_symmetric(900, seed=0)
+    b = mirror_symmetric(1100, seed=5)
+    truth = _nearest(b.vertices, a.vertices)
+    mirror = _nearest(b.vertices, a.vertices * np.array([-1.0, 1.0, 1.0]))
+    start = np.where(np.random.default_rng(2).random(a.n_vertices) < 0.7, mirror, truth)
+    opts = dict(n_eigen=150, samples=400)
+    chosen = zoomout(a, b, start, k_end=ZOOMOUT_K_SELECT, **opts)
+    final = zoomout(a, b, start, k_end=150, **opts)
+    continued = zoomout(a, b, chosen, k_start=ZOOMOUT_K_SELECT + 5, k_end=150, orient=False, **opts)
+    np.testing.assert_array_equal(final, continued)
+    assert not np.array_equal(final, chosen)  # the last rounds did move it
+    err = np.linalg.norm(b.vertices[final] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area)
+    assert err < 0.03 and orientation_score(a, b, final) > 0.5
 
 
 def test_a_part_mapped_onto_the_mirror_side_is_sent_back_through_the_wholes_symmetry():
