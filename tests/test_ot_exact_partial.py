@@ -101,6 +101,31 @@ def test_exact_partial_says_when_max_iter_stops_it_and_its_bound_still_holds():
     assert r.objective - r.history[0].gap_bound <= full.objective * (1 + 1e-12) <= r.objective * (1 + 1e-12)
 
 
+def test_pruned_support_stays_near_the_optimal_face_and_rows_with_no_mass_name_their_least_reduced_cost():
+    # random points in R^20: each row's few cheapest entries form a graph whose factorization fills; the rounds
+    # keep the support near the optimal plan's (a forest: at most N1 + N2 - 1 entries) and the result exact
+    from wpot.ot.exact import solve_exact_problem
+    from wpot.ot.exact_partial import least_of_each
+
+    rng = np.random.default_rng(4)
+    C = cost_matrix(rng.random((300, 20)), rng.random((240, 20)), metric="l2")
+    mp = 0.01 * C.mean() / 300
+    rounds = []
+    res = solve_exact_problem(wo.TransportProblem(C, mass_penalty=mp, device="cpu"), wo.SolverOptions(),
+                              on_round=rounds.append)
+    assert res.converged and len(rounds) >= 2
+    assert max(r.support for r in rounds[1:]) <= 1.5 * (300 + 240)
+    R = C + res.lam[:, None] + res.mu[None, :] + res.x
+    assert R.min() >= -1e-9 * C.max()
+    empty = res.mass1 == 0
+    assert empty.sum() > 20  # a partial plan: rows that send nothing
+    # such a row's correspondence is the annealing's limit: its least reduced cost over every column
+    np.testing.assert_array_equal(res.argmax[empty], np.argmin(R[empty], axis=1))
+    # least_of_each: one entry a row, its least r
+    rows, r = np.array([2, 0, 2, 0, 1]), np.array([0.5, 0.3, 0.1, 0.7, 0.2])
+    np.testing.assert_array_equal(least_of_each(rows, r), [False, True, True, False, True])
+
+
 @pytest.mark.parametrize("metric", ["l2", "wks"])
 def test_exact_partial_matrix_free_equals_stored(metric):
     rng = np.random.default_rng(1)

@@ -362,6 +362,11 @@ class ColumnGeneration:
         self._known = np.insert(self._known, pos, key)
         return len(key)
 
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep only the support entries where ``mask`` (S,) bool is True (in their order)."""
+        self.rows, self.cols, self.c = self.rows[mask], self.cols[mask], self.c[mask]
+        self._known = np.sort(self.rows * self.n2 + self.cols)
+
 def transport_lp(cg: ColumnGeneration, a: np.ndarray, b: np.ndarray, duals: tuple[np.ndarray, np.ndarray] | None):
     """Solve the transport LP with masses ``a``, ``b`` on ``cg``'s support by POT's network simplex on its
     bipartite graph, warm-started from ``duals`` (the previous round's u, v, or None): (plan rows, columns,
@@ -433,6 +438,8 @@ class ExactRun:
 
     #: candidates a row and a column in the first support
     init_k: int = INIT_K
+    #: most negative entries a row that join the support in each pricing round
+    price_k: int = PRICE_K
 
     def __init__(self, problem: TransportProblem, options: SolverOptions, kind: str,
                  on_round: Callable[[Round], None] | None = None, *, gram: bool | GramBlocks | None = None):
@@ -498,9 +505,10 @@ class ExactRun:
         if self.options.verbose:
             print(f"  exact: restricted optimum {self.obj:.12g} on {rnd.support} entries, {nviol} priced out "
                   f"(min r {rnd.min_reduced:.2e}), solve {rnd.t_lp:.2f} s, pass {rnd.t_price:.2f} s")
+        take = first_of_each(rows, self.price_k)  # a batch's shared pass may list more a row than this run takes
         if nviol == 0:
             self.active, self.stop = False, "optimal"
-        elif cg.add(rows, cols) == 0:  # every entry priced out is in the support already: the duals' rounding
+        elif cg.add(rows[take], cols[take]) == 0:  # every entry priced out is in the support already: the duals' rounding
             self.active, self.stop = False, "rounding"
         elif self.n_rounds >= self.options.max_iter:
             self.active, self.stop = False, "max_iter"
@@ -576,7 +584,7 @@ def solve_exact_problem(problem: TransportProblem, options: SolverOptions, *, ki
     while run.active:
         u, v = run.lp()
         t0 = time.perf_counter()
-        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, PRICE_K)
+        rows, cols, rmin, nviol = cg.price(u, v, run.thresh, run.price_k)
         run.take(rows, cols, rmin, nviol, time.perf_counter() - t0)
     return run.result(on_beta)
 
@@ -662,7 +670,7 @@ def solve_exact_batch(problems: list[TransportProblem], options: SolverOptions |
         duals = [runs[i].lp() for i in active]
         t0 = time.perf_counter()
         passes = pricer.price(active, [u for u, _ in duals], [v for _, v in duals], [runs[i].thresh for i in active],
-                              PRICE_K)
+                              max(runs[i].price_k for i in active))  # each run takes its own first price_k a row
         t_pass = (time.perf_counter() - t0) / len(active)
         for i, (rows, cols, rmin, nviol) in zip(active, passes):
             runs[i].take(rows, cols, rmin, nviol, t_pass)
