@@ -367,6 +367,7 @@ class ColumnGeneration:
         self.rows, self.cols, self.c = self.rows[mask], self.cols[mask], self.c[mask]
         self._known = np.sort(self.rows * self.n2 + self.cols)
 
+
 def transport_lp(cg: ColumnGeneration, a: np.ndarray, b: np.ndarray, duals: tuple[np.ndarray, np.ndarray] | None):
     """Solve the transport LP with masses ``a``, ``b`` on ``cg``'s support by POT's network simplex on its
     bipartite graph, warm-started from ``duals`` (the previous round's u, v, or None): (plan rows, columns,
@@ -508,7 +509,7 @@ class ExactRun:
         take = first_of_each(rows, self.price_k)  # a batch's shared pass may list more a row than this run takes
         if nviol == 0:
             self.active, self.stop = False, "optimal"
-        elif cg.add(rows[take], cols[take]) == 0:  # every entry priced out is in the support already: the duals' rounding
+        elif cg.add(rows[take], cols[take]) == 0:  # every entry priced out is in the support: the duals' rounding
             self.active, self.stop = False, "rounding"
         elif self.n_rounds >= self.options.max_iter:
             self.active, self.stop = False, "max_iter"

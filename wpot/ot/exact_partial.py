@@ -73,11 +73,11 @@ _QP_TOL = 1e-11
 #: `_ZERO_REL` of the largest is a residue: both are set to 0 (the certificate is computed on the plan
 #: returned, so this cannot hide an error)
 _FACE_R = 1e-7
+_ZERO_REL = 1e-12
 #: Clarabel's settings tried in turn while it stops short of the tolerance (InsufficientProgress), which it did on
 #: a few small supports with its own defaults: shorter steps towards the cone's boundary, then no equilibration
 #: (the shifted problem is of unit size already)
 _QP_RETRIES = ({}, {"max_step_fraction": 0.9}, {"max_step_fraction": 0.9, "equilibrate_enable": False})
-_ZERO_REL = 1e-12
 
 
 def restricted_qp(c: np.ndarray, rows: np.ndarray, cols: np.ndarray, alpha1: np.ndarray, alpha2: np.ndarray,
@@ -176,7 +176,7 @@ class PartialRun(ExactRun):
         ``free_energy`` (the entropy term vanishes at beta = inf); one `BetaStep` whose ``gap_bound`` is the
         certified U - L over all entries; ``lam`` = z1, ``mu`` = z2, ``x`` = z3 (Eq. 26's sign: C + lam + mu + x
         >= 0, = 0 where the plan is positive); ``mass1``, ``mass2`` the plan's marginals; ``argmax`` of a row
-        with no mass: its support entry of least reduced cost (the annealing's largest entry in the limit)."""
+        with no mass: its entry of least reduced cost over every column (the annealing's largest entry in the limit)."""
         cost = self.cost
         n1, n2 = cost.n1, cost.n2
         s = len(self.g)  # the QP's support: the first s entries (a stop on max_iter has added more since)
