@@ -32,10 +32,10 @@ The interior-point method factorizes a matrix with the bipartite graph of S, who
 graph's cycles: a forest (the optimal plan's support is one) fills nothing, and for random points in R^100
 each row's and column's two cheapest entries already form a graph that separates badly. So S is kept close to
 the optimal face: one candidate a row and a column to start, `PRICE_K` a row per round, and the entries far
-from the face pruned (step 3). At 5,000 points a side in R^100 the first solve on 2 + 2 candidates took 4.1 s,
-on the 6,100 entries of the optimal face 0.16 s; at 20,000 a side the whole solve went from 143 s and 0.72 GB
-(2 + 2 candidates, 8 a round, no pruning) to 42 s and 0.40 GB in 6 rounds. Timings: the README's tables
-(`benchmarks/table6.py`, `benchmarks/scale.py`).
+from the face pruned (step 3). At 5,000 points a side in R^100 a solve on each row's and column's 2 cheapest
+entries takes 4.1 s, on the 6,100 entries of the optimal face 0.16 s; at 20,000 a side the whole solve takes
+42 s and 0.40 GB in 6 rounds this way, 143 s and 0.72 GB with 2 + 2 candidates, 8 a round and no pruning.
+Timings: the README's tables (`benchmarks/table6.py`, `benchmarks/scale.py`).
 """
 from __future__ import annotations
 
