@@ -477,7 +477,7 @@ class Matchers:
 
         from wpot.locate import LocateOptions
 
-        self.locate_options = LocateOptions()
+        self.locate_options = LocateOptions(**json.loads(a.locate_options))
         loc = {"signature": self.comparer.stage.params(), "locate": asdict(self.locate_options)}
         loc_h = hashlib.sha1(json.dumps(loc, sort_keys=True, default=str).encode()).hexdigest()[:8]
         self.tags = {"wpot": f"wpot-{readable}-{h}", "locate": f"locate-{a.signature}-{loc_h}",
@@ -873,6 +873,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ldsift-slab", type=float, default=1.0)
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
+    ap.add_argument("--locate-options", default="{}",
+                    help="`wpot.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' (default: its defaults)")
     ap.add_argument("--no-retrieval", action="store_true",
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")

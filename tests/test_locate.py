@@ -148,6 +148,78 @@ def test_cat_head_found_in_another_pose(tosca5k):
     assert c.nearest_signature_distance(part, whole) == pytest.approx(chamfer, rel=1e-6)
 
 
+def _fold(part, whole, idx, radius: float):
+    """The true map ``idx`` with a disc of the part (``radius`` around its most central vertex) reflected in
+    place, across the plane through the disc's centre that holds its normal (as a limb mapped turned about its
+    axis would be): the disc's images stay near it but reverse orientation. Returns the map and the disc."""
+    from scipy.spatial import cKDTree
+
+    p = part.vertices
+    c = int(np.argmin(np.linalg.norm(p - p.mean(axis=0), axis=1)))
+    n = part.vertex_normals[c]
+    e = np.cross(n, [0.0, 0.0, 1.0])
+    u = np.cross(n, e / np.linalg.norm(e))  # the mirror plane holds n and e
+    disc = np.linalg.norm(p - p[c], axis=1) < radius
+    t = idx.copy()
+    t[disc] = cKDTree(whole.vertices).query(p[disc] - 2.0 * ((p[disc] - p[c]) @ u)[:, None] * u)[1]
+    return t, disc
+
+
+def _smooth_signatures(mesh, seed: int = 0):
+    """(N, 16) smooth functions of the position, with no mirror symmetry: like real signatures, a vertex's
+    neighbours have nearly its signature and its mirror image does not."""
+    rng = np.random.default_rng(seed)
+    return np.sin(mesh.vertices @ rng.normal(scale=2.0, size=(3, 16)) + rng.uniform(0.0, 2.0 * np.pi, 16))
+
+
+def test_orientation_step_redraws_a_fold_and_finds_the_side():
+    """Step 4 (`_orient`) on a part of a mirror-symmetric whole: a small stretch reflected in place, which the
+    repair through the whole's symmetry (`keep_orientation`, candidate (a)) leaves as it is, is redrawn from
+    its neighbours (candidate (b)); a map sent whole onto the mirror side comes back."""
+    from test_orientation import mirror_symmetric
+
+    from wpot.locate import _orient, _Redraw
+    from wpot.mesh import cut
+    from wpot.orientation import keep_orientation, orientation_score, reflection_symmetry
+    from wpot.sampling import farthest_point_sampling
+
+    whole = mirror_symmetric(1500, seed=1)
+    sym = reflection_symmetry(whole, cache=False)
+    assert sym is not None
+    part, idx = cut(whole, whole.vertices[:, 0] > 0.15)  # one side, clear of the symmetry plane
+    draw = _Redraw(part, whole, farthest_point_sampling(part, 96).indices)
+    sw = _smooth_signatures(whole)
+    sp = sw[idx]
+
+    def cost(t):
+        return float(np.mean(np.linalg.norm(sp - sw[t], axis=1)))
+
+    edge = whole.edge_lengths.mean()
+
+    def err(t):
+        return np.linalg.norm(whole.vertices[t] - whole.vertices[idx], axis=1) / edge
+
+    folded, disc = _fold(part, whole, idx, 0.3)
+    assert np.median(err(folded)[disc]) > 1.5 and orientation_score(part, whole, folded) < 0.97
+    old = keep_orientation(part, whole, folded, refine=lambda t0: draw.rounds(t0, 2), symmetry_of="b")[0]
+    assert np.median(err(old)[disc]) > 1.5  # the repair through the symmetry does not see it
+    t, score, c = _orient(draw, folded, cost, 2)
+    assert np.median(err(t)[disc]) < 0.5 and np.quantile(err(t), 0.9) < 1.0
+    assert score > 0.97 and c == pytest.approx(cost(t)) and c < cost(folded)
+    t, score, _ = _orient(draw, sym.map[idx], cost, 2)  # the mirror image of the true map
+    assert np.quantile(err(t), 0.9) < 1.0 and score > 0.97
+
+
+def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
+    from wpot.locate import ORIENT_MARGIN, _pick
+
+    assert ORIENT_MARGIN == 0.5
+    assert _pick([0.9, 0.5, -0.2], [3.0, 1.0, 0.0]) == 1  # -0.2 is more than 0.5 below the best
+    assert _pick([0.9, 0.3, 0.95], [3.0, 1.0, 2.0]) == 2
+    assert _pick([np.nan, 0.8, 0.6], [0.0, 5.0, 1.0]) == 2  # NaN reads as -1
+    assert _pick([0.5, 0.5], [1.0, 1.0]) == 0
+
+
 def test_bad_input_is_named(partial):
     sp, sw = _planted_signatures(partial, outliers=0.0)
     with pytest.raises(ValueError, match="part_signatures must be"):

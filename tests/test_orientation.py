@@ -67,6 +67,27 @@ def test_winding_reads_outward_inward_and_open():
     assert winding(flat) == 0
 
 
+def test_winding_of_a_cut_limb_is_its_whole_shapes(tosca5k):
+    """A wolf's paw cut off at 8 % of the area (as a scan of a limb would be): its boundary loop capped on
+    its own centroid reads the side the whole shape reads; the cone from the part's centroid read it inside out."""
+    from wpot.datasets import clean_region, geodesic_from, region_fraction_radius, tosca_vts
+    from wpot.io import load_mesh
+    from wpot.mesh import cut
+
+    whole = load_mesh(tosca5k / "wolf0.off")
+    centre = int(tosca_vts(tosca5k, "wolf0")[3345])  # template point 3345: a hind paw
+    d = geodesic_from(whole, centre)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        paw, _ = cut(whole, clean_region(whole, d <= region_fraction_radius(whole, d, 0.08), centre))
+    assert paw.boundary_edges.shape[0] > 0
+    v = paw.vertices - paw.vertices.mean(axis=0)
+    cone = np.einsum("ij,ij->i", v[paw.faces[:, 0]], np.cross(v[paw.faces[:, 1]], v[paw.faces[:, 2]])).sum()
+    assert np.sign(cone) == -winding(whole)  # what the single cone read
+    assert winding(paw) == winding(whole) == 1
+    assert winding(Mesh(paw.vertices, paw.faces[:, [0, 2, 1]])) == -1
+
+
 def test_score_of_a_map_and_its_mirror():
     a = wpot.example_mesh(500, seed=3)
     ident = np.arange(a.n_vertices)

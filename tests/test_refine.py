@@ -183,6 +183,19 @@ def test_two_components_map_onto_a_relabelled_copy():
     assert np.all(lb[out] == lb[truth])
 
 
+@pytest.mark.filterwarnings("ignore::wpot.spectral.SpectralWarning")
+def test_components_read_their_own_spectrum_size():
+    # 1,500 + 120 vertices: the whole mesh's spectrum_size (162) exceeds the body's own (150), which is what
+    # each component's ZoomOut reads; the default k_end must follow the component's
+    from wpot.refine import spectrum_size
+
+    a = _disjoint([wpot.example_mesh(1500, seed=6), wpot.example_mesh(120, seed=7)])
+    assert spectrum_size(a.n_vertices) > spectrum_size(1500)
+    b, truth = _relabelled(a, 4)
+    out = zoomout(a, b, _noisy(truth, b.n_vertices, 0.3, seed=8), orient=False)
+    assert np.mean(out == truth) > 0.97
+
+
 def test_stretch_of_a_map():
     from wpot.refine import _stretch
 

@@ -20,11 +20,19 @@ geodesic distances to choose among them and to fill in the map:
    matched anchors' images are nearest its own to the anchors: ``argmin_w ‖d_P(v, A) − d_W(w, B)‖``. Then,
    ``n_rounds`` times, ``n_refine`` farthest-point samples of the part and their current images serve as the
    anchors, which spreads them evenly.
-4. **Orientation** (``orient=True``): where the map reverses orientation (a map onto the mirror image), the
-   mirrored vertices are sent through the whole's left/right symmetry and the map is recomputed
-   (`wpot.orientation.keep_orientation` with ``symmetry_of="b"``, kept only when it scores better). A whole
-   whose symmetry is not detected keeps such a map; so does one whose mirrored stretch the score misreads
-   (a noisy map's image triangles fold at the scale of an edge, which blurs the score).
+4. **Orientation** (``orient=True``). A map can reverse orientation in two ways: onto the mirror side (a
+   left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
+   (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
+   sides of the part apart. Three candidates: (a) the stretches that reverse orientation sent through the
+   whole's left/right symmetry (`wpot.orientation.keep_orientation` with ``symmetry_of="b"``); (b) the map
+   *unfolded*: redrawn (``n_rounds`` times) from the anchors where it keeps orientation
+   (`wpot.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
+   through the whole's symmetry, unfolded the same way. Orientation alone does not choose the side: a limb
+   mapped onto the other limb and unfolded keeps orientation too. LD-SIFT does, as it is not mirror-invariant:
+   on the ground truth of the development benchmark (`benchmarks/partial_poses.py`, 224 part-to-pose pairs)
+   the true side's mean signature cost was below the mirror side's in 222 pairs, by 14 % (median). So of the
+   candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
+   kept. A whole whose symmetry is not detected gets (a) and (b) only.
 
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
@@ -52,6 +60,10 @@ from wpot.mesh import Mesh
 __all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning"]
 
 
+#: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
+ORIENT_MARGIN = 0.5
+
+
 class LocateWarning(UserWarning):
     """Too few consistent matches to place the part reliably."""
 
@@ -63,8 +75,8 @@ class LocateOptions:
     n_anchors : farthest-point samples of the part that get candidates (step 1)
     n_candidates : candidates per anchor, by signature cost (step 1)
     tol, rel_tol : the consistency tolerance σ = tol·√area(whole) + rel_tol·(the shorter distance) (step 2)
-    n_refine : anchors of each refinement round (step 3)
-    n_rounds : refinement rounds (step 3)
+    n_refine : anchors of each refinement round (steps 3 and 4)
+    n_rounds : refinement rounds (step 3), and unfolding rounds (step 4)
     orient : repair the parts of the map that reverse orientation through the whole's symmetry (step 4)
     region_tol : a vertex of the whole is in `PartMap.region` when an image of a vertex of the part lies within
         this (a fraction of √area(whole), along its edges) of it: about two edges on a 5,000-vertex shape,
@@ -75,7 +87,7 @@ class LocateOptions:
     n_candidates: int = 10
     tol: float = 0.03
     rel_tol: float = 0.1
-    n_refine: int = 48
+    n_refine: int = 96
     n_rounds: int = 2
     orient: bool = True
     region_tol: float = 0.03
@@ -202,6 +214,70 @@ def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
     return dijkstra(whole.edge_graph, directed=False, indices=np.unique(images), min_only=True)
 
 
+class _Redraw:
+    """Steps 3 and 4: a map of the part drawn from matched anchors by their geodesic distances, with the
+    distances from the part's refinement anchors ``src`` computed once."""
+
+    def __init__(self, part: Mesh, whole: Mesh, src: np.ndarray, g_part=None, g_whole=None) -> None:
+        self.part, self.whole, self.src = part, whole, np.asarray(src, dtype=np.int64)
+        self.g_part = _geodesics(part) if g_part is None else g_part
+        self.g_whole = _geodesics(whole) if g_whole is None else g_whole
+        self.d_src = _distances(self.g_part, self.src).T  # (N_P, n_refine)
+
+    def dense(self, from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
+        """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
+        nearest its own to ``from_part``: (N_P,) int64."""
+        from wpot.fmap import nearest_rows
+
+        return nearest_rows(_distances(self.g_part, from_part).T, _distances(self.g_whole, to_whole).T)[0]
+
+    def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
+        """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
+        current images."""
+        from wpot.fmap import nearest_rows
+
+        k = np.ones(len(self.src), dtype=bool) if keep is None else keep
+        for _ in range(n):
+            t = nearest_rows(self.d_src[:, k], _distances(self.g_whole, t[self.src[k]]).T)[0]
+        return t
+
+    def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
+        """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation, then once from
+        all of them."""
+        from wpot.orientation import local_orientation
+
+        for _ in range(n):
+            keep = np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0
+            if keep.sum() < 3 or keep.all():
+                break
+            t = self.rounds(t, 1, keep)
+        return self.rounds(t, 1)
+
+
+def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarray, float, float]:
+    """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
+    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
+    from wpot.orientation import keep_orientation, orientation_score, reflection_symmetry
+
+    part, whole, n = draw.part, draw.whole, max(1, n_rounds)
+    cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
+             draw.unfold(t, n)]
+    sym = reflection_symmetry(whole)
+    if sym is not None:
+        cands.append(draw.unfold(sym.map[t], n))
+    scores = [orientation_score(part, whole, c) for c in cands]
+    costs = [cost(c) for c in cands]
+    best = _pick(scores, costs)
+    return cands[best], float(scores[best]), float(costs[best])
+
+
+def _pick(scores, costs) -> int:
+    """Of the candidates whose orientation score is within `ORIENT_MARGIN` of the best (NaN: -1), the index of
+    the one with the least cost (the first on a tie)."""
+    o = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-1.0)
+    return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, np.asarray(costs, dtype=np.float64), np.inf)))
+
+
 def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signatures: ArrayLike, *,
                 metric: str = "l2", options: LocateOptions | None = None, device: str | None = None) -> PartMap:
     """Locate ``part`` in ``whole`` and map it onto it (see the module docstring).
@@ -221,7 +297,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     unreliable, as its residuals say.
     """
     from wpot.cost import paired_costs
-    from wpot.fmap import nearest_rows
+    from wpot.orientation import local_orientation, orientation_score
     from wpot.sampling import farthest_point_sampling
 
     for name, m in (("part", part), ("whole", whole)):
@@ -261,29 +337,19 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                       "be placed reliably (are they at the same scale, and is the part in the whole?)",
                       LocateWarning, stacklevel=2)
 
-    # step 3
-    def dense(from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
-        """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
-        nearest its own to ``from_part``."""
-        return nearest_rows(_distances(g_part, from_part).T, _distances(g_whole, to_whole).T)[0]
+    # steps 3 and 4
+    draw = _Redraw(part, whole, src, g_part, g_whole)
+    t = draw.rounds(draw.dense(a, b), opt.n_rounds)
 
-    def rounds(t: np.ndarray, n: int) -> np.ndarray:
-        for _ in range(n):
-            t = dense(src, t[src])
-        return t
-
-    t = rounds(dense(a, b), opt.n_rounds)
-
-    # step 4
-    from wpot.orientation import keep_orientation, local_orientation, orientation_score
+    def cost(t: np.ndarray) -> float:
+        return float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device)))
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         if opt.orient:
-            t, score, _ = keep_orientation(part, whole, t, refine=lambda t0: rounds(t0, max(1, opt.n_rounds)),
-                                           symmetry_of="b")
+            t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds)
         else:
-            score = orientation_score(part, whole, t)
+            score, mean_cost = orientation_score(part, whole, t), cost(t)
         local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
@@ -291,7 +357,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     res = np.linalg.norm(fp0 - fw0[t], axis=1) / np.sqrt(max(len(a), 1)) / scale
     confidence = np.exp(-res / opt.tol) * (1.0 + np.clip(local, -1.0, 1.0)) / 2.0
     return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=confidence,
-                   image_distance=_image_distance(whole, t) / scale,
-                   cost=float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device))),
+                   image_distance=_image_distance(whole, t) / scale, cost=mean_cost,
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
                    region_tol=opt.region_tol)

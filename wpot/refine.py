@@ -309,7 +309,9 @@ def _zoom_components(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_
         local_b = np.full(mesh_b.n_vertices, -1, dtype=np.int64)
         local_b[ib] = np.arange(ib.size)
         t_loc = local_b[t[ia]]
-        ke = min(k_end, n_loc if n_eigen is None else min(n_eigen, n_loc))
+        # each component's own spectrum: `spectrum_size` of its vertices (the whole mesh's may be larger)
+        ke = min(k_end, spectrum_size(min(sub_a.n_vertices, sub_b.n_vertices)) if n_eigen is None
+                 else min(n_eigen, n_loc))
         out[ia] = ib[_zoom(sub_a, sub_b, t_loc, min(k_start, ke), ke, step,
                            None if n_eigen is None else min(n_eigen, n_loc), valid=t_loc >= 0, sample=sample)]
     return out
