@@ -43,8 +43,9 @@ Assumptions: the part and the whole are at the same scale (a part of the same ob
 geodesics inside the part are those of the whole, which holes or a cut across a narrow neck bend (the
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
 per anchor and per distinct candidate (about 2 ms each at 5,000 vertices), and a nearest-neighbour search in
-``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole. The README's partial-correspondence row has the
-measured effect.
+``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole, plus, the first time a whole is met, its
+symmetry for step 4 (`wpot.orientation.reflection_symmetry`: about 3 s, then cached). The README's
+partial-correspondence row has the measured effect.
 """
 from __future__ import annotations
 
