@@ -874,7 +874,8 @@ def main(argv=None) -> int:
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
     ap.add_argument("--locate-options", default="{}",
-                    help="`wpot.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' (default: its defaults)")
+                    help="`wpot.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' "
+                         "(default: its defaults)")
     ap.add_argument("--no-retrieval", action="store_true",
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")
@@ -882,6 +883,15 @@ def main(argv=None) -> int:
     ap.add_argument("--report-all", action="store_true", help="report every method stored in --out")
     a = ap.parse_args(argv)
     a.vertices_per_sample = a.vertices_per_sample or None
+    try:
+        from wpot.locate import LocateOptions
+
+        opts = json.loads(a.locate_options)
+        if not isinstance(opts, dict):
+            raise ValueError("it must be a JSON object")
+        LocateOptions(**opts)
+    except (ValueError, TypeError) as e:
+        ap.error(f"--locate-options {a.locate_options!r}: {e}")
     out, log = results_folder(a.out)
 
     store = Store(out)

@@ -130,3 +130,13 @@ def test_store_resumes_and_refuses_changed_parts(pp, tmp_path, cat):
     changed = pp.Part(parts[0].name, "cat0", "cat", "head", "L", 0.2, parts[0].idx[:-1], parts[0].mesh)
     with pytest.raises(SystemExit, match="differs"):
         pp.record_parts(tmp_path, [changed])
+
+
+@pytest.mark.parametrize("value, says", [('{"n_refin": 3}', "n_refin"), ("{n_refine: 3}", "double quotes"),
+                                         ("[96]", "JSON object"), ('{"n_refine": 1}', "n_refine must be")])
+def test_bad_locate_options_are_refused_before_anything_runs(pp, tmp_path, capsys, value, says):
+    with pytest.raises(SystemExit):
+        pp.main(["--out", str(tmp_path / "run"), "--locate-options", value])
+    err = capsys.readouterr().err
+    assert "--locate-options" in err and says in err
+    assert not (tmp_path / "run").exists()  # refused before the results folder is made
