@@ -218,3 +218,16 @@ def test_symmetry_is_cached_by_content():
         again = reflection_symmetry(Mesh(m.vertices.copy(), m.faces.copy()))
     assert first is not None and symmetry_cache.hits >= 1
     np.testing.assert_array_equal(first.map, again.map)
+
+
+def test_cached_symmetry_follows_the_zoomout_resolution():
+    # the self-map depends on ZoomOut's last resolution; a cached map computed at another one must not be served
+    m = mirror_symmetric()
+    coarse, fine = (reflection_symmetry(m, k_end=k, cache=False) for k in (10, 100))
+    assert coarse is not None and fine is not None and coarse.score != fine.score
+    for k, want in ((10, coarse), (100, fine), (10, coarse)):
+        got = reflection_symmetry(Mesh(m.vertices.copy(), m.faces.copy()), k_end=k)
+        assert got.score == want.score
+        np.testing.assert_array_equal(got.map, want.map)
+    with pytest.raises(ValueError, match="k_end"):
+        reflection_symmetry(m, k_end=5)
