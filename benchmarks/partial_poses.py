@@ -475,9 +475,7 @@ class Matchers:
         sig_h = hashlib.sha1(json.dumps(self.comparer.stage.params(), sort_keys=True, default=str).encode()).hexdigest()[:8]
         from dataclasses import asdict
 
-        from wpot.locate import LocateOptions
-
-        self.locate_options = LocateOptions(**json.loads(a.locate_options))
+        self.locate_options = a.locate  # main() parsed --locate-options
         loc = {"signature": self.comparer.stage.params(), "locate": asdict(self.locate_options)}
         loc_h = hashlib.sha1(json.dumps(loc, sort_keys=True, default=str).encode()).hexdigest()[:8]
         self.tags = {"wpot": f"wpot-{readable}-{h}", "locate": f"locate-{a.signature}-{loc_h}",
@@ -889,7 +887,7 @@ def main(argv=None) -> int:
         opts = json.loads(a.locate_options)
         if not isinstance(opts, dict):
             raise ValueError("it must be a JSON object")
-        LocateOptions(**opts)
+        a.locate = LocateOptions(**opts)
     except (ValueError, TypeError) as e:
         ap.error(f"--locate-options {a.locate_options!r}: {e}")
     out, log = results_folder(a.out)
