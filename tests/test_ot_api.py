@@ -17,7 +17,8 @@ def test_solver_options_defaults_are_the_function_forms_defaults():
     o = wo.SolverOptions()
     assert o.to_dict() == dict(beta0=None, beta_max=None, step=10.0, tol=1e-6, atol=1e-10, max_iter=100, max_newton=100,
                                newton_tol=1e-11, linear_solver="cg", cg_rtol=1e-3, cg_max_iter=1000, topk=4,
-                               extrapolate=True, dense_plan=None, plan_topk=8, matvec_lanes=None, verbose=0)
+                               extrapolate=True, dense_plan=None, plan_topk=8, matvec_lanes=None, newton_loop=None,
+                               verbose=0)
     # the function forms carry no copy of the defaults: every option comes from SolverOptions
     for fn in (wo.solve_balanced, wo.solve_partial):
         params = set(inspect.signature(fn).parameters)

@@ -57,21 +57,22 @@ class AnnealOutcome:
         return dataclasses.replace(self, n_newton=self.n_newton + n_newton, n_linear=self.n_linear + n_linear)
 
 
-def _tangent(eng: Engine, pt: Point) -> int:
+def _tangent(eng: Engine, pt: Point) -> Callable[[], int]:
     """d(lam, y)/d(log beta) at the solved point ``pt`` (device state at it, after `Engine.free_pass`), left
     in the engine's direction arrays for `_predict`; skipped when the extrapolation is off or the point is
-    not accurate enough. Returns its linear iterations."""
+    not accurate enough. Returns a function that gives its linear iterations, to be called after the
+    predictor's evaluation (whose read brings them, in the device loop) and before the next direction."""
     o = eng.o
     if o.extrapolate and pt.residual <= o.newton_tol * 1e3:
         # direction() solves J d = -g: with g = (row, column sums of W s), d = d(lam, y)/d(log beta)
-        n_lin, _ = eng.direction(Point(eng.to_host(eng.row_ws).copy(), eng.to_host(eng.col_ws).copy(), 0.0, 0.0))
-        return n_lin
-    return 0
+        result = eng.direction_later(Point(eng.row_ws, eng.col_ws, 0.0, 0.0))
+        return lambda: result()[0]
+    return lambda: 0
 
 
-def _refresh_tangent(eng: Engine, beta: float) -> int:
+def _refresh_tangent(eng: Engine, beta: float) -> Callable[[], int]:
     """Re-evaluate the (restored) duals at ``beta`` and recompute the tangent there (a failed Newton solve
-    overwrote the device state and the direction arrays). Returns the tangent's linear iterations."""
+    overwrote the device state and the direction arrays). Returns `_tangent`'s function."""
     pt = eng.evaluate(eng.lam, eng.y, beta)
     eng.free_pass(eng.lam, eng.y, beta, pt)
     return _tangent(eng, pt)
@@ -117,7 +118,7 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
     stopped = False
     u_prev = None
     n_newton_tot = n_lin_tot = 0
-    n_tangent = 0  # linear iterations of the last tangent, counted when the predictor uses it
+    n_tangent = lambda: 0  # noqa: E731  (the last tangent's linear iterations, counted when the predictor uses it)
     good: DualSnapshot | None = None  # the duals at the last beta whose Newton solve converged
     failed_beta = None
     final_beta, final_pt = math.nan, None
@@ -128,7 +129,7 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
             break
         if raw and o.extrapolate:
             pt = _predict(eng, beta, raw[-1]["beta"])
-            n_lin_tot += n_tangent
+            n_lin_tot += n_tangent()
         else:
             pt = eng.evaluate(eng.lam, eng.y, beta)
         pt, nn, nl, ok = eng.newton(beta, pt)
@@ -161,7 +162,7 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
         all_newton_ok &= ok
         n_newton_tot += nn
         n_lin_tot += nl
-        obj = pt.u + eng.penalty()
+        obj = pt.u + eng.dual_sums(pt).penalty
         fe = free_energy(eng, pt, beta)
         rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
         raw.append(rec)

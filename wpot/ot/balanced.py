@@ -51,9 +51,8 @@ def solve_balanced_problem(problem: TransportProblem, options: SolverOptions, *,
         eng.init_point(np.zeros(prob.n_r), np.full(prob.n_c, cost.n1 * cost.n2 / opts.beta0))
 
     def free_energy(e: Engine, pt, beta):
-        lam = e.to_host(e.lam[0]) + e.to_host(e.lam[1])
-        y = e.to_host(e.y[0]) + e.to_host(e.y[1])
-        return -(float(lam @ prob.m_r) + float(y @ prob.m_c)) - pt.f_sum / beta
+        sums = e.dual_sums(pt)
+        return -(sums.lam_m + sums.y_m) - pt.f_sum / beta
 
     hook = None if on_beta is None else (lambda r: on_beta(beta_step(r, cost.scale, total)))
     out = anneal(eng, free_energy, beta0=beta0, on_beta=hook).add_work(*n_ipm)

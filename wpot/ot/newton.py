@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import warp as wp
@@ -34,6 +35,8 @@ from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
 from wpot.ot import linear
 from wpot.ot.options import EngineOptions
+from wpot.ot import resident
+from wpot.ot.resident import DeviceLoop
 from wpot.ot.problem import Internal
 
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
@@ -78,16 +81,34 @@ class Timers:
 
 @dataclass
 class Point:
-    """Values at one (lam, y): host copies of the length-N quantities and the scalar sums."""
+    """Values at one (lam, y): the marginal residuals g1 (n_r,), g2 (n_c,) and the scalar sums.
 
-    g1: np.ndarray
-    g2: np.ndarray
+    From `Engine.evaluate`, g1 and g2 are host copies in the host loop and None in the device loop (they
+    stay on the device). As the right-hand side of `Engine.direction` they may be numpy arrays, Warp arrays
+    on the solve device, or None for those of the last evaluation."""
+
+    g1: np.ndarray | wp.array | None
+    g2: np.ndarray | wp.array | None
     merit: float
     residual: float
     u: float = math.nan
     f_sum: float = math.nan
     xphi: float = math.nan
     x: float = 0.0
+    sums: DualSums | None = None  # set by `Engine.free_pass` in the device loop, else by `Engine.dual_sums`
+
+
+@dataclass(frozen=True)
+class DualSums:
+    """Sums over the duals and marginals at a solved point (normalized units), for the free energy (Eq. 12 /
+    23) and the partial penalty: lam . m_r, y . m_c, sum b lam^2, sum a mu^2 with mu = y - x, and
+    penalty = sum m1^2 / (2 b) + sum m2^2 / (2 a) with m the marginals (0 for balanced transport)."""
+
+    lam_m: float
+    y_m: float
+    b_lam2: float
+    a_mu2: float
+    penalty: float
 
 
 @dataclass(frozen=True)
@@ -171,6 +192,11 @@ class Engine:
         self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
         self._M_iters = 0
         self._M_fresh_needed = False
+        loop = opts.newton_loop
+        if loop is None:
+            loop = "host" if self._host or opts.linear_solver != "cg" else "device"
+        #: the device-resident Newton loop (`wpot.ot.resident`), or None for the host loop
+        self.dev = DeviceLoop(self) if loop == "device" else None
 
     # ------------------------------------------------------------------ evaluation
     def _x_of_y(self, y: np.ndarray) -> float:
@@ -193,6 +219,11 @@ class Engine:
                   outputs=[self.row_g, self.row_w, self.piv, self.tail, self.row_u, self.row_xphi, self.s_piv],
                   device=p.device)
         self._w_point = (lam[0], lam[1], y[0], y[1], beta)
+        if self.dev is not None:
+            pt = self.dev.point(lam, y)
+            self.t.eval += time.perf_counter() - t0
+            self.t.n_eval += 1
+            return pt
         rg, cg = self.to_host(self.row_g), self.to_host(self.col_g)
         lam_h = self.to_host(lam[0]) + self.to_host(lam[1])
         y_h = self.to_host(y[0]) + self.to_host(y[1])
@@ -212,16 +243,33 @@ class Engine:
         return pt
 
     def free_pass(self, lam, y, beta: float, pt: Point):
-        """At the saddle point of a beta: sum g (into ``pt.f_sum``) and the row/column sums of W s."""
+        """At the saddle point of a beta (the point of the last evaluation, ``pt``): sum g (into
+        ``pt.f_sum``) and the row/column sums of W s; in the device loop also ``pt.sums``, in the same read."""
         t0 = time.perf_counter()
         p = self.p
         self.col_ws.zero_()
         wp.launch(K.variant(K.free_rows, self.csrc), dim=p.n_r,
                   inputs=[self.csrc, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
                   outputs=[self.row_f, self.row_ws, self.col_ws], device=p.device)
-        pt.f_sum = float(self.to_host(self.row_f).sum())
+        if self.dev is not None:
+            pt.f_sum, pt.sums = self.dev.free_sums(lam, y, pt.x)
+        else:
+            pt.f_sum = float(self.to_host(self.row_f).sum())
         self.t.eval += time.perf_counter() - t0
         self.t.n_free += 1
+
+    def dual_sums(self, pt: Point) -> DualSums:
+        """The `DualSums` at ``pt``, the current duals and the last evaluation (from `free_pass` in the device
+        loop; read here in the host loop)."""
+        if pt.sums is not None:
+            return pt.sums
+        p = self.p
+        lam = self.to_host(self.lam[0]) + self.to_host(self.lam[1])
+        y = self.to_host(self.y[0]) + self.to_host(self.y[1])
+        mu = y - pt.x
+        pt.sums = DualSums(float(lam @ p.m_r), float(y @ p.m_c), float(p.b_r @ (lam * lam)),
+                           float(p.a_c @ (mu * mu)), self.penalty())
+        return pt.sums
 
     # ------------------------------------------------------------------ Newton direction
     def weights(self):
@@ -296,38 +344,28 @@ class Engine:
         ]
 
     def direction(self, pt: Point, rtol: float | None = None) -> tuple[int, bool]:
-        """Solve the Newton system; leaves dlam = d_a + d_b and dy = dy_a on the device. Returns
-        (linear iterations, linear solve converged)."""
+        """Solve the Newton system for the residuals of ``pt`` (see `Point`) at the last evaluated point;
+        leaves dlam = d_a + d_b and dy = dy_a on the device. Returns (linear iterations, linear solve
+        converged); in the device loop that costs one read (`_direction_device` alone costs none)."""
+        if self.dev is not None:
+            fresh = self._direction_device(pt, rtol)
+            self.dev.read()
+            n_lin, ok = self.dev.cg_result()
+            self.t.n_matvec += n_lin
+            self._after_solve(fresh, n_lin, ok)
+            return n_lin, ok
         p = self.p
         t0 = time.perf_counter()
-        if self.lazy:
-            if self.o.linear_solver == "direct":
-                raise ValueError("linear_solver='direct' needs the dense weight matrix, which the matrix-free "
-                                 "mode does not store; use linear_solver='cg'")
-            self._wsrc = self.weights()
-            self._matvec_cmd = None  # the duals' buffers alternate: record the matvec for this point
-        else:
-            self._wsrc = self._wsink
+        self._select_weights()
+        g1 = self._host_vec(pt.g1)
+        g2 = self._host_vec(pt.g2)
         e1 = self.to_host(self.row_w) + p.b_r
         self.to_device(self.e1, e1)
-        self.to_device(self.g1, pt.g1)
-        self.diag_s.zero_()
-        self.wtg.zero_()
+        self.to_device(self.g1, g1)
         cg = self.o.linear_solver != "direct"
         fresh = cg and (self._M is None or self._M_fresh_needed)
-        # row top-k selection only when the preconditioner is rebuilt
-        if self.lanes:
-            wp.launch(K.variant(K.schur_prep_cols, self._wsrc), dim=(self.lanes, p.n_c),
-                      inputs=[self._wsrc, p.n_r, self.lanes, self.piv, self.tail, self.e1, self.b, self.g1,
-                              self.diag_s, self.wtg], device=p.device)
-            if fresh:
-                wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
-                          outputs=[self.top_val, self.top_idx], device=p.device)
-        else:
-            wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
-                      inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, self.g1, self.kk if fresh else 0],
-                      outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
-        rhs = -pt.g2 + self.to_host(self.wtg)
+        self._prep(self.g1, fresh)
+        rhs = -g2 + self.to_host(self.wtg)
         data = linear.SchurData(self.to_host(self.diag_s).copy(), e1, self.to_host(self.piv).copy(), p.a_c,
                                 not p.partial)
         self.t.prep += time.perf_counter() - t0
@@ -346,43 +384,146 @@ class Engine:
                                   max_iter=self.o.cg_max_iter, gauge=not p.partial)
             self.t.cg += time.perf_counter() - t0
             n_lin, ok = info.iterations, info.converged
-            if fresh:  # the reference count of this preconditioner
+            self._after_solve(fresh, n_lin, ok)
+            if not fresh and not ok:
+                # and re-solve now, with a fresh preconditioner (and row top-k)
+                self._row_topk()
+                self._build_preconditioner(data)
+                t0 = time.perf_counter()
+                dy, info = linear.pcg(self._matvec, rhs, self._M, rtol=self.o.cg_rtol,
+                                      max_iter=self.o.cg_max_iter, gauge=not p.partial)
+                self.t.cg += time.perf_counter() - t0
+                n_lin += info.iterations
+                ok = info.converged
                 self._M_iters = info.iterations
-            elif not ok or info.iterations > self._M_iters + REFRESH_EXTRA_CG:
-                # a preconditioner from an earlier point has gone stale: rebuild it at the next point
-                self._M_fresh_needed = True
-                if not ok:  # and re-solve now if this solve failed (with a fresh row top-k)
-                    wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
-                              outputs=[self.top_val, self.top_idx], device=p.device)
-                    self._build_preconditioner(data)
-                    t0 = time.perf_counter()
-                    dy, info = linear.pcg(self._matvec, rhs, self._M, rtol=self.o.cg_rtol,
-                                           max_iter=self.o.cg_max_iter, gauge=not p.partial)
-                    self.t.cg += time.perf_counter() - t0
-                    n_lin += info.iterations
-                    ok = info.converged
-                    self._M_iters = info.iterations
         t0 = time.perf_counter()
         self.to_device(self.dy_a, dy)
+        self._recover(self.g1)
+        self.t.other += time.perf_counter() - t0
+        return n_lin, ok
+
+    def direction_later(self, pt: Point, rtol: float | None = None) -> Callable[[], tuple[int, bool]]:
+        """`direction`, with its (linear iterations, converged) from the returned function, to be called
+        before the next direction. In the device loop nothing is read now: the counts come with the next read
+        of the device's scalars (e.g. the next evaluation), or the function reads them."""
+        if self.dev is None:
+            res = self.direction(pt, rtol)
+            return lambda: res
+        fresh = self._direction_device(pt, rtol)
+        dev = self.dev
+        reads, solves = dev.n_reads, dev.n_solves
+
+        def result() -> tuple[int, bool]:
+            if dev.n_solves != solves:
+                raise RuntimeError("direction_later: another direction was solved before this one's counts were read")
+            if dev.n_reads == reads:
+                dev.read()
+            n_lin, ok = dev.cg_result()
+            self.t.n_matvec += n_lin
+            self._after_solve(fresh, n_lin, ok)
+            return n_lin, ok
+        return result
+
+    def _direction_device(self, pt: Point, rtol: float | None) -> bool:
+        """`direction` in the device loop, with no host read: right-hand side, preconditioner (when it is
+        rebuilt), CG and back-substitution as kernels; CG's count and convergence land in ``dev.scal``.
+        Returns whether the preconditioner was rebuilt."""
+        p, dev = self.p, self.dev
+        t0 = time.perf_counter()
+        self._select_weights()
+        dev.set_residual(pt)
+        wp.launch(resident.add_vec, dim=p.n_r, inputs=[self.row_w, self.b, self.e1], device=p.device)
+        fresh = self._M is None or self._M_fresh_needed
+        self._prep(dev.g1, fresh)
+        wp.launch(resident.schur_rhs, dim=p.n_c, inputs=[dev.g2, self.wtg, dev.gauge, dev.r], device=p.device)
+        self.t.prep += time.perf_counter() - t0
+        if fresh:
+            t0 = time.perf_counter()
+            self._col_topk()
+            dev.build_preconditioner()
+            self._M = dev.M
+            self._M_fresh_needed = False
+            self.t.precond += time.perf_counter() - t0
+            self.t.n_factor += 1
+        t0 = time.perf_counter()
+        dev.solve(self.o.cg_rtol if rtol is None else max(rtol, self.o.cg_rtol), self.o.cg_max_iter)
+        self.t.cg += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self._recover(dev.g1)
+        self.t.other += time.perf_counter() - t0
+        return fresh
+
+    def _after_solve(self, fresh: bool, n_lin: int, ok: bool) -> None:
+        """The reuse rule: a fresh preconditioner's count is the reference; a reused one that failed or took
+        more than `REFRESH_EXTRA_CG` iterations beyond it has gone stale and is rebuilt at the next point."""
+        if fresh:
+            self._M_iters = n_lin
+        elif not ok or n_lin > self._M_iters + REFRESH_EXTRA_CG:
+            self._M_fresh_needed = True
+
+    def _host_vec(self, v) -> np.ndarray:
+        """A right-hand side as a host array (a device array is read)."""
+        return self.to_host(v) if isinstance(v, wp.array) else v
+
+    def _select_weights(self) -> None:
+        """The W source of this point's Schur kernels (matrix-free: its duals' buffers alternate, so the
+        matvec is recorded again)."""
+        if self.lazy:
+            if self.o.linear_solver == "direct":
+                raise ValueError("linear_solver='direct' needs the dense weight matrix, which the matrix-free "
+                                 "mode does not store; use linear_solver='cg'")
+            self._wsrc = self.weights()
+            self._matvec_cmd = None
+        else:
+            self._wsrc = self._wsink
+
+    def _prep(self, g1: wp.array, fresh: bool) -> None:
+        """S_W's diagonal and W^T E1^-1 g1 (into ``diag_s``, ``wtg``), and the rows' top-k when the
+        preconditioner is rebuilt (``fresh``)."""
+        p = self.p
+        self.diag_s.zero_()
+        self.wtg.zero_()
+        if self.lanes:
+            wp.launch(K.variant(K.schur_prep_cols, self._wsrc), dim=(self.lanes, p.n_c),
+                      inputs=[self._wsrc, p.n_r, self.lanes, self.piv, self.tail, self.e1, self.b, g1,
+                              self.diag_s, self.wtg], device=p.device)
+            if fresh:
+                self._row_topk()
+        else:
+            wp.launch(K.variant(K.schur_prep, self._wsrc), dim=p.n_r,
+                      inputs=[self._wsrc, p.n_c, self.piv, self.tail, self.e1, self.b, g1, self.kk if fresh else 0],
+                      outputs=[self.diag_s, self.wtg, self.top_val, self.top_idx], device=p.device)
+
+    def _row_topk(self) -> None:
+        p = self.p
+        wp.launch(K.variant(K.schur_prep_topk, self._wsrc), dim=p.n_r, inputs=[self._wsrc, p.n_c, self.kk],
+                  outputs=[self.top_val, self.top_idx], device=p.device)
+
+    def _col_topk(self) -> None:
+        p = self.p
+        wp.launch(K.variant(K.col_topk, self._wsrc), dim=p.n_c,
+                  inputs=[self._wsrc, p.n_r, self.piv, self.ctop_val.shape[1]],
+                  outputs=[self.ctop_val, self.ctop_idx], device=p.device)
+
+    def _recover(self, g1: wp.array) -> None:
+        """dlam = d_a + d_b from dy (``dy_a``): the back-substitution of the eliminated rows."""
+        p = self.p
         if self.lanes:
             self.delta.zero_()
             wp.launch(K.variant(K.schur_row_partial, self._wsrc), dim=(p.n_r, self.lanes),
                       inputs=[self._wsrc, p.n_c, self.lanes, self.piv, self.dy_a, self.delta], device=p.device)
-            wp.launch(K.recover_finish, dim=p.n_r, inputs=[self.piv, self.e1, self.b, self.g1, self.dy_a, self.delta],
+            wp.launch(K.recover_finish, dim=p.n_r, inputs=[self.piv, self.e1, self.b, g1, self.dy_a, self.delta],
                       outputs=[self.d_a, self.d_b], device=p.device)
         else:
             wp.launch(K.variant(K.recover_rows, self._wsrc), dim=p.n_r,
-                      inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, self.g1, self.dy_a],
+                      inputs=[self._wsrc, p.n_c, self.piv, self.e1, self.b, g1, self.dy_a],
                       outputs=[self.d_a, self.d_b], device=p.device)
-        self.t.other += time.perf_counter() - t0
-        return n_lin, ok
 
     def _build_preconditioner(self, data: linear.SchurData):
         """Top-k selection per column (Warp), assembly and factorization of the sparse approximation."""
         p = self.p
         t0 = time.perf_counter()
-        wp.launch(K.variant(K.col_topk, self._wsrc), dim=p.n_c, inputs=[self._wsrc, p.n_r, self.piv, self.ctop_val.shape[1]],
-                  outputs=[self.ctop_val, self.ctop_idx], device=p.device)
+        self._col_topk()
         P = linear.assemble_sparse_schur(data, self.to_host(self.top_val), self.to_host(self.top_idx),
                                          self.to_host(self.ctop_val), self.to_host(self.ctop_idx))
         self._M = linear.SchurPreconditioner(P, p.a_c, not p.partial)
@@ -412,6 +553,8 @@ class Engine:
         """Newton's method with backtracking on the residual norm ||g||_2 (accurate at any beta: the
         marginal sums are sums of positive terms). Returns (point, newton iterations, linear iterations,
         converged)."""
+        if self.dev is not None:
+            return self._newton_device(beta, pt)
         n_newton = n_lin = 0
         while pt.residual > self.o.newton_tol:
             if n_newton >= self.o.max_newton:
@@ -454,6 +597,53 @@ class Engine:
             pt = tp
         return pt, n_newton, n_lin, True
 
+    def _newton_device(self, beta: float, pt: Point) -> tuple[Point, int, int, bool]:
+        """`newton` in the device loop: the same steps, step rule and line search, with one host read per
+        trial point (the evaluation's sums, and with the first trial the direction's CG count and step
+        limit, all in ``dev.scal``)."""
+        dev, p = self.dev, self.p
+        n_newton = n_lin = 0
+        while pt.residual > self.o.newton_tol:
+            if n_newton >= self.o.max_newton:
+                return pt, n_newton, n_lin, False
+            reused = self._M is not None and not self._M_fresh_needed
+            fresh = self._direction_device(Point(None, None, 0.0, 0.0), min(CG_LOOSE, pt.residual))
+            n_newton += 1
+            self.t.n_newton += 1
+            wp.launch(resident.reset_limit, dim=1, inputs=[dev.scal], device=p.device)
+            wp.launch(resident.step_limit, dim=p.n_r, inputs=[self.d_b, self.s_piv, beta, FTB_MIN_X, dev.scal],
+                      device=p.device)
+            factor, alpha, k_lin, accepted = 1.0, 1.0, 0, False
+            for j in range(60):
+                wp.launch(resident.dd_axpy_limited, dim=p.n_r,
+                          inputs=[self.lam[0], self.lam[1], dev.scal, factor, self.d_a, self.d_b],
+                          outputs=[self.lam_t[0], self.lam_t[1]], device=p.device)
+                wp.launch(resident.dd_axpy_limited, dim=p.n_c,
+                          inputs=[self.y[0], self.y[1], dev.scal, factor, self.dy_a, self.zero_c],
+                          outputs=[self.y_t[0], self.y_t[1]], device=p.device)
+                tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
+                if j == 0:  # the read that came with this evaluation holds the solve's results
+                    k_lin, ok = dev.cg_result()
+                    n_lin += k_lin
+                    self.t.n_matvec += k_lin
+                    self._after_solve(fresh, k_lin, ok)
+                alpha = factor * resident.step_alpha(dev.limit())
+                if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
+                    accepted = True
+                    break
+                factor *= 0.5
+            if not accepted:
+                pt = self.evaluate(self.lam, self.y, beta, full=True)
+                return pt, n_newton, n_lin, pt.residual <= self.o.newton_tol
+            self.accept()
+            if self.o.verbose > 1:
+                print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
+                      f"res {tp.residual:.2e} cg={k_lin}")
+            if reused and alpha == 1.0 and tp.merit > 0.25 * pt.merit:
+                self._M_fresh_needed = True
+            pt = tp
+        return pt, n_newton, n_lin, True
+
     # ------------------------------------------------------------------ duals
     def init_point(self, lam0: np.ndarray, y0: np.ndarray):
         """Set the duals to (lam0 (n_r,), y0 (n_c,)) (normalized units, the engine's orientation)."""
@@ -481,6 +671,8 @@ class Engine:
         evaluation; 0 for balanced transport."""
         if not self.p.partial:
             return 0.0
+        if self.dev is not None:  # the device loop's sums of the last read
+            return self.dev.penalty()
         m1 = self.to_host(self.row_g)
         m2 = self.to_host(self.col_g)
         return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))

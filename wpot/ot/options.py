@@ -15,10 +15,12 @@ from wpot._validate import boolean, integer_at_least, nonnegative_finite, one_of
 from wpot.ot.problem import FeatureCost
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2, DEFAULT_STEP
 
-__all__ = ["SolverOptions", "EngineOptions", "LINEAR_SOLVERS"]
+__all__ = ["SolverOptions", "EngineOptions", "LINEAR_SOLVERS", "NEWTON_LOOPS"]
 
 #: the linear solvers of the Newton systems (see `SolverOptions.linear_solver`)
 LINEAR_SOLVERS = ("cg", "direct")
+#: where the Newton steps' vectors live (see `SolverOptions.newton_loop`)
+NEWTON_LOOPS = ("host", "device")
 #: default relative change of U that stops the annealing (Algorithm 1). Since U(beta) - U* ~ N1 N2 /
 #: beta_n, the change over one step of 10 is ~9x the remaining gap: tol = 1e-6 leaves a gap ~1e-7 (measured
 #: <= 2e-7 relative to ot.emd on the tests' and benchmark's problems).
@@ -70,6 +72,12 @@ class SolverOptions:
     cg_rtol, cg_max_iter : CG relative tolerance and iteration cap per Newton step (defaults 1e-3, 1000).
     topk : weights per row and column of W in the preconditioner (default 4: as few CG iterations as 8
         with half the factorization's fill).
+    newton_loop : where the Newton steps run (`wpot.ot.resident`). "device": every vector stays on the
+        device, CG and its preconditioner (FSAI of the same sparse Schur approximation, built on the device)
+        are kernels, and the host reads one small array per trial point (about one synchronisation per
+        Newton step). "host": CG's vectors and the SuperLU preconditioner on the host (a transfer each way
+        per CG iteration; fewer CG iterations, which is what counts on the CPU). None (default): "device"
+        on a GPU, "host" on the CPU. "device" needs ``linear_solver="cg"``.
     matvec_lanes : threads per row of the strided kernels that run the passes over W (the Schur matvec,
         the evaluation pass). None (default): the device's choice, strided lanes
         (`wpot.ot.kernels.MATVEC_LANES`) on GPUs, where neighbouring threads then read neighbouring
@@ -101,6 +109,7 @@ class SolverOptions:
     dense_plan: bool | None = None
     plan_topk: int = DEFAULT_PLAN_TOPK
     matvec_lanes: int | None = None
+    newton_loop: str | None = None
     verbose: int = 0
 
     def __post_init__(self):
@@ -123,6 +132,11 @@ class SolverOptions:
         for name in ("max_iter", "max_newton", "cg_max_iter", "topk", "plan_topk"):
             put(name, integer_at_least(name, getattr(self, name), 1))
         one_of("linear_solver", self.linear_solver, LINEAR_SOLVERS)
+        if self.newton_loop is not None:
+            one_of("newton_loop", self.newton_loop, NEWTON_LOOPS)
+            if self.newton_loop == "device" and self.linear_solver == "direct":
+                raise ValueError("newton_loop='device' needs linear_solver='cg' (the dense direct solve runs on "
+                                 "the host); use newton_loop='host' or None with linear_solver='direct'")
         put("extrapolate", boolean("extrapolate", self.extrapolate))
         if self.dense_plan is not None:
             if not isinstance(self.dense_plan, (bool, np.bool_)):
@@ -179,7 +193,7 @@ class SolverOptions:
                              max_iter=self.max_iter, max_newton=self.max_newton, newton_tol=self.newton_tol,
                              linear_solver=self.linear_solver, cg_rtol=self.cg_rtol, cg_max_iter=self.cg_max_iter,
                              topk=self.topk, extrapolate=self.extrapolate, matvec_lanes=self.matvec_lanes,
-                             verbose=self.verbose)
+                             newton_loop=self.newton_loop, verbose=self.verbose)
 
 
 def _number(value: Any) -> float | None:
@@ -211,6 +225,7 @@ class EngineOptions:
     topk: int
     extrapolate: bool
     matvec_lanes: int | None
+    newton_loop: str | None
     verbose: int
 
 

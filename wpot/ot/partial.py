@@ -49,10 +49,8 @@ def solve_partial_problem(problem: TransportProblem, options: SolverOptions, *, 
     eng.init_point(lam0, mu0 + x0)
 
     def free_energy(e: Engine, pt, beta):
-        lam = e.to_host(e.lam[0]) + e.to_host(e.lam[1])
-        mu = e.to_host(e.y[0]) + e.to_host(e.y[1]) - pt.x
-        return (-pt.x - 0.5 * float(prob.b_r @ (lam * lam)) - 0.5 * float(prob.a_c @ (mu * mu))
-                - pt.f_sum / beta)
+        sums = e.dual_sums(pt)
+        return -pt.x - 0.5 * sums.b_lam2 - 0.5 * sums.a_mu2 - pt.f_sum / beta
 
     hook = None if on_beta is None else (lambda r: on_beta(beta_step(r, cost.scale, 1.0)))
     out = anneal(eng, free_energy, on_beta=hook)

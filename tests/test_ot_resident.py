@@ -1,0 +1,216 @@
+"""The device-resident Newton loop (`wpot.ot.resident`, ``newton_loop="device"``): the same saddle points as
+the host loop, its pieces against independent references (the sparse Schur approximation against the host
+assembly, the CG direction against a dense solve), and its host reads (at most 2 per Newton step, none
+per CG iteration)."""
+from __future__ import annotations
+
+import numpy as np
+import ot
+import pytest
+import scipy.sparse as sp
+import warp as wp
+
+import wpot.ot as wo
+from wpot.ot import linear, newton, resident
+from wpot.ot.newton import Engine, Point
+from wpot.ot.problem import orient, prepare_cost
+
+
+def _cost(n1, n2, seed=0, d=6):
+    rng = np.random.default_rng(seed)
+    X, Y = rng.random((n1, d)), rng.random((n2, d))
+    return np.linalg.norm(X[:, None] - Y[None], axis=-1)
+
+
+def _masses(n, seed):
+    m = np.random.default_rng(seed).random(n) + 0.3
+    return m / m.sum()
+
+
+# --------------------------------------------------------------------------- whole solves
+@pytest.mark.parametrize("method", ["anneal", "ipm"])
+def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, method):
+    C = _cost(70, 85, seed=1)
+    a, b = _masses(70, 2), _masses(85, 3)
+    host = wo.solve_balanced(C, a, b, method=method, device="cpu", newton_loop="host")
+    dev = wo.solve_balanced(C, a, b, method=method, device=device, newton_loop="device")
+    assert host.converged and dev.converged
+    G0 = ot.emd(a, b, C, numItermax=10**8)
+    u0 = float((G0 * C).sum())
+    assert abs(dev.cost - u0) <= 1e-6 * u0
+    assert abs(dev.cost - host.cost) <= 1e-9 * host.cost
+    np.testing.assert_allclose(dev.plan.sum(1), a, atol=1e-11)
+    np.testing.assert_allclose(dev.plan.sum(0), b, atol=1e-11)
+    # D(beta): the same betas, each solved to the Newton tolerance, the same U, F there
+    hb = {round(np.log10(s.beta), 6): s for s in host.history}
+    common = [s for s in dev.history if round(np.log10(s.beta), 6) in hb]
+    assert len(common) >= len(host.history) - 2 and len(common) >= 5
+    for s in common:
+        h = hb[round(np.log10(s.beta), 6)]
+        assert s.residual <= 1e-11 and h.residual <= 1e-11  # the saddle point at that beta
+        assert abs(s.cost - h.cost) <= 1e-8 * abs(h.cost) + 1e-14
+        assert abs(s.free_energy - h.free_energy) <= 1e-8 * abs(h.free_energy) + 1e-12
+
+
+def test_partial_device_loop_agrees_with_the_host_loop_and_the_qp(device):
+    from conftest import partial_qp
+
+    C = _cost(40, 55, seed=4)
+    C /= C.max()
+    r1, r2 = _masses(40, 5), _masses(55, 6)
+    host = wo.solve_partial(C, r1, r2, mass_penalty=0.05, method="anneal", device="cpu", newton_loop="host")
+    dev = wo.solve_partial(C, r1, r2, mass_penalty=0.05, method="anneal", device=device, newton_loop="device")
+    assert host.converged and dev.converged
+    assert abs(dev.objective - host.objective) <= 1e-9 * abs(host.objective)
+    assert abs(dev.free_energy - host.free_energy) <= 1e-9 * abs(host.free_energy)
+    np.testing.assert_allclose(dev.mass1, host.mass1, rtol=1e-6, atol=1e-12)
+    val, m1, m2 = partial_qp(C, r1, r2, 0.05)
+    assert abs(dev.objective - val) <= 1e-6 * val
+    np.testing.assert_allclose(dev.mass1, m1, atol=1e-6)
+    np.testing.assert_allclose(dev.mass2, m2, atol=1e-6)
+
+
+def test_matrix_free_device_loop_equals_the_stored_one():
+    rng = np.random.default_rng(7)
+    X, Y = rng.random((60, 5)), rng.random((75, 5))
+    C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
+    stored = wo.solve_balanced(C, method="anneal", device="cpu", newton_loop="device")
+    lazy = wo.solve_balanced(wo.FeatureCost(X, Y, metric="l2"), method="anneal", device="cpu",
+                             newton_loop="device")
+    assert stored.converged and lazy.converged
+    assert abs(lazy.cost - stored.cost) <= 1e-10 * stored.cost
+    np.testing.assert_array_equal(lazy.argmax, stored.argmax)
+
+
+# --------------------------------------------------------------------------- the pieces
+def _engine_at(C, partial: bool, beta: float, loop: str, **opts) -> tuple[Engine, Point]:
+    """An engine for C, evaluated at ``beta`` and fixed random duals (the same for every loop)."""
+    n1, n2 = C.shape
+    cost = prepare_cost(C, "cpu")
+    if partial:
+        b1, a2 = np.full(n1, 2.0 / n1), np.full(n2, 3.0 / n2)
+        prob = orient(cost, np.zeros(n1), np.zeros(n2), b1, a2, True, "cpu")
+    else:
+        prob = orient(cost, np.full(n1, 1 / n1), np.full(n2, 1 / n2), np.zeros(n1), np.zeros(n2), False, "cpu")
+    o = wo.SolverOptions(newton_loop=loop, **opts).normalized(n1, n2, cost.scale)
+    eng = Engine(prob, o)
+    rng = np.random.default_rng(3)
+    eng.init_point(0.01 * rng.random(prob.n_r), np.full(prob.n_c, n1 * n2 / o.beta0) + 0.01 * rng.random(prob.n_c))
+    return eng, eng.evaluate(eng.lam, eng.y, beta)
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_device_assembly_of_the_sparse_schur_approximation_equals_the_host_one(partial):
+    C = _cost(50, 40, seed=8)
+    eng, pt = _engine_at(C, partial, beta=3e5, loop="device")
+    eng.direction(pt)  # builds the preconditioner (fresh): top-k lists, diag(S_W), e1 at this point
+    dev = eng.dev
+    n = eng.p.n_c
+    data = linear.SchurData(eng.diag_s.numpy().copy(), eng.e1.numpy().copy(), eng.piv.numpy().copy(), eng.p.a_c,
+                            not partial)
+    ref = linear.assemble_sparse_schur(data, eng.top_val.numpy(), eng.top_idx.numpy(), eng.ctop_val.numpy(),
+                                       eng.ctop_idx.numpy()).toarray()
+    P = dev.P
+    got = sp.csr_matrix((P.values.numpy()[: P.nnz], P.columns.numpy()[: P.nnz], P.offsets.numpy()), shape=(n, n))
+    got = got.toarray()
+    assert np.count_nonzero(ref - np.diag(np.diag(ref))) > n  # the approximation has couplings to compare
+    if not partial:  # the gauge column: dropped, an identity row instead
+        ref[-1, :] = ref[:, -1] = 0.0
+        ref[-1, -1] = 1.0
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_device_cg_direction_solves_the_newton_system(partial):
+    # the direction of the device loop (FSAI-preconditioned CG, to a tight tolerance) against a dense direct
+    # solve of the same Schur system (the host loop's linear_solver="direct") at the same point
+    C = _cost(45, 35, seed=9)
+    eng_d, pt_d = _engine_at(C, partial, beta=1e6, loop="device", cg_rtol=1e-12)
+    eng_h, pt_h = _engine_at(C, partial, beta=1e6, loop="host", linear_solver="direct")
+    n_lin, ok = eng_d.direction(Point(None, None, 0.0, 0.0))
+    assert ok and n_lin > 1
+    eng_h.direction(pt_h)
+    for a_d, a_h in ((eng_d.dy_a, eng_h.dy_a), (eng_d.d_a, eng_h.d_a), (eng_d.d_b, eng_h.d_b)):
+        x, y = a_d.numpy(), a_h.numpy()
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-7 * np.abs(y).max())
+
+
+def test_device_loop_options_are_validated():
+    with pytest.raises(ValueError, match="newton_loop must be one of"):
+        wo.SolverOptions(newton_loop="gpu")
+    with pytest.raises(ValueError, match="newton_loop='device' needs linear_solver='cg'"):
+        wo.SolverOptions(newton_loop="device", linear_solver="direct")
+
+
+def test_default_loop_is_the_host_one_on_the_cpu():
+    C = _cost(20, 20)
+    eng, _ = _engine_at(C, False, beta=1e4, loop=None)
+    assert eng.dev is None
+
+
+# --------------------------------------------------------------------------- host reads
+class ReadSpy:
+    """Counts ``wp.array.numpy`` calls once an `Engine` exists, apart from those Warp's preconditioner set-up
+    (`resident.DeviceLoop.build_preconditioner`: BSR assembly, FSAI) makes, which are counted on their own."""
+
+    def __init__(self, monkeypatch):
+        self.engines, self.on, self.in_build = [], False, False
+        self.numpy = self.build_reads = 0
+        self.at_init = 0
+        real_init, real_numpy = newton.Engine.__init__, wp.array.numpy
+        real_build = resident.DeviceLoop.build_preconditioner
+        spy = self
+
+        def init(eng, *args, **kwargs):
+            real_init(eng, *args, **kwargs)
+            spy.engines.append(eng)
+            spy.at_init = eng.t.n_d2h
+            spy.on = True
+
+        def numpy(arr, *args, **kwargs):
+            if spy.on:
+                if spy.in_build:
+                    spy.build_reads += 1
+                else:
+                    spy.numpy += 1
+            return real_numpy(arr, *args, **kwargs)
+
+        def build(dev):
+            spy.in_build = True
+            try:
+                real_build(dev)
+            finally:
+                spy.in_build = False
+
+        monkeypatch.setattr(newton.Engine, "__init__", init)
+        monkeypatch.setattr(wp.array, "numpy", numpy)
+        monkeypatch.setattr(resident.DeviceLoop, "build_preconditioner", build)
+
+
+CASES = {
+    "anneal": lambda: wo.solve_balanced(_cost(80, 100, 0), method="anneal", device="cpu", newton_loop="device"),
+    "partial": lambda: wo.solve_partial(_cost(90, 70, 2), mass_penalty=0.05, device="cpu", method="anneal",
+                                        newton_loop="device"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_device_loop_reads_at_most_twice_per_newton_step(monkeypatch, case):
+    with monkeypatch.context() as mp:
+        spy = ReadSpy(mp)
+        r = CASES[case]()
+        spy.on = False
+    assert r.converged
+    (eng,) = spy.engines
+    t = eng.t
+    # every read of the loop goes through Engine.to_host ...
+    assert t.n_d2h - spy.at_init == spy.numpy
+    # ... and there are at most 2 a Newton step (one per trial point, plus a few per beta), none per CG
+    # iteration: CG ran many more iterations than there were reads
+    assert t.n_newton == r.n_newton > 10
+    assert t.n_d2h <= 2 * t.n_newton
+    assert t.n_matvec >= 3 * t.n_newton
+    # nothing is uploaded per step (the masses and the starting duals only)
+    assert t.n_h2d <= 8
+    # Warp's preconditioner set-up reads a few scalars each time (reported by benchmarks/ot_speed.py)
+    assert t.n_factor > 0 and spy.build_reads <= 4 * t.n_factor
