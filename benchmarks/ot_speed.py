@@ -68,6 +68,8 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--methods", nargs="+", default=["exact", "anneal", "ipm"], choices=["exact", "anneal", "ipm"],
                     help="wpot solve_balanced methods to time (default all three)")
+    ap.add_argument("--newton-loop", nargs="+", default=["host"], choices=["host", "device"],
+                    help="Newton loops to time for anneal and ipm (SolverOptions.newton_loop; default host, the CPU's)")
     ap.add_argument("--tosca", type=int, default=0,
                     help="also time this many full-resolution TOSCA pairs (tosca_isometric_5k, 5,000 vertices, "
                     "WKS cost of wpot's defaults) beside ot.emd")
@@ -87,7 +89,8 @@ def main():
     from wpot.ot import balanced as wbalanced
 
     for m in ("exact", "anneal", "ipm"):  # compile the kernels outside the timings
-        wo.solve_balanced(problem(60), device=args.device, method=m)
+        for loop in args.newton_loop:
+            wo.solve_balanced(problem(60), device=args.device, method=m, newton_loop=loop)
 
     # capture the engine's timers (kept on the Engine that the annealing loop drives)
     timers = {}
@@ -186,18 +189,19 @@ def compare_on(C, a, b, args, timers):
                   f"support {rounds[-1].support} entries ({rounds[-1].support / len(a):.1f} a row); "
                   f"priced out per round: {' '.join(str(x.violations) for x in rounds)}")
             continue
-        t = time.perf_counter()
-        r = wo.solve_balanced(C, a, b, device=args.device, method=method)
-        tw = time.perf_counter() - t
-        gap, merr = report("wpot", r.plan, tw)
-        tm = {k: v for k, v in timers.items()}
-        row(f"wpot solve_balanced {method} ({args.device})", tw, gap, merr,
-            f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}  ({tw / t_emd:.2f}x ot.emd)")
-        print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
-              + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
-              + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
-              f" matvecs, {tm.get('n_factor', 0)} preconditioner factorizations")
-        print("      " + transfers(tm))
+        for loop in args.newton_loop:
+            t = time.perf_counter()
+            r = wo.solve_balanced(C, a, b, device=args.device, method=method, newton_loop=loop)
+            tw = time.perf_counter() - t
+            gap, merr = report("wpot", r.plan, tw)
+            tm = {k: v for k, v in timers.items()}
+            row(f"wpot solve_balanced {method}, {loop} loop ({args.device})", tw, gap, merr,
+                f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}  ({tw / t_emd:.2f}x ot.emd)")
+            print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
+                  + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))
+                  + f"; {tm['n_eval']} passes of phi over C (+{tm.get('n_free', 0)} for F), {tm['n_matvec']} Schur"
+                  f" matvecs, {tm.get('n_factor', 0)} preconditioner builds")
+            print("      " + transfers(tm))
         print("      per recorded beta (newton/cg): " + " ".join(f"{h.n_newton}/{h.n_linear}" for h in r.history))
     if args.direct and len(a) <= 2000:
         t = time.perf_counter()
