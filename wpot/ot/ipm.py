@@ -74,18 +74,21 @@ def ipm_eval(
     upd: int,
     d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
     a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
-    mu_t: wp.float64, alpha_p: wp.float64,
+    sc: wp.array(dtype=wp.float64),
     # outputs
     W: wp.array2d(dtype=wp.float64), row_g: wp.array(dtype=wp.float64), col_g: wp.array(dtype=wp.float64),
     row_w: wp.array(dtype=wp.float64), piv: wp.array(dtype=wp.int32), tail: wp.array(dtype=wp.float64),
     row_u: wp.array(dtype=wp.float64), row_gs: wp.array(dtype=wp.float64), row_smin: wp.array(dtype=wp.float64),
     row_r: wp.array(dtype=wp.float64), col_r: wp.array(dtype=wp.float64),
 ):
-    """Row k: (when ``upd``) G += alpha_p dG for the step just taken (dG from the old point's s, in S), then
+    """Row k: (when ``upd``) G += alpha_p dG for the step just taken (dG from the old point's s, in S; its
+    target mu_t and primal step alpha_p in ``sc``), then
     at the new duals s (stored in S) and W = G / s (stored), its sum, pivot (largest) and the rest (``tail``) as in `kernels.eval_rows`;
     the primal row sums (column sums atomically), sum G C' (U), sum G s (complementarity), min s, and the
     row and column sums of 1/s (mu times them are the marginals of the central plan at barrier mu)."""
     k = wp.tid()
+    mu_t = sc[_MUT]
+    alpha_p = sc[_AP]
     lh = lam_hi[k]
     ll = lam_lo[k]
     sg = wp.float64(0.0)
@@ -131,16 +134,20 @@ def ipm_ratio(
     n_c: int, G: wp.array2d(dtype=wp.float64), S: wp.array2d(dtype=wp.float64),
     d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64), dy: wp.array(dtype=wp.float64),
     a_a: wp.array(dtype=wp.float64), a_b: wp.array(dtype=wp.float64), a_y: wp.array(dtype=wp.float64),
-    mu_t: wp.float64, corr: int,
+    sc: wp.array(dtype=wp.float64), corr: int,
     # outputs: step to the boundary for s and for G; with corr = 0 (the affine direction) also the sums
     # that give mu_aff for any steps and the corrector's right-hand side for any target (cols atomically)
     row_rs: wp.array(dtype=wp.float64), row_rg: wp.array(dtype=wp.float64),
     row_m: wp.array2d(dtype=wp.float64), col_m: wp.array(dtype=wp.float64),
 ):
-    """Row k for a direction (dlam = d_a + d_b, dy) at the point `ipm_eval` last saw (its s in S): min over
+    """Row k for a direction (dlam = d_a + d_b, dy) at the point `ipm_eval` last saw (its s in S; the
+    corrector's target mu_t in ``sc``, T = 0 for the affine direction): min over
     ds < 0 of s / -ds and over dG < 0 of G / -dG. Affine (corr = 0, T = 0): row_m[k] = (sum dG s, sum G ds,
     sum dG ds, sum dG ds / s) and col_m[l] += dG ds / s over the column (the sums of 1/s come from `ipm_eval`)."""
     k = wp.tid()
+    mu_t = wp.float64(0.0)
+    if corr != 0:
+        mu_t = sc[_MUT]
     rs = wp.float64(1.0e300)
     rg = wp.float64(1.0e300)
     m0 = wp.float64(0.0)
@@ -175,8 +182,108 @@ def ipm_ratio(
         row_m[k, 3] = m3
 
 
+# slots of `_IPM.sc`, the iteration's scalars on the device: the evaluation's sums (sum G s, U, min s, the
+# primal residual and the residual of the central marginals at the target, both L1), the steps to the
+# boundary (s, G), the affine sums, the target mu_t and the steps taken (primal, dual)
+_GS, _U, _SMIN, _R1, _RC, _RS, _RG, _M0, _M1, _M2, _M3, _MUT, _AP, _AD = range(14)
+N_SC = 14
+
+
+@wp.kernel
+def ipm_reset(sc: wp.array(dtype=wp.float64), first: int, last: int, big: int):
+    """Slots first .. last - 1 to 0; with ``big`` the minima among them (min s, the steps) to 1e300."""
+    for i in range(first, last):
+        v = wp.float64(0.0)
+        if big != 0 and (i == _SMIN or i == _RS or i == _RG):
+            v = wp.float64(1.0e300)
+        sc[i] = v
+
+
+@wp.kernel
+def ipm_row_sums(m_r: wp.array(dtype=wp.float64), row_g: wp.array(dtype=wp.float64),
+                 row_gs: wp.array(dtype=wp.float64), row_u: wp.array(dtype=wp.float64),
+                 row_smin: wp.array(dtype=wp.float64), row_r: wp.array(dtype=wp.float64), mu_f: wp.float64,
+                 sc: wp.array(dtype=wp.float64)):
+    """The rows' part of the evaluation's scalars (see `ipm_eval`'s outputs)."""
+    k = wp.tid()
+    wp.atomic_add(sc, _GS, row_gs[k])
+    wp.atomic_add(sc, _U, row_u[k])
+    wp.atomic_min(sc, _SMIN, row_smin[k])
+    wp.atomic_add(sc, _R1, wp.abs(m_r[k] - row_g[k]))
+    wp.atomic_add(sc, _RC, wp.abs(m_r[k] - mu_f * row_r[k]))
+
+
+@wp.kernel
+def ipm_col_sums(m_c: wp.array(dtype=wp.float64), col_g: wp.array(dtype=wp.float64),
+                 col_r: wp.array(dtype=wp.float64), mu_f: wp.float64, sc: wp.array(dtype=wp.float64)):
+    l = wp.tid()
+    wp.atomic_add(sc, _R1, wp.abs(m_c[l] - col_g[l]))
+    wp.atomic_add(sc, _RC, wp.abs(m_c[l] - mu_f * col_r[l]))
+
+
+@wp.kernel
+def ipm_ratio_sums(row_rs: wp.array(dtype=wp.float64), row_rg: wp.array(dtype=wp.float64),
+                   row_m: wp.array2d(dtype=wp.float64), corr: int, sc: wp.array(dtype=wp.float64)):
+    """The steps to the boundary (minima over rows) and, for the affine direction, the sums of row_m."""
+    k = wp.tid()
+    wp.atomic_min(sc, _RS, row_rs[k])
+    wp.atomic_min(sc, _RG, row_rg[k])
+    if corr == 0:
+        for i in range(4):
+            wp.atomic_add(sc, _M0 + i, row_m[k, i])
+
+
+@wp.kernel
+def ipm_target(sc: wp.array(dtype=wp.float64), nn: wp.float64, mu_f: wp.float64):
+    """Mehrotra's target from the affine direction's steps and sums: mu_aff (the complementarity after the
+    affine steps), sigma = (mu_aff / mu)^3, mu_t = max(sigma mu, mu_f)."""
+    ad = wp.min(wp.float64(1.0), sc[_RS])
+    ap = wp.min(wp.float64(1.0), sc[_RG])
+    mu = sc[_GS] / nn
+    mu_aff = (mu * nn + ap * sc[_M0] + ad * sc[_M1] + ap * ad * sc[_M2]) / nn
+    sigma = wp.min(wp.float64(1.0), wp.max(wp.float64(0.0), mu_aff / mu))
+    sc[_MUT] = wp.max(sigma * sigma * sigma * mu, mu_f)
+
+
+@wp.kernel
+def ipm_set_target(sc: wp.array(dtype=wp.float64), mu_t: wp.float64):
+    sc[_MUT] = mu_t
+
+
+@wp.kernel
+def ipm_steps(sc: wp.array(dtype=wp.float64), eta: wp.float64):
+    """The steps taken: ``eta`` of the way to the boundary, at most 1."""
+    sc[_AD] = wp.min(wp.float64(1.0), eta * sc[_RS])
+    sc[_AP] = wp.min(wp.float64(1.0), eta * sc[_RG])
+
+
+@wp.kernel
+def ipm_rhs_rows(m_r: wp.array(dtype=wp.float64), row_r: wp.array(dtype=wp.float64),
+                 row_m: wp.array2d(dtype=wp.float64), corr: int, sc: wp.array(dtype=wp.float64),
+                 g1: wp.array(dtype=wp.float64)):
+    """g1 = m_r - (mu_t sum_l 1/s - [corr] sum_l dG_aff ds_aff / s): the rows' Newton residual for target mu_t."""
+    k = wp.tid()
+    t = sc[_MUT] * row_r[k]
+    if corr != 0:
+        t = t - row_m[k, 3]
+    g1[k] = m_r[k] - t
+
+
+@wp.kernel
+def ipm_rhs_cols(m_c: wp.array(dtype=wp.float64), col_r: wp.array(dtype=wp.float64),
+                 col_m: wp.array(dtype=wp.float64), corr: int, sc: wp.array(dtype=wp.float64),
+                 g2: wp.array(dtype=wp.float64)):
+    l = wp.tid()
+    t = sc[_MUT] * col_r[l]
+    if corr != 0:
+        t = t - col_m[l]
+    g2[l] = m_c[l] - t
+
+
 class _IPM:
-    """The interior-point iteration on an `Engine`'s (oriented, normalized, balanced) problem."""
+    """The interior-point iteration on an `Engine`'s (oriented, normalized, balanced) problem. Its scalars
+    (sums, minima, steps, target) stay on the device in ``sc``; the host reads them once an iteration, with
+    the evaluation (`Engine.read_scalars`), and the Newton directions' counts come with that read."""
 
     def __init__(self, eng: Engine):
         self.e = eng
@@ -191,105 +298,121 @@ class _IPM:
         self.row_m = wp.zeros((p.n_r, 4), dtype=wp.float64, device=d)
         self.col_m = wp.zeros(p.n_c, dtype=wp.float64, device=d)
         self.a_a, self.a_b, self.a_y = z(p.n_r), z(p.n_r), z(p.n_c)
-        self.upd = None  # (mu_t, alpha_p) of the step whose G update is pending (done by the next eval)
+        self.m_r, self.m_c = z(p.n_r), z(p.n_c)
+        eng.to_device(self.m_r, p.m_r)
+        eng.to_device(self.m_c, p.m_c)
+        self.g1, self.g2 = z(p.n_r), z(p.n_c)  # right-hand sides of the Newton systems
+        self.sc = z(N_SC)
+        self.upd = False  # a step whose G update is pending (done by the next eval)
+        self.mu_f = 0.0  # the barrier target of the current run
+        self.pending: list = []  # `Engine.direction_later` results not yet counted
+        self.n_lin = 0
+        self.u = math.nan  # U at the last evaluation
 
-    def eval(self) -> tuple[float, float, float, float]:
-        """(Pending G update, then) W and the sums at the current point; returns (mu, U, primal residual,
-        min s)."""
+    def eval(self) -> tuple[float, float, float, float, float]:
+        """(Pending G update, then) W and the sums at the current point; one read. Returns (mu, U, primal
+        residual, min s, residual of the central marginals at the target mu_f = mu_f sum 1/s)."""
         e, p = self.e, self.e.p
         e.col_g.zero_()
         self.col_r.zero_()
-        mu_t, ap = self.upd if self.upd is not None else (0.0, 0.0)
         wp.launch(ipm_eval, dim=p.n_r,
-                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, self.S, int(self.upd is not None),
-                          e.d_a, e.d_b, e.dy_a,
-                          self.a_a, self.a_b, self.a_y, mu_t, ap],
+                  inputs=[e.csrc, p.n_c, e.lam[0], e.lam[1], e.y[0], e.y[1], self.G, self.S, int(self.upd),
+                          e.d_a, e.d_b, e.dy_a, self.a_a, self.a_b, self.a_y, self.sc],
                   outputs=[e.W, e.row_g, e.col_g, e.row_w, e.piv, e.tail, e.row_u, self.row_gs, self.row_smin,
                            self.row_r, self.col_r],
                   device=p.device)
-        self.upd = None
-        mu = float(e.to_host(self.row_gs).sum()) / (p.n_r * p.n_c)
-        r1 = p.m_r - e.to_host(e.row_g)
-        r2 = p.m_c - e.to_host(e.col_g)
-        res = 0.5 * float(np.abs(r1).sum() + np.abs(r2).sum())
-        return mu, float(e.to_host(e.row_u).sum()), res, float(e.to_host(self.row_smin).min())
+        self.upd = False
+        wp.launch(ipm_reset, dim=1, inputs=[self.sc, _GS, _RC + 1, 1], device=p.device)
+        wp.launch(ipm_row_sums, dim=p.n_r, inputs=[self.m_r, e.row_g, self.row_gs, e.row_u, self.row_smin, self.row_r,
+                                                  self.mu_f, self.sc], device=p.device)
+        wp.launch(ipm_col_sums, dim=p.n_c, inputs=[self.m_c, e.col_g, self.col_r, self.mu_f, self.sc], device=p.device)
+        v = e.read_scalars(self.sc)
+        self._collect()
+        self.u = float(v[_U])
+        return float(v[_GS]) / (p.n_r * p.n_c), self.u, 0.5 * float(v[_R1]), float(v[_SMIN]), 0.5 * float(v[_RC])
 
-    def _ratio(self, mu_t: float, corr: bool) -> tuple[float, float]:
-        """Steps to the boundary (s, G) for the engine's current direction (and the affine sums)."""
+    def _collect(self) -> None:
+        """Count the linear iterations of the directions solved since the last read."""
+        for result in self.pending:
+            self.n_lin += result()[0]
+        self.pending.clear()
+
+    def _ratio(self, corr: bool) -> None:
+        """Steps to the boundary (s, G) for the engine's current direction (and the affine sums), into ``sc``."""
         e, p = self.e, self.e.p
         if not corr:
             self.col_m.zero_()
         wp.launch(ipm_ratio, dim=p.n_r,
-                  inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a,
-                          self.a_a, self.a_b, self.a_y, mu_t, int(corr)],
+                  inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a, self.a_a, self.a_b, self.a_y, self.sc, int(corr)],
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
-        return float(e.to_host(self.row_rs).min()), float(e.to_host(self.row_rg).min())
+        wp.launch(ipm_reset, dim=1, inputs=[self.sc, _RS, (_RG if corr else _M3) + 1, 1], device=p.device)
+        wp.launch(ipm_ratio_sums, dim=p.n_r, inputs=[self.row_rs, self.row_rg, self.row_m, int(corr), self.sc],
+                  device=p.device)
 
-    def _step(self, mu_t: float) -> tuple[float, float]:
-        """Take the engine's current direction (target ``mu_t``, corrector from the affine arrays): the dual
-        step now, the primal one in the next `eval`; both ETA of the way to the boundary at most."""
-        rs, rg = self._ratio(mu_t, True)
-        ad, ap = min(1.0, ETA * rs), min(1.0, ETA * rg)
-        self.e.trial(ad)
+    def _step(self) -> None:
+        """Take the engine's current direction (target mu_t in ``sc``, corrector from the affine arrays): the
+        dual step now, the primal one in the next `eval`; both ETA of the way to the boundary at most."""
+        self._ratio(True)
+        wp.launch(ipm_steps, dim=1, inputs=[self.sc, ETA], device=self.e.p.device)
+        self.e.trial_from(self.sc, _AD)
         self.e.accept()
-        self.upd = (mu_t, ap)
-        return ad, ap
+        self.upd = True
 
-    def _solve(self, g1: np.ndarray, g2: np.ndarray, rtol: float) -> int:
-        """Newton direction for J d = -g (J with weights W = G/s); left in the engine's d_a, d_b, dy_a."""
-        n_lin, _ = self.e.direction(Point(g1, g2, 0.0, 0.0), rtol=rtol)
-        return n_lin
+    def _solve(self, corr: bool, rtol: float) -> None:
+        """Newton direction for the target mu_t in ``sc`` (with the corrector term when ``corr``), left in the
+        engine's d_a, d_b, dy_a; J has the weights W = G/s."""
+        e, p = self.e, self.e.p
+        wp.launch(ipm_rhs_rows, dim=p.n_r, inputs=[self.m_r, self.row_r, self.row_m, int(corr), self.sc, self.g1],
+                  device=p.device)
+        wp.launch(ipm_rhs_cols, dim=p.n_c, inputs=[self.m_c, self.col_r, self.col_m, int(corr), self.sc, self.g2],
+                  device=p.device)
+        self.pending.append(e.direction_later(Point(self.g1, self.g2, 0.0, 0.0), rtol=rtol))
+
+    def _show(self, n_it: int, what: str) -> None:
+        v = self.e.read_scalars(self.sc)
+        print(f"    ipm {n_it}{what}: mu_t*beta_h={v[_MUT] / self.mu_f:.3g} steps d={v[_AD]:.2f} p={v[_AP]:.2f}")
 
     def run(self, beta_h: float, verbose: int) -> tuple[int, int]:
         """Mehrotra iterations to the barrier 1/beta_h; returns (iterations, linear iterations). The last
-        evaluation (W, sums) is that of the current point."""
+        evaluation (W, sums) is that of the current point, unless MAX_IPM_ITER stopped it."""
         e, p = self.e, self.e.p
-        nn = p.n_r * p.n_c
-        mu_f = 1.0 / beta_h
-        n_it = n_lin = 0
+        d = p.device
+        self.mu_f = mu_f = 1.0 / beta_h
+        n_it = 0
+        lin0 = self.n_lin
         while n_it < MAX_IPM_ITER:
-            mu, u, res, smin = self.eval()
+            mu, u, res, smin, res_c = self.eval()
             if mu <= 1.2 * mu_f:
                 # centering at the target (the central plan's marginals are mu_f sum 1/s): Newton on them with
                 # the primal-dual weights, until they are close enough for the dual Newton of the annealing
-                d1 = p.m_r - mu_f * e.to_host(self.row_r)
-                d2 = p.m_c - mu_f * e.to_host(self.col_r)
-                res_c = 0.5 * float(np.abs(d1).sum() + np.abs(d2).sum())
                 if res_c <= CENTERED:
                     break
-                n_lin += self._solve(d1, d2, rtol=1e-2)
+                wp.launch(ipm_set_target, dim=1, inputs=[self.sc, mu_f], device=d)
+                self._solve(False, rtol=1e-2)
                 for a in (self.a_a, self.a_b, self.a_y):  # no corrector term: T = mu_f (also in the G update)
                     a.zero_()
-                ad, ap = self._step(mu_f)
+                self._step()
                 n_it += 1
                 if verbose > 1:
-                    print(f"    ipm {n_it} (centering): residual of the central marginals {res_c:.1e}, steps "
-                          f"d={ad:.2f} p={ap:.2f}")
+                    self._show(n_it, f" (centering, residual of the central marginals {res_c:.1e})")
                 continue
             if not smin > 0:  # the fraction to the boundary keeps s > 0; this guards against rounding
                 raise FloatingPointError(f"interior-point start: a reduced cost became {smin:.3g}")
             # affine direction (T = 0): sum_l (G/s) ds = -m_r on the rows, i.e. J d = -g with g = m
-            n_lin += self._solve(p.m_r.copy(), p.m_c.copy(), rtol=0.1)
+            self.pending.append(e.direction_later(Point(self.m_r, self.m_c, 0.0, 0.0), rtol=0.1))
             wp.copy(self.a_a, e.d_a)
             wp.copy(self.a_b, e.d_b)
             wp.copy(self.a_y, e.dy_a)
-            rs, rg = self._ratio(0.0, False)
-            ad, ap = min(1.0, rs), min(1.0, rg)
-            row_m = e.to_host(self.row_m)
-            m = row_m.sum(axis=0)
-            mu_aff = (mu * nn + ap * m[0] + ad * m[1] + ap * ad * m[2]) / nn
-            sigma = min(1.0, max(0.0, mu_aff / mu)) ** 3
-            mu_t = max(sigma * mu, mu_f)
+            self._ratio(False)
+            wp.launch(ipm_target, dim=1, inputs=[self.sc, float(p.n_r * p.n_c), mu_f], device=d)
             # corrector, T = mu_t - dG_aff ds_aff: rows sum_l (G/s) ds = sum_l T/s - m_r -> g1 = m_r - sum T/s
-            g1 = p.m_r - (mu_t * e.to_host(self.row_r) - row_m[:, 3])
-            g2 = p.m_c - (mu_t * e.to_host(self.col_r) - e.to_host(self.col_m))
-            n_lin += self._solve(g1, g2, rtol=1e-2)
-            ad, ap = self._step(mu_t)
+            self._solve(True, rtol=1e-2)
+            self._step()
             n_it += 1
             if verbose > 1:
-                print(f"    ipm {n_it}: mu*beta_h={mu / mu_f:.3g} sigma={sigma:.2g} steps d={ad:.2f} p={ap:.2f} "
-                      f"res={res:.1e} U={u:.9g}")
-        return n_it, n_lin
+                self._show(n_it, f": mu*beta_h={mu / mu_f:.3g} res={res:.1e} U={u:.9g}")
+        self._collect()
+        return n_it, self.n_lin - lin0
 
 
 def handoff_beta(beta0: float, step: float, n_r: int, n_c: int, u: float, handoff: float = HANDOFF) -> float:
@@ -308,13 +431,13 @@ def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     o, p = eng.o, eng.p
     ipm = _IPM(eng)
     eng.init_point(np.zeros(p.n_r), np.ones(p.n_c))
-    _, u0, _, _ = ipm.eval()
+    _, u0, *_ = ipm.eval()
     # the optimum is below the product plan's U; aim at the gap with respect to a quarter of it, then
     # re-aim once U is known better
     beta_h = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, 0.25 * u0), o.beta_max)
     n_it, n_lin = ipm.run(beta_h, o.verbose)
     # (U* = 0, e.g. a shape against itself: the re-aimed beta is capped by beta_max)
-    beta_h2 = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, float(eng.to_host(eng.row_u).sum())), o.beta_max)
+    beta_h2 = min(handoff_beta(o.beta0, o.step, p.n_r, p.n_c, ipm.u), o.beta_max)
     if beta_h2 > beta_h:
         k2, l2 = ipm.run(beta_h2, o.verbose)
         n_it, n_lin, beta_h = n_it + k2, n_lin + l2, beta_h2

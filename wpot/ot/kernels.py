@@ -709,6 +709,27 @@ def dd_axpy(
 
 
 @wp.kernel
+def dd_axpy_from(
+    hi: wp.array(dtype=wp.float64),
+    lo: wp.array(dtype=wp.float64),
+    steps: wp.array(dtype=wp.float64),
+    slot: int,
+    coef: wp.float64,
+    factor: wp.float64,
+    d_a: wp.array(dtype=wp.float64),
+    d_b: wp.array(dtype=wp.float64),
+    out_hi: wp.array(dtype=wp.float64),
+    out_lo: wp.array(dtype=wp.float64),
+):
+    """`dd_axpy` with a step length computed on the device: alpha = factor min(1, coef steps[slot])."""
+    i = wp.tid()
+    alpha = factor * wp.min(_ONE, coef * steps[slot])
+    h, lo_ = dd_add(hi[i], lo[i], alpha, d_a[i], d_b[i])
+    out_hi[i] = h
+    out_lo[i] = lo_
+
+
+@wp.kernel
 def plan_kernel(
     csrc: Any,
     trans: int,

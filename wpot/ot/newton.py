@@ -404,8 +404,8 @@ class Engine:
 
     def direction_later(self, pt: Point, rtol: float | None = None) -> Callable[[], tuple[int, bool]]:
         """`direction`, with its (linear iterations, converged) from the returned function, to be called
-        before the next direction. In the device loop nothing is read now: the counts come with the next read
-        of the device's scalars (e.g. the next evaluation), or the function reads them."""
+        before the second direction after it. In the device loop nothing is read now: the counts come with
+        the next read of the device's scalars (an evaluation, `read_scalars`), or the function reads them."""
         if self.dev is None:
             res = self.direction(pt, rtol)
             return lambda: res
@@ -414,11 +414,13 @@ class Engine:
         reads, solves = dev.n_reads, dev.n_solves
 
         def result() -> tuple[int, bool]:
-            if dev.n_solves != solves:
-                raise RuntimeError("direction_later: another direction was solved before this one's counts were read")
+            back = dev.n_solves - solves
+            if back > 1:
+                raise RuntimeError("direction_later: two more directions were solved before this one's counts "
+                                   "were read")
             if dev.n_reads == reads:
                 dev.read()
-            n_lin, ok = dev.cg_result()
+            n_lin, ok = dev.cg_result(back)
             self.t.n_matvec += n_lin
             self._after_solve(fresh, n_lin, ok)
             return n_lin, ok
@@ -544,6 +546,21 @@ class Engine:
         wp.launch(K.dd_axpy, dim=p.n_c, inputs=[self.y[0], self.y[1], alpha, self.dy_a, self.zero_c],
                   outputs=[self.y_t[0], self.y_t[1]], device=p.device)
 
+    def trial_from(self, steps: wp.array, slot: int, coef: float = 1.0, factor: float = 1.0) -> None:
+        """`trial` with a step length computed on the device, alpha = factor min(1, coef steps[slot]) (no read)."""
+        p = self.p
+        for (hi, lo), d_a, d_b, (out_hi, out_lo), n in ((self.lam, self.d_a, self.d_b, self.lam_t, p.n_r),
+                                                         (self.y, self.dy_a, self.zero_c, self.y_t, p.n_c)):
+            wp.launch(K.dd_axpy_from, dim=n, inputs=[hi, lo, steps, slot, coef, factor, d_a, d_b],
+                      outputs=[out_hi, out_lo], device=p.device)
+
+    def read_scalars(self, arr: wp.array) -> np.ndarray:
+        """A small device array to the host, in one read that also brings the device loop's scalars (the last
+        directions' CG counts) when there is one."""
+        if self.dev is not None:
+            return self.dev.read(arr)
+        return self.to_host(arr).copy()
+
     def accept(self) -> None:
         """The trial duals become the current ones (the buffers are swapped, nothing is copied)."""
         self.lam, self.lam_t = self.lam_t, self.lam
@@ -615,12 +632,7 @@ class Engine:
                       device=p.device)
             factor, alpha, k_lin, accepted = 1.0, 1.0, 0, False
             for j in range(60):
-                wp.launch(resident.dd_axpy_limited, dim=p.n_r,
-                          inputs=[self.lam[0], self.lam[1], dev.scal, factor, self.d_a, self.d_b],
-                          outputs=[self.lam_t[0], self.lam_t[1]], device=p.device)
-                wp.launch(resident.dd_axpy_limited, dim=p.n_c,
-                          inputs=[self.y[0], self.y[1], dev.scal, factor, self.dy_a, self.zero_c],
-                          outputs=[self.y_t[0], self.y_t[1]], device=p.device)
+                self.trial_from(dev.scal, resident.LIMIT_SLOT, resident.LIMIT_FRACTION, factor)
                 tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
                 if j == 0:  # the read that came with this evaluation holds the solve's results
                     k_lin, ok = dev.cg_result()

@@ -37,7 +37,6 @@ import warp as wp
 import warp.sparse as wsp
 from warp.optim.linear import FSAI
 
-from wpot.ot import kernels as K
 from wpot.ot.linear import SINGULAR_SHIFT
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -56,9 +55,11 @@ _G2, _L1, _U, _XPHI, _AY = 0, 1, 2, 3, 4
 N_EVAL = 5
 # ... the last solve's results: step limit (fraction to zero), CG iterations, relative residual, converged ...
 _LIMIT, _IT, _REL, _OK = 5, 6, 7, 8
-# ... and `DeviceLoop.free_sums`: sum g, lam . m_r, y . m_c, sum b lam^2, sum a mu^2, sum m^2 / (2 alpha')
+# ... `DeviceLoop.free_sums`: sum g, lam . m_r, y . m_c, sum b lam^2, sum a mu^2, sum m^2 / (2 alpha') ...
 _F, _LM, _YM, _BL2, _AM2, _PEN = 9, 10, 11, 12, 13, 14
-N_SCAL = 15
+# ... and the solve before the last one's CG results (two directions between reads: the interior point's)
+_IT0, _REL0, _OK0 = 15, 16, 17
+N_SCAL = 18
 # slots of `DeviceLoop.cg`: r.z, p.q, r.r (masked), r.z new, ||rhs||^2, a.p, rtol^2
 _RZ, _PQ, _RR, _RZN, _NB2, _AP, _TOL2 = 0, 1, 2, 3, 4, 5, 6
 N_CG = 7
@@ -348,22 +349,14 @@ def reset_limit(scal: wp.array(dtype=wp.float64)):
     scal[_LIMIT] = _BIG
 
 
-@wp.kernel
-def dd_axpy_limited(hi: wp.array(dtype=wp.float64), lo: wp.array(dtype=wp.float64),
-                    scal: wp.array(dtype=wp.float64), factor: wp.float64,
-                    d_a: wp.array(dtype=wp.float64), d_b: wp.array(dtype=wp.float64),
-                    out_hi: wp.array(dtype=wp.float64), out_lo: wp.array(dtype=wp.float64)):
-    """`kernels.dd_axpy` with alpha = factor x min(1, 0.9 x the step limit in ``scal``)."""
-    i = wp.tid()
-    alpha = factor * wp.min(wp.float64(1.0), wp.float64(0.9) * scal[_LIMIT])
-    h, lo_ = K.dd_add(hi[i], lo[i], alpha, d_a[i], d_b[i])
-    out_hi[i] = h
-    out_lo[i] = lo_
+#: the Newton step stops this fraction of the way to the step limit (`step_limit`), in ``scal[LIMIT_SLOT]``
+LIMIT_FRACTION = 0.9
+LIMIT_SLOT = _LIMIT
 
 
 def step_alpha(limit: float) -> float:
-    """The Newton step's first trial length for a step limit (what `dd_axpy_limited` computes)."""
-    return min(1.0, 0.9 * limit)
+    """The Newton step's first trial length for a step limit (what `Engine.trial_from` computes from it)."""
+    return min(1.0, LIMIT_FRACTION * limit)
 
 
 class DeviceLoop:
@@ -399,6 +392,7 @@ class DeviceLoop:
         self.dsum = z(1)
         self.captured = self.device.is_cuda and wp.is_conditional_graph_supported()
         self.n_reads = 0  # reads of ``scal``
+        self._stage = None  # ``scal`` and another small array, for one read of both
         self.n_solves = 0
 
     # ------------------------------------------------------------------ evaluation
@@ -420,11 +414,22 @@ class DeviceLoop:
         return Point(None, None, float(np.sqrt(s[_G2])), 0.5 * float(s[_L1]), u=float(s[_U]),
                      xphi=float(s[_XPHI]), x=x)
 
-    def read(self) -> np.ndarray:
-        """``scal`` to the host (one synchronisation), kept as ``last``."""
-        self.last = self.e.to_host(self.scal).copy()
+    def read(self, extra: wp.array | None = None) -> np.ndarray:
+        """``scal`` to the host (one synchronisation), kept as ``last``; with ``extra`` (a small float64 array on
+        the device) both in the same read, and ``extra``'s copy is returned."""
+        if extra is None:
+            self.last = self.e.to_host(self.scal).copy()
+            self.n_reads += 1
+            return self.last
+        n = extra.shape[0]
+        if self._stage is None or self._stage.shape[0] != N_SCAL + n:
+            self._stage = wp.empty(N_SCAL + n, dtype=wp.float64, device=self.e.p.device)
+        wp.copy(self._stage, self.scal, 0, 0, N_SCAL)
+        wp.copy(self._stage, extra, N_SCAL, 0, n)
+        both = self.e.to_host(self._stage).copy()
+        self.last = both[:N_SCAL]
         self.n_reads += 1
-        return self.last
+        return both[N_SCAL:]
 
     def free_sums(self, lam, y, x: float):
         """(sum g, `wpot.ot.newton.DualSums`) at the duals ``lam``, ``y``, the partial scalar ``x`` and the
@@ -444,9 +449,11 @@ class DeviceLoop:
         """The partial penalty of the last `free_sums` (from the last read)."""
         return float(self.last[_PEN])
 
-    def cg_result(self) -> tuple[int, bool]:
-        """(CG iterations, converged) of the last solve, from the last read of ``scal``."""
-        return int(self.last[_IT]), bool(self.last[_OK])
+    def cg_result(self, back: int = 0) -> tuple[int, bool]:
+        """(CG iterations, converged) of the last solve (``back`` = 1: the one before), from the last read."""
+        if back == 0:
+            return int(self.last[_IT]), bool(self.last[_OK])
+        return int(self.last[_IT0]), bool(self.last[_OK0])
 
     def limit(self) -> float:
         """The step limit of the last `step_limit`, from the last read of ``scal``."""
@@ -491,7 +498,7 @@ class DeviceLoop:
         e.dy_a.zero_()
         self.cg.zero_()
         self.it.zero_()
-        wp.launch(cg_first, dim=1, inputs=[self.cg, wp.float64(rtol * rtol)], device=d)
+        wp.launch(cg_first, dim=1, inputs=[self.cg, wp.float64(rtol * rtol), self.scal], device=d)
         self.apply_preconditioner()
         wp.launch(cg_start, dim=p.n_c, inputs=[self.r, self.z, self.cg], device=d)
         wp.copy(e.v, self.z)
@@ -566,8 +573,12 @@ def free_sums_cols(y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.flo
 
 
 @wp.kernel
-def cg_first(cg: wp.array(dtype=wp.float64), tol2: wp.float64):
+def cg_first(cg: wp.array(dtype=wp.float64), tol2: wp.float64, scal: wp.array(dtype=wp.float64)):
+    """A new solve: its tolerance; the previous solve's results move to the slots of the one before."""
     cg[_TOL2] = tol2
+    scal[_IT0] = scal[_IT]
+    scal[_REL0] = scal[_REL]
+    scal[_OK0] = scal[_OK]
 
 
 @wp.kernel
