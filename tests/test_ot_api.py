@@ -183,6 +183,13 @@ def test_memory_bytes_counts_the_quadratic_arrays():
     assert anneal.memory_bytes(n1, n2, matrix_free=True, dim=200) == mf + 8 * (n1 + n2) * 100
     assert wo.make_solver("anneal", dense_plan=True).memory_bytes(n1, n2, matrix_free=True, dim=100) == mf + nn
     assert anneal.memory_bytes(10 * n1, 10 * n2, matrix_free=True, dim=100) < 0.5 * 100 * nn  # below the dense
+    # each Newton loop counts its own preconditioner; the device's choice (None) counts both
+    host, device = (wo.make_solver("anneal", newton_loop=x).memory_bytes(n1, n2) for x in ("host", "device"))
+    from wpot.ot.resident import FSAI_ROW, device_loop_bytes
+    dl = device_loop_bytes(n1, n2, 4, 4)
+    assert dl > 2 * 12 * n2 * FSAI_ROW  # FSAI's factor and its transpose at least
+    assert anneal.memory_bytes(n1, n2) == host + dl
+    assert anneal.memory_bytes(n1, n2) > device + 10 * n2  # the host loop's LU factor, not built by the device loop
     # the direct solver's dense Schur complement
     assert wo.make_solver("anneal", linear_solver="direct").memory_bytes(n1, n2) > anneal.memory_bytes(n1, n2)
     with pytest.raises(ValueError, match="ipm"):

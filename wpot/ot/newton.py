@@ -1,9 +1,11 @@
 """The solver state of one OT problem and Newton's method at fixed beta (shared by balanced and partial).
 
 State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (phi, phi', row and
-column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. Length-N vectors are handled on the host
-(zero-copy views on "cpu"), where the CG recurrences and the sparse preconditioner run. Every read of a
-device array goes through `Engine.to_host` and every write of host data through `Engine.to_device`, which
+column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. The Newton steps run in one of two loops
+(`EngineOptions.newton_loop`): the host loop handles the length-N vectors on the host (zero-copy views on
+"cpu"), where the CG recurrences and the SuperLU preconditioner run; the device loop (`wpot.ot.resident`,
+the default on a GPU) keeps them on the device and reads one small array per trial point. Every read of
+a device array goes through `Engine.to_host` and every write of host data through `Engine.to_device`, which
 count them (`Timers.n_d2h`, `Timers.n_h2d`): on a GPU each is a transfer, and each read waits for the
 device (a synchronisation); the counts are the same on every device.
 
@@ -17,9 +19,10 @@ back-substitution. The sparse preconditioner (top-k selection in Warp, SuperLU) 
 large N and is reused across Newton steps and betas while CG converges about as fast as with a fresh
 one (`REFRESH_EXTRA_CG`).
 
-The `Engine`'s public step API (`evaluate`, `direction`, `trial`, `accept`, `newton`, `free_pass`,
-`snapshot`/`restore`, `invalidate_preconditioner`, `plan`, `plan_top`, `to_host`/`to_device`) is what the
-annealing loop (`wpot.ot.anneal`) and the interior-point start (`wpot.ot.ipm`) drive.
+The `Engine`'s public step API (`evaluate`, `direction`, `direction_later`, `trial`, `trial_from`,
+`accept`, `newton`, `free_pass`, `dual_sums`, `snapshot`/`restore`, `invalidate_preconditioner`, `plan`,
+`plan_top`, `to_host`/`to_device`, `read_scalars`) is what the annealing loop (`wpot.ot.anneal`) and the
+interior-point start (`wpot.ot.ipm`) drive.
 """
 from __future__ import annotations
 

@@ -44,7 +44,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["DeviceLoop", "FSAI_ROW"]
+__all__ = ["DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
 
 #: scalar entries per row of the FSAI factor G (measured over whole annealing runs: 32 needs 1.7-2x the CG
 #: iterations of SuperLU's exact factors, 8 needs 2.4-3.8x, Jacobi 10-15x)
@@ -357,6 +357,19 @@ LIMIT_SLOT = _LIMIT
 def step_alpha(limit: float) -> float:
     """The Newton step's first trial length for a step limit (what `Engine.trial_from` computes from it)."""
     return min(1.0, LIMIT_FRACTION * limit)
+
+
+def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int) -> int:
+    """Device bytes a `DeviceLoop` adds to its engine (n_r rows, n_c columns, ``kk`` / ``kc`` top weights per
+    row / column): its vectors, the triplets of P and P itself (an upper bound: duplicates are summed), and
+    FSAI's factor, transpose and set-up work (`FSAI_ROW` entries a row)."""
+    f64, i32 = 8, 4
+    vectors = f64 * (2 * n_r + 5 * n_c + N_SCAL + N_CG)
+    n_trip = n_r * kk * (kk - 1) + n_c * (2 * kc + 1)
+    triplets = (2 * i32 + f64) * n_trip
+    bsr = (i32 + f64) * n_trip + i32 * (n_c + 1)
+    fsai = 4 * (i32 + f64) * n_c * FSAI_ROW + f64 * n_c
+    return vectors + triplets + bsr + fsai
 
 
 class DeviceLoop:

@@ -24,6 +24,7 @@ from wpot.ot.exact import solve_exact_batch, solve_exact_problem
 from wpot.ot.options import SolverOptions
 from wpot.ot.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
+from wpot.ot.resident import device_loop_bytes
 from wpot.ot.result import BetaStep, OTResult
 
 __all__ = ["SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
@@ -82,7 +83,9 @@ def _lanes(options: SolverOptions) -> int:
 def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, dim: int) -> int:
     """Bytes of the arrays of an annealing solve other than the (N1, N2) ones: `wpot.ot.newton.Engine`'s
     device vectors (counted one by one), host allowances per point, the preconditioner's LU factor (~N^1.85,
-    see `_FACTOR_EXPONENT`) and, matrix-free, the (N, dim) features."""
+    see `_FACTOR_EXPONENT`) or, with ``newton_loop="device"``, the device loop's arrays
+    (`wpot.ot.resident.device_loop_bytes`), and, matrix-free, the (N, dim) features. ``newton_loop=None``
+    (the device's choice) counts both, a bound for either device."""
     n_r, n_c = max(n1, n2), min(n1, n2)
     kk = max(2, min(options.topk, n_c))
     kc = max(1, min(options.topk, n_r))
@@ -92,7 +95,9 @@ def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, d
               + (_F64 + _I32) * (n_r * kk + n_c * kc)  # top-k lists of W
               + (6 * _F64 + _I32) * n_r * lanes)  # per-lane partial sums of the evaluation pass
     host = _HOST_BYTES_PER_POINT * (n_r + n_c) + _HOST_BYTES_PER_POINT_TOPK * (n_r + n_c) * options.topk
-    if options.linear_solver == "cg":
+    if options.linear_solver == "cg" and options.newton_loop != "host":  # the device loop's arrays
+        engine += device_loop_bytes(n_r, n_c, kk, kc)
+    if options.linear_solver == "cg" and options.newton_loop != "device":  # the host loop's LU factor
         host += _FACTOR_BYTES_PER_NONZERO * int(min(float(n_c) * n_c, float(n_c) ** _FACTOR_EXPONENT))
     plan_top = _PLAN_TOP_BYTES_PER_ENTRY * n1 * min(options.plan_topk, n2)
     features = _F64 * (n1 + n2) * int(dim) if matrix_free else 0
