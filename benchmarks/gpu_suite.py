@@ -360,8 +360,8 @@ def main() -> None:
         print(f"{r['problem']:<52} {tr['n_newton']:>6} {tr['n_cg']:>6} {tr['d2h_per_newton']:>10.1f} "
               f"{tr['h2d_per_newton']:>10.1f} {tr['d2h_per_cg']:>7.2f} {tr['h2d_per_cg']:>7.2f} "
               f"{tr['factor_per_newton']:>13.2f}")
-    print("  (device loop: a preconditioner build synchronises inside Warp's BSR and FSAI set-up, 3 reads counted on "
-          "the CPU build and one stream synchronisation on CUDA, on top of d2h)")
+    print("  (device loop: a full preconditioner build synchronises inside Warp's BSR and FSAI set-up, 5 reads counted "
+          "on the CPU build and one stream synchronisation on CUDA, on top of d2h; its refits do not)")
     print(f"\n{'exact LP on ' + a.device + ' (d2h: syncs)':<44} {'rounds':>6} {'d2h/round':>10} {'h2d/round':>10}")
     for r in [report["pair"], *report["large_exact"]]:
         tr = r["round_transfers"]

@@ -114,6 +114,23 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
     o = eng.o
     betas = beta_schedule(o.beta0 if beta0 is None else beta0, o.step, o.beta_max)
     raw: list[dict] = []
+    solved: list[float] = []  # the solved betas (each gets a record)
+    # the last solved beta, point and counts, whose record waits for the free-energy sums: in the device loop
+    # they come with the next read (the next beta's first evaluation)
+    pending: tuple | None = None
+
+    def record(beta: float, pt: Point, nn: int, nl: int, ok: bool) -> None:
+        eng.free_values(pt)
+        obj = pt.u + eng.dual_sums(pt).penalty
+        fe = free_energy(eng, pt, beta)
+        rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
+        raw.append(rec)
+        if on_beta is not None:
+            on_beta(rec)
+        if o.verbose:
+            print(f"  beta={beta:.3e} U={pt.u:.12g} res={pt.residual:.2e} newton={nn} cg={nl} "
+                  f"gap<={pt.xphi / beta:.2e} t_eval={eng.t.eval:.2f}s")
+
     all_newton_ok = True
     stopped = False
     u_prev = None
@@ -125,13 +142,16 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
     targets = list(betas)
     while targets:
         beta = targets.pop(0)
-        if len(raw) >= o.max_iter:
+        if len(solved) >= o.max_iter:
             break
-        if raw and o.extrapolate:
-            pt = _predict(eng, beta, raw[-1]["beta"])
+        if solved and o.extrapolate:
+            pt = _predict(eng, beta, solved[-1])
             n_lin_tot += n_tangent()
         else:
             pt = eng.evaluate(eng.lam, eng.y, beta)
+        if pending is not None:
+            record(*pending)
+            pending = None
         pt, nn, nl, ok = eng.newton(beta, pt)
         if not ok and good is not None:
             # a failed solve after a solved beta (good holds that beta's duals, raw[-1] its record): its
@@ -139,7 +159,7 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
             n_newton_tot += nn
             n_lin_tot += nl
             eng.restore(good)
-            beta_prev = raw[-1]["beta"]
+            beta_prev = solved[-1]
             if beta / beta_prev > MIN_SPLIT_STEP:
                 # the step was too long for max_newton damped steps (real 5k-vertex WKS pairs at the plan's
                 # spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8, normalized): reach beta
@@ -162,15 +182,8 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
         all_newton_ok &= ok
         n_newton_tot += nn
         n_lin_tot += nl
-        obj = pt.u + eng.dual_sums(pt).penalty
-        fe = free_energy(eng, pt, beta)
-        rec = dict(beta=beta, u=pt.u, obj=obj, f=fe, nn=nn, nl=nl, res=pt.residual, gap=pt.xphi / beta, ok=ok)
-        raw.append(rec)
-        if on_beta is not None:
-            on_beta(rec)
-        if o.verbose:
-            print(f"  beta={beta:.3e} U={pt.u:.12g} res={pt.residual:.2e} newton={nn} cg={nl} "
-                  f"gap<={pt.xphi / beta:.2e} t_eval={eng.t.eval:.2f}s")
+        pending = (beta, pt, nn, nl, ok)
+        solved.append(beta)
         final_beta, final_pt = beta, pt
         if ok:
             good = eng.snapshot(into=good)
@@ -180,6 +193,8 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
                 stopped = True
                 break
         u_prev = pt.u
+    if pending is not None:
+        record(*pending)
     if o.verbose:
         print("  timers:", {k: round(v, 3) if isinstance(v, float) else v for k, v in eng.t.as_dict().items()})
     return AnnealOutcome(records=tuple(raw), converged=stopped and all_newton_ok, stopped=stopped,

@@ -47,6 +47,11 @@ from wpot.ot.problem import Internal
 #: 4x); it is then rebuilt at the next Newton point (at once, with a re-solve, when CG failed). Measured
 #: at N = 1000: 20 factorizations instead of 74, 513 CG iterations instead of 246
 REFRESH_EXTRA_CG = 2
+#: the device loop refits a stale FSAI preconditioner on its last pattern (no host read) while CG with the
+#: refit needs at most this many times the count of its last full build (+ REFRESH_EXTRA_CG); a full build
+#: synchronises ~6 times inside Warp. Measured at N = 1,000 (random R^8 points), full builds / CG
+#: iterations: 1.0: 8 / 637 (annealing), 5 / 455 (ipm); 2.0: 5 / 676, 4 / 491; 3.0: 4 / 711, 4 / 491
+REFIT_SLOWDOWN = 2.0
 #: forcing term of the inexact Newton steps (Eisenstat-Walker style): CG stops at a relative residual of
 #: min(CG_LOOSE, residual), but never tighter than ``cg_rtol``. Far from the solution (the damped steps of the
 #: transition betas) a rough direction does as well as an accurate one
@@ -59,6 +64,8 @@ FTB_MIN_X = 1.0
 class Timers:
     """Seconds spent per phase of one `Engine`'s solve and its work counts (``as_dict`` is what benchmarks print).
 
+    n_factor counts preconditioner builds (SuperLU factorizations; in the device loop, full FSAI builds) and
+    n_refit the device loop's refits on the last pattern;
     n_newton counts Newton steps (`Engine.newton`'s and the interior-point iterations: `OTResult.n_newton`);
     n_d2h / n_h2d count the device-to-host reads (`Engine.to_host`) and host-to-device writes
     (`Engine.to_device`) of device arrays, the transfers (and, for reads, synchronisations) a GPU makes.
@@ -73,6 +80,7 @@ class Timers:
     n_eval: int = 0
     n_matvec: int = 0
     n_factor: int = 0
+    n_refit: int = 0
     n_free: int = 0
     n_newton: int = 0
     n_d2h: int = 0
@@ -195,6 +203,7 @@ class Engine:
         self._M = None  # the sparse preconditioner, reused across Newton steps and betas while it works
         self._M_iters = 0
         self._M_fresh_needed = False
+        self._free_pending = None  # (point, reads of the device's scalars) of the last free_pass
         loop = opts.newton_loop
         if loop is None:
             loop = "host" if self._host or opts.linear_solver != "cg" else "device"
@@ -247,7 +256,8 @@ class Engine:
 
     def free_pass(self, lam, y, beta: float, pt: Point):
         """At the saddle point of a beta (the point of the last evaluation, ``pt``): sum g (into
-        ``pt.f_sum``) and the row/column sums of W s; in the device loop also ``pt.sums``, in the same read."""
+        ``pt.f_sum``) and the row/column sums of W s. In the device loop sum g and ``pt.sums`` come with the
+        next read of the device's scalars: `free_values` fills them in (until then ``pt.f_sum`` is NaN)."""
         t0 = time.perf_counter()
         p = self.p
         self.col_ws.zero_()
@@ -255,15 +265,32 @@ class Engine:
                   inputs=[self.csrc, p.n_c, beta, lam[0], lam[1], y[0], y[1]],
                   outputs=[self.row_f, self.row_ws, self.col_ws], device=p.device)
         if self.dev is not None:
-            pt.f_sum, pt.sums = self.dev.free_sums(lam, y, pt.x)
+            self.dev.free_sums(lam, y, pt.x)
+            pt.f_sum, pt.sums = math.nan, None
+            self._free_pending = (pt, self.dev.n_reads)
         else:
             pt.f_sum = float(self.to_host(self.row_f).sum())
+            pt.sums = None
+            self.dual_sums(pt)  # at these duals and marginals (the caller may move on before it asks)
         self.t.eval += time.perf_counter() - t0
         self.t.n_free += 1
 
+    def free_values(self, pt: Point) -> Point:
+        """``pt`` with sum g and its `DualSums` after `free_pass` (the last one, at ``pt``): in the device loop
+        from the first read of the device's scalars since then, or from one now."""
+        if self.dev is None or not math.isnan(pt.f_sum):
+            return pt
+        at, reads = self._free_pending
+        if at is not pt:
+            raise RuntimeError("free_values: the last free_pass was not at this point")
+        if self.dev.n_reads == reads:
+            self.dev.read()
+        pt.f_sum, pt.sums = self.dev.free_values()
+        return pt
+
     def dual_sums(self, pt: Point) -> DualSums:
-        """The `DualSums` at ``pt``, the current duals and the last evaluation (from `free_pass` in the device
-        loop; read here in the host loop)."""
+        """The `DualSums` at ``pt`` (those `free_pass` / `free_values` set, or, when there are none, read here
+        at the current duals and the last evaluation)."""
         if pt.sums is not None:
             return pt.sums
         p = self.p
@@ -429,10 +456,10 @@ class Engine:
             return n_lin, ok
         return result
 
-    def _direction_device(self, pt: Point, rtol: float | None) -> bool:
+    def _direction_device(self, pt: Point, rtol: float | None) -> str | bool:
         """`direction` in the device loop, with no host read: right-hand side, preconditioner (when it is
         rebuilt), CG and back-substitution as kernels; CG's count and convergence land in ``dev.scal``.
-        Returns whether the preconditioner was rebuilt."""
+        Returns how the preconditioner was rebuilt ("build", "refit"), or False when it was reused."""
         p, dev = self.p, self.dev
         t0 = time.perf_counter()
         self._select_weights()
@@ -445,11 +472,15 @@ class Engine:
         if fresh:
             t0 = time.perf_counter()
             self._col_topk()
-            dev.build_preconditioner()
+            if dev.rebuild_preconditioner():
+                self.t.n_factor += 1
+                fresh = "build"
+            else:
+                self.t.n_refit += 1
+                fresh = "refit"
             self._M = dev.M
             self._M_fresh_needed = False
             self.t.precond += time.perf_counter() - t0
-            self.t.n_factor += 1
         t0 = time.perf_counter()
         dev.solve(self.o.cg_rtol if rtol is None else max(rtol, self.o.cg_rtol), self.o.cg_max_iter)
         self.t.cg += time.perf_counter() - t0
@@ -458,10 +489,17 @@ class Engine:
         self.t.other += time.perf_counter() - t0
         return fresh
 
-    def _after_solve(self, fresh: bool, n_lin: int, ok: bool) -> None:
+    def _after_solve(self, fresh: str | bool, n_lin: int, ok: bool) -> None:
         """The reuse rule: a fresh preconditioner's count is the reference; a reused one that failed or took
-        more than `REFRESH_EXTRA_CG` iterations beyond it has gone stale and is rebuilt at the next point."""
-        if fresh:
+        more than `REFRESH_EXTRA_CG` iterations beyond it has gone stale and is rebuilt at the next point.
+        In the device loop a rebuild first refits the last pattern; a refit that fails or needs more than
+        `REFIT_SLOWDOWN` x the last full build's count (+ `REFRESH_EXTRA_CG`) is replaced by a full build at
+        the next point, and the refits stop until then."""
+        if fresh == "refit":
+            if not ok or n_lin > REFIT_SLOWDOWN * self._M_iters + REFRESH_EXTRA_CG:
+                self.dev.refit_ok = False
+                self._M_fresh_needed = True
+        elif fresh:
             self._M_iters = n_lin
         elif not ok or n_lin > self._M_iters + REFRESH_EXTRA_CG:
             self._M_fresh_needed = True

@@ -20,10 +20,13 @@ The preconditioner is the sparse approximation P of the Schur complement that th
 assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp BSR matrix and
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
 row on the device; applying it is two sparse products, no triangular solve). With `FSAI_ROW` entries a
-row it needs about 1.7-2x the CG iterations of SuperLU's exact factors (measured over whole annealing
-runs at N = 300 and 1,000; Jacobi needs 10-15x). Its set-up synchronises inside Warp (BSR assembly and
-FSAI's checks); it runs only when the preconditioner is rebuilt (`Timers.n_factor`), under the same reuse
-rule as the host loop's.
+row it needs about 1.5-2x the CG iterations of SuperLU's exact factors (measured over whole annealing
+runs at N = 300 and 1,000; Jacobi needs 10-15x). When the host loop would refactorize, the device loop
+first refits: P's new values on the last build's pattern (`bsr_set_from_triplets(..., topology="masked")`)
+and FSAI refitted on its supports (`FSAI.update`), kernels only, no host read (`Timers.n_refit`). A full
+build (`Timers.n_factor`) synchronises inside Warp (BSR assembly and FSAI's set-up: 5 reads counted on the
+CPU build, and a stream synchronisation on CUDA); it runs first, and again when a refit does not serve
+(`wpot.ot.newton.REFIT_SLOWDOWN`).
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
@@ -395,6 +398,7 @@ class DeviceLoop:
         self.it = wp.zeros(1, dtype=wp.int32, device=d)
         self.cond = wp.zeros(1, dtype=wp.int32, device=d)
         self.M: FSAI | None = None
+        self.refit_ok = False  # whether the next rebuild may refit the last pattern
         kk, kc = eng.kk, eng.ctop_val.shape[1]
         self.row_slots = p.n_r * kk * (kk - 1)
         n_trip = self.row_slots + p.n_c * (2 * kc + 1)
@@ -444,18 +448,21 @@ class DeviceLoop:
         self.n_reads += 1
         return both[N_SCAL:]
 
-    def free_sums(self, lam, y, x: float):
-        """(sum g, `wpot.ot.newton.DualSums`) at the duals ``lam``, ``y``, the partial scalar ``x`` and the
-        last evaluation, after `kernels.free_rows` (one read)."""
-        from wpot.ot.newton import DualSums
-
+    def free_sums(self, lam, y, x: float) -> None:
+        """Sum g and the `wpot.ot.newton.DualSums` at the duals ``lam``, ``y``, the partial scalar ``x`` and
+        the last evaluation, after `kernels.free_rows`, into ``scal`` (`free_values` reads them)."""
         e, p, d = self.e, self.e.p, self.e.p.device
         wp.launch(zero_slots, dim=1, inputs=[self.scal, _F, N_SCAL], device=d)
         wp.launch(free_sums_rows, dim=p.n_r, inputs=[e.row_f, lam[0], lam[1], self.m_r, e.b, e.row_g,
                                                     int(p.partial), self.scal], device=d)
         wp.launch(free_sums_cols, dim=p.n_c, inputs=[y[0], y[1], x, self.m_c, self.a_c, e.col_g, int(p.partial),
                                                     self.scal], device=d)
-        s = self.read()
+
+    def free_values(self):
+        """(sum g, `wpot.ot.newton.DualSums`) of the last `free_sums`, from the last read of ``scal``."""
+        from wpot.ot.newton import DualSums
+
+        s = self.last
         return float(s[_F]), DualSums(float(s[_LM]), float(s[_YM]), float(s[_BL2]), float(s[_AM2]), self.penalty())
 
     def penalty(self) -> float:
@@ -484,9 +491,18 @@ class DeviceLoop:
             else:
                 self.e.to_device(dst, np.asarray(src, dtype=np.float64))
 
-    def build_preconditioner(self) -> None:
-        """P from the top-k selections (rows: ``eng.top_*``, columns: ``eng.ctop_*``, both at this point)
-        and S_W's diagonal, then FSAI on it."""
+    def rebuild_preconditioner(self) -> bool:
+        """A new preconditioner at this point: a refit (`refit_preconditioner`, no host read) when the last
+        one's pattern still serves (``refit_ok``), else a full build. Returns whether it was a full build."""
+        if self.M is not None and self.refit_ok:
+            self.refit_preconditioner()
+            return False
+        self.build_preconditioner()
+        return True
+
+    def _assemble(self) -> None:
+        """The triplets of P from the top-k selections (rows: ``eng.top_*``, columns: ``eng.ctop_*``, both at
+        this point) and S_W's diagonal."""
         e, p, d = self.e, self.e.p, self.e.p.device
         skip = p.n_c - 1 if self.gauge else -1
         wp.launch(sparse_schur_rows, dim=p.n_r, inputs=[e.top_val, e.top_idx, e.piv, e.e1, skip],
@@ -496,8 +512,22 @@ class DeviceLoop:
         wp.launch(sparse_schur_cols, dim=p.n_c,
                   inputs=[e.ctop_val, e.ctop_idx, e.top_val, e.top_idx, e.piv, e.e1, e.diag_s, self.a_c, self.dsum,
                           skip, self.row_slots], outputs=[self.t_rows, self.t_cols, self.t_vals], device=d)
+
+    def build_preconditioner(self) -> None:
+        """P assembled into a new sparsity pattern and FSAI on it (its set-up synchronises inside Warp)."""
+        self._assemble()
         wsp.bsr_set_from_triplets(self.P, self.t_rows, self.t_cols, self.t_vals)
-        self.M = FSAI(self.P, max_row_size=FSAI_ROW)
+        self.M = FSAI(self.P, max_row_size=FSAI_ROW, reuse_pattern=True, regularize_refit=True,
+                      validate_topology=False)
+        self.refit_ok = True
+
+    def refit_preconditioner(self) -> None:
+        """P's new values on the last build's pattern (entries outside it are dropped: P stays diagonally
+        dominant) and FSAI refitted on its supports: kernels only, no host read. (A refit that CG finds
+        no better than the stale preconditioner sets ``refit_ok`` False: the next rebuild is a full one.)"""
+        self._assemble()
+        wsp.bsr_set_from_triplets(self.P, self.t_rows, self.t_cols, self.t_vals, topology="masked")
+        self.M.update(self.P)
 
     def apply_preconditioner(self) -> None:
         """z = M^-1 r."""
