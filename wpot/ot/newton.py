@@ -729,8 +729,6 @@ class Engine:
         evaluation; 0 for balanced transport."""
         if not self.p.partial:
             return 0.0
-        if self.dev is not None:  # the device loop's sums of the last read
-            return self.dev.penalty()
         m1 = self.to_host(self.row_g)
         m2 = self.to_host(self.col_g)
         return float(0.5 * np.sum(m1 * m1 / self.p.b_r) + 0.5 * np.sum(m2 * m2 / self.p.a_c))

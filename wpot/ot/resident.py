@@ -20,8 +20,9 @@ The preconditioner is the sparse approximation P of the Schur complement that th
 assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp BSR matrix and
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
 row on the device; applying it is two sparse products, no triangular solve). With `FSAI_ROW` entries a
-row it needs about 1.5-2x the CG iterations of SuperLU's exact factors (measured over whole annealing
-runs at N = 300 and 1,000; Jacobi needs 10-15x). When the host loop would refactorize, the device loop
+row CG needs 1.5-2x the iterations it needs with SuperLU's exact factors of P (each solve with a fresh
+preconditioner, over whole annealing runs at N = 300 and 1,000; Jacobi needs 10-15x), and 2-2.5x over a
+whole solve with both loops' reuse rules (`benchmarks/ot_speed.py`). When the host loop would refactorize, the device loop
 first refits: P's new values on the last build's pattern (`bsr_set_from_triplets(..., topology="masked")`)
 and FSAI refitted on its supports (`FSAI.update`), kernels only, no host read (`Timers.n_refit`). A full
 build (`Timers.n_factor`) synchronises inside Warp (BSR assembly and FSAI's set-up: 5 reads counted on the
@@ -49,8 +50,9 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 __all__ = ["DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
 
-#: scalar entries per row of the FSAI factor G (measured over whole annealing runs: 32 needs 1.7-2x the CG
-#: iterations of SuperLU's exact factors, 8 needs 2.4-3.8x, Jacobi 10-15x)
+#: scalar entries per row of the FSAI factor G (CG iterations against SuperLU's exact factors of the same P,
+#: fresh each solve, over whole annealing runs at N = 300 / 1,000: 32 needs 1.5 / 1.9x, 8 needs 2.4 / 3.8x,
+#: Jacobi 10-15x)
 FSAI_ROW = 32
 
 # slots of `DeviceLoop.scal`: the evaluation's sums (zeroed by each evaluation) ...
