@@ -258,26 +258,15 @@ def ipm_steps(sc: wp.array(dtype=wp.float64), eta: wp.float64):
 
 
 @wp.kernel
-def ipm_rhs_rows(m_r: wp.array(dtype=wp.float64), row_r: wp.array(dtype=wp.float64),
-                 row_m: wp.array2d(dtype=wp.float64), corr: int, sc: wp.array(dtype=wp.float64),
-                 g1: wp.array(dtype=wp.float64)):
-    """g1 = m_r - (mu_t sum_l 1/s - [corr] sum_l dG_aff ds_aff / s): the rows' Newton residual for target mu_t."""
-    k = wp.tid()
-    t = sc[_MUT] * row_r[k]
+def ipm_rhs(m: wp.array(dtype=wp.float64), sum_r: wp.array(dtype=wp.float64), sum_m: wp.array(dtype=wp.float64),
+            corr: int, sc: wp.array(dtype=wp.float64), g: wp.array(dtype=wp.float64)):
+    """g = m - (mu_t sum 1/s - [corr] sum dG_aff ds_aff / s) over a row (column): the Newton residual of the
+    rows (columns) for the target mu_t in ``sc``."""
+    i = wp.tid()
+    t = sc[_MUT] * sum_r[i]
     if corr != 0:
-        t = t - row_m[k, 3]
-    g1[k] = m_r[k] - t
-
-
-@wp.kernel
-def ipm_rhs_cols(m_c: wp.array(dtype=wp.float64), col_r: wp.array(dtype=wp.float64),
-                 col_m: wp.array(dtype=wp.float64), corr: int, sc: wp.array(dtype=wp.float64),
-                 g2: wp.array(dtype=wp.float64)):
-    l = wp.tid()
-    t = sc[_MUT] * col_r[l]
-    if corr != 0:
-        t = t - col_m[l]
-    g2[l] = m_c[l] - t
+        t = t - sum_m[i]
+    g[i] = m[i] - t
 
 
 class _IPM:
@@ -362,10 +351,9 @@ class _IPM:
         """Newton direction for the target mu_t in ``sc`` (with the corrector term when ``corr``), left in the
         engine's d_a, d_b, dy_a; J has the weights W = G/s."""
         e, p = self.e, self.e.p
-        wp.launch(ipm_rhs_rows, dim=p.n_r, inputs=[self.m_r, self.row_r, self.row_m, int(corr), self.sc, self.g1],
-                  device=p.device)
-        wp.launch(ipm_rhs_cols, dim=p.n_c, inputs=[self.m_c, self.col_r, self.col_m, int(corr), self.sc, self.g2],
-                  device=p.device)
+        for m, sum_r, sum_m, g in ((self.m_r, self.row_r, self.row_m[:, 3], self.g1),
+                                   (self.m_c, self.col_r, self.col_m, self.g2)):
+            wp.launch(ipm_rhs, dim=g.shape[0], inputs=[m, sum_r, sum_m, int(corr), self.sc, g], device=p.device)
         self.pending.append(e.direction_later(Point(self.g1, self.g2, 0.0, 0.0), rtol=rtol))
 
     def _show(self, n_it: int, what: str) -> None:

@@ -695,23 +695,6 @@ def dd_add(h: wp.float64, lo: wp.float64, alpha: wp.float64, da: wp.float64, db:
 def dd_axpy(
     hi: wp.array(dtype=wp.float64),
     lo: wp.array(dtype=wp.float64),
-    alpha: wp.float64,
-    d_a: wp.array(dtype=wp.float64),
-    d_b: wp.array(dtype=wp.float64),
-    out_hi: wp.array(dtype=wp.float64),
-    out_lo: wp.array(dtype=wp.float64),
-):
-    """(out_hi + out_lo) = (hi + lo) + alpha d_a + alpha d_b in double-double arithmetic."""
-    i = wp.tid()
-    h, lo_ = dd_add(hi[i], lo[i], alpha, d_a[i], d_b[i])
-    out_hi[i] = h
-    out_lo[i] = lo_
-
-
-@wp.kernel
-def dd_axpy_from(
-    hi: wp.array(dtype=wp.float64),
-    lo: wp.array(dtype=wp.float64),
     steps: wp.array(dtype=wp.float64),
     slot: int,
     coef: wp.float64,
@@ -721,7 +704,9 @@ def dd_axpy_from(
     out_hi: wp.array(dtype=wp.float64),
     out_lo: wp.array(dtype=wp.float64),
 ):
-    """`dd_axpy` with a step length computed on the device: alpha = factor min(1, coef steps[slot])."""
+    """(out_hi + out_lo) = (hi + lo) + alpha d_a + alpha d_b in double-double arithmetic, with the step
+    length alpha = factor min(1, coef steps[slot]) (computed on the device: ``steps[slot]`` = 1e300 gives
+    alpha = factor)."""
     i = wp.tid()
     alpha = factor * wp.min(_ONE, coef * steps[slot])
     h, lo_ = dd_add(hi[i], lo[i], alpha, d_a[i], d_b[i])

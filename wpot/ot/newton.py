@@ -182,6 +182,7 @@ class Engine:
         self.ctop_val = wp.zeros((n_c, kc), dtype=wp.float64, device=d)
         self.ctop_idx = wp.zeros((n_c, kc), dtype=wp.int32, device=d)
         self.v, self.mv = z(n_c), z(n_c)
+        self._no_limit = wp.full(1, 1e300, dtype=wp.float64, device=d)  # `trial`'s step: alpha itself
         self.delta = z(n_r)  # the row sweep's sums, then delta(k), of the strided matvec
         self.d_a, self.d_b = z(n_r), z(n_r)
         self.dy_a, self.zero_c = z(n_c), z(n_c)
@@ -581,18 +582,14 @@ class Engine:
 
     def trial(self, alpha: float) -> None:
         """The trial duals (``lam_t``, ``y_t``) = current + ``alpha`` x the last `direction`."""
-        p = self.p
-        wp.launch(K.dd_axpy, dim=p.n_r, inputs=[self.lam[0], self.lam[1], alpha, self.d_a, self.d_b],
-                  outputs=[self.lam_t[0], self.lam_t[1]], device=p.device)
-        wp.launch(K.dd_axpy, dim=p.n_c, inputs=[self.y[0], self.y[1], alpha, self.dy_a, self.zero_c],
-                  outputs=[self.y_t[0], self.y_t[1]], device=p.device)
+        self.trial_from(self._no_limit, 0, 1.0, alpha)
 
     def trial_from(self, steps: wp.array, slot: int, coef: float = 1.0, factor: float = 1.0) -> None:
         """`trial` with a step length computed on the device, alpha = factor min(1, coef steps[slot]) (no read)."""
         p = self.p
         for (hi, lo), d_a, d_b, (out_hi, out_lo), n in ((self.lam, self.d_a, self.d_b, self.lam_t, p.n_r),
                                                          (self.y, self.dy_a, self.zero_c, self.y_t, p.n_c)):
-            wp.launch(K.dd_axpy_from, dim=n, inputs=[hi, lo, steps, slot, coef, factor, d_a, d_b],
+            wp.launch(K.dd_axpy, dim=n, inputs=[hi, lo, steps, slot, coef, factor, d_a, d_b],
                       outputs=[out_hi, out_lo], device=p.device)
 
     def read_scalars(self, arr: wp.array) -> np.ndarray:
@@ -610,41 +607,46 @@ class Engine:
     def newton(self, beta: float, pt: Point) -> tuple[Point, int, int, bool]:
         """Newton's method with backtracking on the residual norm ||g||_2 (accurate at any beta: the
         marginal sums are sums of positive terms). Returns (point, newton iterations, linear iterations,
-        converged)."""
-        if self.dev is not None:
-            return self._newton_device(beta, pt)
+        converged).
+
+        In the device loop each trial point costs one host read (its evaluation's sums; the first also
+        brings the direction's CG count and step limit), and the line search starts at twice the last
+        accepted step of this call (at most the full step): a halving costs an evaluation and a read
+        (N = 2,000: reads 171 -> 153, Newton steps 96 -> 100)."""
         n_newton = n_lin = 0
+        last = 1.0  # the last accepted step, as a fraction of its first trial
         while pt.residual > self.o.newton_tol:
             if n_newton >= self.o.max_newton:
                 return pt, n_newton, n_lin, False
             reused = self._M is not None and not self._M_fresh_needed
-            k_lin, _ = self.direction(pt, rtol=min(CG_LOOSE, pt.residual))
-            n_lin += k_lin
+            fresh, k_lin, limit = self._step_start(beta, pt)
             n_newton += 1
             self.t.n_newton += 1
-            # fraction to s = 0 on each row's pivot entry (its reduced cost moves by d_b exactly), for pivots
-            # in phi's 1/x tail (beta s > FTB_MIN_X): there the linear model overshoots (G ~ 1/(beta s)).
-            # s = 0 is not a bound (phi is smooth, G < 1): a pivot already near it is left to the line
-            # search, otherwise every step would stop 90% of the way and the iteration stall
-            db = self.to_host(self.d_b)
-            spv = self.to_host(self.s_piv)
-            neg = (db < 0) & (spv * beta > FTB_MIN_X)
-            alpha = 1.0
-            if np.any(neg):
-                alpha = min(1.0, 0.9 * float(np.min(spv[neg] / -db[neg])))
-            accepted = False
-            for _ in range(60):
-                self.trial(alpha)
+            factor = 1.0 if self.dev is None else min(1.0, 2.0 * last)
+            alpha, accepted = 1.0, False
+            for j in range(60):
+                if self.dev is None:
+                    self.trial(factor * limit)
+                else:
+                    self.trial_from(self.dev.scal, resident.LIMIT_SLOT, resident.LIMIT_FRACTION, factor)
                 tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
+                if j == 0 and self.dev is not None:  # the read that came with this evaluation
+                    k_lin, ok = self.dev.cg_result()
+                    self.t.n_matvec += k_lin
+                    self._after_solve(fresh, k_lin, ok)
+                    limit = resident.step_alpha(self.dev.limit())
+                alpha = factor * limit
                 if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
                     accepted = True
                     break
-                alpha *= 0.5
+                factor *= 0.5
+            n_lin += k_lin
             if not accepted:
                 # no decrease possible at working precision: keep the best point we have
                 pt = self.evaluate(self.lam, self.y, beta, full=True)
                 return pt, n_newton, n_lin, pt.residual <= self.o.newton_tol
             self.accept()
+            last = factor
             if self.o.verbose > 1:
                 print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
                       f"res {tp.residual:.2e} cg={k_lin}")
@@ -655,52 +657,30 @@ class Engine:
             pt = tp
         return pt, n_newton, n_lin, True
 
-    def _newton_device(self, beta: float, pt: Point) -> tuple[Point, int, int, bool]:
-        """`newton` in the device loop: the same steps and step rule, with one host read per trial point (the
-        evaluation's sums, and with the first trial the direction's CG count and step limit, all in
-        ``dev.scal``); its line search starts at twice the last accepted step of this call (at most 1)."""
-        dev, p = self.dev, self.p
-        n_newton = n_lin = 0
-        last_factor = 1.0
-        while pt.residual > self.o.newton_tol:
-            if n_newton >= self.o.max_newton:
-                return pt, n_newton, n_lin, False
-            reused = self._M is not None and not self._M_fresh_needed
-            fresh = self._direction_device(Point(None, None, 0.0, 0.0), min(CG_LOOSE, pt.residual))
-            n_newton += 1
-            self.t.n_newton += 1
-            wp.launch(resident.reset_limit, dim=1, inputs=[dev.scal], device=p.device)
-            wp.launch(resident.step_limit, dim=p.n_r, inputs=[self.d_b, self.s_piv, beta, FTB_MIN_X, dev.scal],
-                      device=p.device)
-            # the line search starts at twice the last accepted step (within a beta): each halving costs an
-            # evaluation and a read (N = 2,000: reads 171 -> 153, Newton steps 96 -> 100)
-            factor = min(1.0, 2.0 * last_factor)
-            alpha, k_lin, accepted = 1.0, 0, False
-            for j in range(60):
-                self.trial_from(dev.scal, resident.LIMIT_SLOT, resident.LIMIT_FRACTION, factor)
-                tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
-                if j == 0:  # the read that came with this evaluation holds the solve's results
-                    k_lin, ok = dev.cg_result()
-                    n_lin += k_lin
-                    self.t.n_matvec += k_lin
-                    self._after_solve(fresh, k_lin, ok)
-                alpha = factor * resident.step_alpha(dev.limit())
-                if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
-                    accepted = True
-                    break
-                factor *= 0.5
-            if not accepted:
-                pt = self.evaluate(self.lam, self.y, beta, full=True)
-                return pt, n_newton, n_lin, pt.residual <= self.o.newton_tol
-            self.accept()
-            last_factor = factor
-            if self.o.verbose > 1:
-                print(f"    newton {n_newton}: alpha={alpha:.3g} merit {pt.merit:.3e} -> {tp.merit:.3e} "
-                      f"res {tp.residual:.2e} cg={k_lin}")
-            if reused and alpha == 1.0 and tp.merit > 0.25 * pt.merit:
-                self._M_fresh_needed = True
-            pt = tp
-        return pt, n_newton, n_lin, True
+    def _step_start(self, beta: float, pt: Point) -> tuple[str | bool, int, float]:
+        """The Newton direction at ``pt`` (the last evaluated point) and the first trial step: returns (how
+        the preconditioner was rebuilt, CG iterations, first step length); in the device loop the last
+        two come with the first trial's read (0 and NaN here, the step limit left on the device).
+
+        The step is cut to 90 % of the way to s = 0 on each row's pivot entry (its reduced cost moves by
+        d_b exactly), for pivots in phi's 1/x tail (beta s > FTB_MIN_X): there the linear model overshoots
+        (G ~ 1/(beta s)). s = 0 is not a bound (phi is smooth, G < 1): a pivot already near it is left to
+        the line search, otherwise every step would stop 90% of the way and the iteration stall."""
+        rtol = min(CG_LOOSE, pt.residual)
+        if self.dev is not None:
+            fresh = self._direction_device(Point(None, None, 0.0, 0.0), rtol)
+            wp.launch(resident.reset_limit, dim=1, inputs=[self.dev.scal], device=self.p.device)
+            wp.launch(resident.step_limit, dim=self.p.n_r,
+                      inputs=[self.d_b, self.s_piv, beta, FTB_MIN_X, self.dev.scal], device=self.p.device)
+            return fresh, 0, math.nan
+        k_lin, _ = self.direction(pt, rtol=rtol)
+        db = self.to_host(self.d_b)
+        spv = self.to_host(self.s_piv)
+        neg = (db < 0) & (spv * beta > FTB_MIN_X)
+        limit = math.inf
+        if np.any(neg):
+            limit = float(np.min(spv[neg] / -db[neg]))
+        return False, k_lin, resident.step_alpha(limit)
 
     # ------------------------------------------------------------------ duals
     def init_point(self, lam0: np.ndarray, y0: np.ndarray):

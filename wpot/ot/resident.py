@@ -244,11 +244,12 @@ def sparse_schur_cols(ctop_val: wp.array2d(dtype=wp.float64), ctop_idx: wp.array
 
 # --------------------------------------------------------------------------- CG on the device
 @wp.kernel
-def cg_start(r: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), cg: wp.array(dtype=wp.float64)):
-    """||rhs||^2 (r = rhs) and r . z."""
+def norm_dot(r: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), cg: wp.array(dtype=wp.float64),
+             slot_rr: int, slot_rz: int):
+    """r . r and r . z into ``cg`` (||rhs||^2 and the first r . z when r = rhs)."""
     i = wp.tid()
-    wp.atomic_add(cg, _NB2, r[i] * r[i])
-    wp.atomic_add(cg, _RZ, r[i] * z[i])
+    wp.atomic_add(cg, slot_rr, r[i] * r[i])
+    wp.atomic_add(cg, slot_rz, r[i] * z[i])
 
 
 @wp.kernel
@@ -301,13 +302,6 @@ def cg_update(cg: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: 
         alpha = cg[_RZ] / pq
         x[i] = x[i] + alpha * p[i]
         r[i] = r[i] - alpha * q[i]
-
-
-@wp.kernel
-def cg_sums(r: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), cg: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(cg, _RR, r[i] * r[i])
-    wp.atomic_add(cg, _RZN, r[i] * z[i])
 
 
 @wp.kernel
@@ -545,7 +539,7 @@ class DeviceLoop:
         self.it.zero_()
         wp.launch(cg_first, dim=1, inputs=[self.cg, wp.float64(rtol * rtol), self.scal], device=d)
         self.apply_preconditioner()
-        wp.launch(cg_start, dim=p.n_c, inputs=[self.r, self.z, self.cg], device=d)
+        wp.launch(norm_dot, dim=p.n_c, inputs=[self.r, self.z, self.cg, _NB2, _RZ], device=d)
         wp.copy(e.v, self.z)
         wp.launch(cg_go, dim=1, inputs=[self.cg, self.cond, self.scal], device=d)
         if e._matvec_cmd is None:
@@ -575,7 +569,7 @@ class DeviceLoop:
         wp.launch(dot_into, dim=p.n_c, inputs=[e.v, e.mv, self.cg, _PQ], device=d)
         wp.launch(cg_update, dim=p.n_c, inputs=[self.cg, e.v, e.mv, e.dy_a, self.r], device=d)
         self.apply_preconditioner()
-        wp.launch(cg_sums, dim=p.n_c, inputs=[self.r, self.z, self.cg], device=d)
+        wp.launch(norm_dot, dim=p.n_c, inputs=[self.r, self.z, self.cg, _RR, _RZN], device=d)
         wp.launch(cg_count, dim=1, inputs=[self.cg, self.it], device=d)
         wp.launch(cg_direction, dim=p.n_c, inputs=[self.cg, self.z, e.v], device=d)
         wp.launch(cg_condition, dim=1, inputs=[self.cg, self.it, max_iter, self.cond, self.scal], device=d)
