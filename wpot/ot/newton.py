@@ -341,11 +341,10 @@ class Engine:
             self._mv_view[:] = 0.0
         else:
             self.mv.zero_()
-        if self._matvec_cmd is None:  # recorded once per W source: only the arrays' contents change
-            self._matvec_cmd = self._record_matvec()
-        if len(self._matvec_cmd) > 1:
+        launches = self.matvec_launches()
+        if len(launches) > 1:
             self.delta.zero_()
-        for cmd in self._matvec_cmd:
+        for cmd in launches:
             cmd.launch()
         out = self.to_host(self.mv).copy()
         if p.partial:
@@ -353,6 +352,14 @@ class Engine:
             out += a * v - a * (float(a @ v) / self.a_sum)
         self.t.n_matvec += 1
         return out
+
+    def matvec_launches(self) -> list:
+        """The recorded launches of one Schur matvec, mv += S_W v (``v``, ``mv``, and ``delta`` zeroed first
+        when there is more than one launch), for the current W source; recorded once per source: only the
+        arrays' contents change between calls."""
+        if self._matvec_cmd is None:
+            self._matvec_cmd = self._record_matvec()
+        return self._matvec_cmd
 
     def _record_matvec(self) -> list:
         """The launches of one Schur matvec (mv += S_W v). The CPU runs one thread per row, streaming its

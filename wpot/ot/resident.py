@@ -542,8 +542,7 @@ class DeviceLoop:
         wp.launch(norm_dot, dim=p.n_c, inputs=[self.r, self.z, self.cg, _NB2, _RZ], device=d)
         wp.copy(e.v, self.z)
         wp.launch(cg_go, dim=1, inputs=[self.cg, self.cond, self.scal], device=d)
-        if e._matvec_cmd is None:
-            e._matvec_cmd = e._record_matvec()
+        self._launches = e.matvec_launches()
         if self.captured:
             with wp.ScopedCapture(device=d) as capture:
                 wp.capture_while(self.cond, self._iteration, max_iter=max_iter)
@@ -558,9 +557,9 @@ class DeviceLoop:
         """One CG iteration, all on the device."""
         e, p, d = self.e, self.e.p, self.e.p.device
         e.mv.zero_()
-        if len(e._matvec_cmd) > 1:
+        if len(self._launches) > 1:
             e.delta.zero_()
-        for cmd in e._matvec_cmd:
+        for cmd in self._launches:
             cmd.launch()
         if p.partial:
             wp.launch(dot_into, dim=p.n_c, inputs=[self.a_c, e.v, self.cg, _AP], device=d)
