@@ -238,3 +238,21 @@ def test_a_refit_at_the_same_point_reproduces_the_full_build():
     np.testing.assert_allclose(dev.M.G.values.numpy(), G_build, rtol=1e-12, atol=0)
     np.testing.assert_allclose(dev.z.numpy(), z_build, rtol=1e-10, atol=1e-12 * np.abs(z_build).max())
     assert np.abs(z_build).max() > 0 and not np.allclose(z_build, r)
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_the_captured_cg_loop_equals_the_plain_one(partial):
+    # on a GPU with conditional graph nodes the CG loop is captured once per solve (wp.ScopedCapture around
+    # wp.capture_while) and replayed; Warp captures on the CPU too, so the captured structure is run here and
+    # must give the plain loop's direction, bit for bit
+    C = _cost(50, 40, seed=12)
+    out = []
+    for captured in (False, True):
+        eng, pt = _engine_at(C, partial, beta=3e5, loop="device", cg_rtol=1e-10)
+        eng.dev.captured = captured
+        n_lin, ok = eng.direction(Point(None, None, 0.0, 0.0))
+        assert ok and n_lin >= 3
+        out.append((n_lin, eng.dy_a.numpy().copy(), eng.d_b.numpy().copy()))
+    assert out[0][0] == out[1][0]
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    np.testing.assert_array_equal(out[0][2], out[1][2])

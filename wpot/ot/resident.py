@@ -14,6 +14,7 @@
 CG runs under ``wp.capture_while``: on a GPU with conditional graph nodes (CUDA 12.4+) the whole loop is
 one captured graph that stops itself on the device; on the CPU the condition is read from host memory
 (no transfer). Without conditional nodes a GPU reads the condition each iteration, counted as a transfer.
+(`DeviceLoop.captured` says which; Warp captures on the CPU too, where the tests run the captured loop.)
 
 The preconditioner is the sparse approximation P of the Schur complement that the host loop factorizes
 (`wpot.ot.linear.assemble_sparse_schur`: the top-k weights per row and column of W, the exact diagonal),
@@ -403,6 +404,7 @@ class DeviceLoop:
         self.t_vals = wp.zeros(n_trip, dtype=wp.float64, device=d)
         self.P = wsp.bsr_zeros(p.n_c, p.n_c, wp.float64, device=d)
         self.dsum = z(1)
+        #: CG as one captured graph per solve (GPUs with conditional graph nodes; a test seam on the CPU)
         self.captured = self.device.is_cuda and wp.is_conditional_graph_supported()
         self.n_reads = 0  # reads of ``scal``
         self._stage = None  # ``scal`` and another small array, for one read of both
