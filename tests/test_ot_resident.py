@@ -256,3 +256,21 @@ def test_the_captured_cg_loop_equals_the_plain_one(partial):
     assert out[0][0] == out[1][0]
     np.testing.assert_array_equal(out[0][1], out[1][1])
     np.testing.assert_array_equal(out[0][2], out[1][2])
+
+
+def test_the_captured_cg_graph_is_reused_and_still_exact():
+    # a whole Newton solve (many directions: refits reuse the captured graph, a full build captures anew)
+    # with the captured loop equals the plain loop's, bit for bit
+    C = _cost(60, 50, seed=13)
+    out = []
+    for captured in (False, True):
+        eng, pt = _engine_at(C, False, beta=3e5, loop="device")
+        eng.dev.captured = captured
+        pt, nn, nl, ok = eng.newton(3e5, pt)
+        assert ok and nn > 3
+        out.append((nn, nl, eng.t.n_refit, eng.lam[0].numpy().copy(), eng.y[0].numpy().copy()))
+        if captured:  # one capture per full build, none per refit
+            assert eng.dev.n_captures == eng.t.n_factor < eng.dev.n_solves
+    assert out[0][:3] == out[1][:3] and out[1][2] > 0
+    np.testing.assert_array_equal(out[0][3], out[1][3])
+    np.testing.assert_array_equal(out[0][4], out[1][4])

@@ -409,6 +409,10 @@ class DeviceLoop:
         self.n_reads = 0  # reads of ``scal``
         self._stage = None  # ``scal`` and another small array, for one read of both
         self.n_solves = 0
+        self.n_captures = 0
+        self._graph = None  # the captured CG loop, and the (preconditioner, matvec launches) it was captured for
+        self._graph_for = (None, None)
+        self._launches = None
 
     # ------------------------------------------------------------------ evaluation
     def point(self, lam, y) -> Point:
@@ -546,9 +550,13 @@ class DeviceLoop:
         wp.launch(cg_go, dim=1, inputs=[self.cg, self.cond, self.scal], device=d)
         self._launches = e.matvec_launches()
         if self.captured:
-            with wp.ScopedCapture(device=d) as capture:
-                wp.capture_while(self.cond, self._iteration, max_iter=max_iter)
-            wp.capture_launch(capture.graph)
+            # one graph per preconditioner and matvec (a refit changes only their arrays' contents)
+            if self._graph is None or self._graph_for[0] is not self.M or self._graph_for[1] is not self._launches:
+                with wp.ScopedCapture(device=d) as capture:
+                    wp.capture_while(self.cond, self._iteration, max_iter=max_iter)
+                self._graph, self._graph_for = capture.graph, (self.M, self._launches)
+                self.n_captures += 1
+            wp.capture_launch(self._graph)
         elif self.device.is_cuda:  # no conditional graph nodes: read the condition each iteration
             while e.to_host(self.cond)[0]:
                 self._iteration(max_iter)
