@@ -332,7 +332,8 @@ class _IPM:
         if not corr:
             self.col_m.zero_()
         wp.launch(ipm_ratio, dim=p.n_r,
-                  inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a, self.a_a, self.a_b, self.a_y, self.sc, int(corr)],
+                  inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a, self.a_a, self.a_b, self.a_y, self.sc,
+                          int(corr)],
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
         wp.launch(ipm_reset, dim=1, inputs=[self.sc, _RS, (_RG if corr else _M3) + 1, 1], device=p.device)
         wp.launch(ipm_ratio_sums, dim=p.n_r, inputs=[self.row_rs, self.row_rg, self.row_m, int(corr), self.sc],

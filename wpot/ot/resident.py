@@ -22,13 +22,13 @@ assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
 row on the device; applying it is two sparse products, no triangular solve). With `FSAI_ROW` entries a
 row CG needs 1.5-2x the iterations it needs with SuperLU's exact factors of P (each solve with a fresh
-preconditioner, over whole annealing runs at N = 300 and 1,000; Jacobi needs 10-15x), and 2-2.5x over a
-whole solve with both loops' reuse rules (`benchmarks/ot_speed.py`). When the host loop would refactorize, the device loop
-first refits: P's new values on the last build's pattern (`bsr_set_from_triplets(..., topology="masked")`)
-and FSAI refitted on its supports (`FSAI.update`), kernels only, no host read (`Timers.n_refit`). A full
-build (`Timers.n_factor`) synchronises inside Warp (BSR assembly and FSAI's set-up: 5 reads counted on the
-CPU build, and a stream synchronisation on CUDA); it runs first, and again when a refit does not serve
-(`wpot.ot.newton.REFIT_SLOWDOWN`).
+preconditioner, over whole annealing runs at N = 300 and 1,000; Jacobi needs 10-15x), and more over a
+whole solve with both loops' reuse rules (2.3-2.8x, `benchmarks/ot_speed.py`; up to 4x on unequal masses).
+When the host loop would refactorize, the device loop first refits: P's new values on the last build's
+pattern (`bsr_set_from_triplets(..., topology="masked")`) and FSAI refitted on its supports (`FSAI.update`),
+kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) synchronises inside Warp
+(BSR assembly and FSAI's set-up: 5 reads counted on the CPU build, and a stream synchronisation on CUDA);
+it runs first, and again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`).
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
@@ -205,7 +205,8 @@ def sparse_schur_rows(top_val: wp.array2d(dtype=wp.float64), top_idx: wp.array2d
 def sparse_schur_cols(ctop_val: wp.array2d(dtype=wp.float64), ctop_idx: wp.array2d(dtype=wp.int32),
                       top_val: wp.array2d(dtype=wp.float64), top_idx: wp.array2d(dtype=wp.int32),
                       piv: wp.array(dtype=wp.int32), e1: wp.array(dtype=wp.float64),
-                      diag: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float64), dsum: wp.array(dtype=wp.float64),
+                      diag: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float64),
+                      dsum: wp.array(dtype=wp.float64),
                       skip: int, base: int,
                       rows: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32),
                       vals: wp.array(dtype=wp.float64)):
