@@ -28,7 +28,8 @@ When the host loop would refactorize, the device loop first refits: P's new valu
 pattern (`bsr_set_from_triplets(..., topology="masked")`) and FSAI refitted on its supports (`FSAI.update`),
 kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) synchronises inside Warp
 (BSR assembly and FSAI's set-up: 5 reads counted on the CPU build, and a stream synchronisation on CUDA);
-it runs first, and again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`).
+it runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every
+`FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
@@ -55,6 +56,14 @@ __all__ = ["DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
 #: fresh each solve, over whole annealing runs at N = 300 / 1,000: 32 needs 1.5 / 1.9x, 8 needs 2.4 / 3.8x,
 #: Jacobi 10-15x)
 FSAI_ROW = 32
+
+#: at least every this many rebuilds of the preconditioner is a full one (a new pattern): a refit on an old
+#: pattern can serve far worse than a fresh build without exceeding the reuse rule (the interior point on
+#: unequal masses). Measured on --mass-spread 1.5, N = 500 (benchmarks/ot_speed.py), CG iterations / full
+#: builds for ipm and annealing: refits only 18,213 / 2, 7,369 / 8; every 4th 5,415 / 15, 6,964 / 16;
+#: every 6th 5,275 / 11, 7,148 / 13; every 8th 5,931 / 7, 7,071 / 9; no refits 5,049 / 41, 6,609 / 53. At
+#: N = 1,000, uniform masses: every 6th 456 / 4 and 654 / 6, refits only 491 / 4 and 676 / 5
+FULL_BUILD_EVERY = 6
 
 # slots of `DeviceLoop.scal`: the evaluation's sums (zeroed by each evaluation) ...
 _G2, _L1, _U, _XPHI, _AY = 0, 1, 2, 3, 4
@@ -397,6 +406,7 @@ class DeviceLoop:
         self.cond = wp.zeros(1, dtype=wp.int32, device=d)
         self.M: FSAI | None = None
         self.refit_ok = False  # whether the next rebuild may refit the last pattern
+        self.n_refits = 0  # refits since the last full build
         kk, kc = eng.kk, eng.ctop_val.shape[1]
         self.row_slots = p.n_r * kk * (kk - 1)
         n_trip = self.row_slots + p.n_c * (2 * kc + 1)
@@ -496,11 +506,14 @@ class DeviceLoop:
 
     def rebuild_preconditioner(self) -> bool:
         """A new preconditioner at this point: a refit (`refit_preconditioner`, no host read) when the last
-        one's pattern still serves (``refit_ok``), else a full build. Returns whether it was a full build."""
-        if self.M is not None and self.refit_ok:
+        one's pattern still serves (``refit_ok``) and fewer than `FULL_BUILD_EVERY` - 1 refits followed the
+        last full build, else a full build. Returns whether it was a full build."""
+        if self.M is not None and self.refit_ok and self.n_refits < FULL_BUILD_EVERY - 1:
             self.refit_preconditioner()
+            self.n_refits += 1
             return False
         self.build_preconditioner()
+        self.n_refits = 0
         return True
 
     def _assemble(self) -> None:
