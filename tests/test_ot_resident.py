@@ -274,3 +274,16 @@ def test_the_captured_cg_graph_is_reused_and_still_exact():
     assert out[0][:3] == out[1][:3] and out[1][2] > 0
     np.testing.assert_array_equal(out[0][3], out[1][3])
     np.testing.assert_array_equal(out[0][4], out[1][4])
+
+
+def test_device_loop_with_the_gpus_strided_kernels():
+    # on a GPU the passes over W run as strided lanes (matvec_lanes = kernels.MATVEC_LANES); the device loop
+    # on them, forced here on the CPU, reaches the same optimum as with the row kernels
+    C = _cost(70, 60, seed=14)
+    rows = wo.solve_balanced(C, method="ipm", device="cpu", newton_loop="device", matvec_lanes=0)
+    lanes = wo.solve_balanced(C, method="ipm", device="cpu", newton_loop="device", matvec_lanes=8)
+    part = wo.solve_partial(C, mass_penalty=0.05, method="anneal", device="cpu", newton_loop="device", matvec_lanes=8)
+    part0 = wo.solve_partial(C, mass_penalty=0.05, method="anneal", device="cpu", newton_loop="host")
+    assert rows.converged and lanes.converged and part.converged
+    assert abs(lanes.cost - rows.cost) <= 1e-10 * rows.cost
+    assert abs(part.objective - part0.objective) <= 1e-9 * part0.objective
