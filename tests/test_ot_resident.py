@@ -153,7 +153,7 @@ class ReadSpy:
     """Counts ``wp.array.numpy`` calls once an `Engine` exists, apart from those of Warp's preconditioner set-up
     in a full build (`resident.DeviceLoop.build_preconditioner`: BSR assembly, FSAI), counted on their own."""
 
-    def __init__(self, monkeypatch):
+    def __init__(self, monkeypatch, gpu_path: bool = False):
         self.engines, self.on, self.in_build = [], False, False
         self.numpy = self.build_reads = 0
         self.at_init = 0
@@ -163,6 +163,8 @@ class ReadSpy:
 
         def init(eng, *args, **kwargs):
             real_init(eng, *args, **kwargs)
+            if gpu_path:  # uploads by assign, as on a GPU
+                eng._host = False
             spy.engines.append(eng)
             spy.at_init = eng.t.n_d2h
             spy.on = True
@@ -287,3 +289,17 @@ def test_device_loop_with_the_gpus_strided_kernels():
     assert rows.converged and lanes.converged and part.converged
     assert abs(lanes.cost - rows.cost) <= 1e-10 * rows.cost
     assert abs(part.objective - part0.objective) <= 1e-9 * part0.objective
+
+
+def test_device_loop_counts_are_those_of_the_gpu_code_path(monkeypatch):
+    # the engine's GPU code path (uploads by assign, no zero-copy views), run on the CPU: the same reads,
+    # writes and result as the CPU path
+    runs = []
+    for gpu_path in (False, True):
+        with monkeypatch.context() as mp:
+            spy = ReadSpy(mp, gpu_path)
+            r = CASES["anneal"]()
+            spy.on = False
+        t = spy.engines[0].t
+        runs.append((r.cost, t.n_d2h, t.n_h2d, t.n_newton, t.n_matvec, t.n_factor, t.n_refit))
+    assert runs[0] == runs[1]
