@@ -218,8 +218,8 @@ def test_device_loop_reads_at_most_twice_per_newton_step(monkeypatch, case):
     # a full preconditioner build reads a few scalars inside Warp (BSR assembly, FSAI set-up; reported by
     # benchmarks/ot_speed.py); the refits, most of the rebuilds, read nothing (their reads would be in
     # spy.numpy, which equals the engine's own count above)
-    assert t.n_factor > 0 and spy.build_reads <= 5 * t.n_factor
-    assert t.n_refit > t.n_factor
+    assert t.n_factor > 0 and spy.build_reads <= (resident.BUILD_SYNCS - 1) * t.n_factor  # + a stream sync on CUDA
+    assert t.n_refit > t.n_factor and t.n_build_sync == resident.BUILD_SYNCS * t.n_factor
 
 
 def test_a_refit_at_the_same_point_reproduces_the_full_build():

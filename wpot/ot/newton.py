@@ -64,8 +64,9 @@ FTB_MIN_X = 1.0
 class Timers:
     """Seconds spent per phase of one `Engine`'s solve and its work counts (``as_dict`` is what benchmarks print).
 
-    n_factor counts preconditioner builds (SuperLU factorizations; in the device loop, full FSAI builds) and
-    n_refit the device loop's refits on the last pattern;
+    n_factor counts preconditioner builds (SuperLU factorizations; in the device loop, full FSAI builds),
+    n_refit the device loop's refits on the last pattern and n_build_sync the synchronisations inside Warp's
+    set-up of its full builds (`wpot.ot.resident.BUILD_SYNCS` each);
     n_newton counts Newton steps (`Engine.newton`'s and the interior-point iterations: `OTResult.n_newton`);
     n_d2h / n_h2d count the device-to-host reads (`Engine.to_host`) and host-to-device writes
     (`Engine.to_device`) of device arrays, the transfers (and, for reads, synchronisations) a GPU makes.
@@ -81,6 +82,7 @@ class Timers:
     n_matvec: int = 0
     n_factor: int = 0
     n_refit: int = 0
+    n_build_sync: int = 0
     n_free: int = 0
     n_newton: int = 0
     n_d2h: int = 0
@@ -482,6 +484,7 @@ class Engine:
             self._col_topk()
             if dev.rebuild_preconditioner():
                 self.t.n_factor += 1
+                self.t.n_build_sync += resident.BUILD_SYNCS
                 fresh = "build"
             else:
                 self.t.n_refit += 1

@@ -50,13 +50,16 @@ if TYPE_CHECKING:  # pragma: no cover
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
+__all__ = ["BUILD_SYNCS", "DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
 
 #: scalar entries per row of the FSAI factor G (CG iterations against SuperLU's exact factors of the same P,
 #: fresh each solve, over whole annealing runs at N = 300 / 1,000: 32 needs 1.5 / 1.9x, 8 needs 2.4 / 3.8x,
 #: Jacobi 10-15x)
 FSAI_ROW = 32
 
+#: synchronisations of one full preconditioner build inside Warp (BSR assembly and FSAI set-up): 5 reads
+#: counted on the CPU build (tests/test_ot_resident.py bounds them) and one stream synchronisation on CUDA
+BUILD_SYNCS = 6
 #: at least every this many rebuilds of the preconditioner is a full one (a new pattern): a refit on an old
 #: pattern can serve far worse than a fresh build without exceeding the reuse rule (the interior point on
 #: unequal masses). Measured on --mass-spread 1.5, N = 500 (benchmarks/ot_speed.py), CG iterations / full
