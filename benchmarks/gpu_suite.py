@@ -352,7 +352,8 @@ def main() -> None:
           f"{r['gap_bound_rel']:.1e} of U, converged {r['converged']}")
 
     print(f"\n{'host-device transfers on ' + a.device + ' (d2h: syncs)':<52} {'newton':>6} {'cg':>6} "
-          f"{'d2h/newton':>10} {'h2d/newton':>10} {'d2h/cg':>7} {'h2d/cg':>7} {'builds/newton':>13} {'syncs/newton':>12}")
+          f"{'d2h/newton':>10} {'h2d/newton':>10} {'d2h/cg':>7} {'h2d/cg':>7} {'builds/newton':>13} "
+          f"{'syncs/newton':>12}")
     pair_host = dict(report["pair"], problem=report["pair"]["problem"] + ", ipm host loop",
                      transfers=report["pair"]["host_transfers"])
     for r in [*report["agreement"], dict(report["pair"], problem=report["pair"]["problem"] + ", ipm"), pair_host,
