@@ -126,11 +126,11 @@ def transfers(tm: dict | None) -> dict:
     """Host-device transfers of one annealing solve (its engine timers) in all and per Newton step and CG
     iteration (zeros when the solve had no annealing)."""
     if tm is None:
-        tm = {"n_newton": 0, "n_matvec": 0, "n_d2h": 0, "n_h2d": 0, "n_factor": 0}
+        tm = {"n_newton": 0, "n_matvec": 0, "n_d2h": 0, "n_h2d": 0, "n_factor": 0, "n_build_sync": 0}
     nn, nm = max(tm["n_newton"], 1), max(tm["n_matvec"], 1)
     return {"n_newton": tm["n_newton"], "n_cg": tm["n_matvec"], "n_d2h": tm["n_d2h"], "n_h2d": tm["n_h2d"],
             "n_factor": tm["n_factor"], "factor_per_newton": tm["n_factor"] / nn,
-            "syncs_per_newton_with_builds": (tm["n_d2h"] + tm.get("n_build_sync", 0)) / nn,
+            "syncs_per_newton_with_builds": (tm["n_d2h"] + tm["n_build_sync"]) / nn,
             "d2h_per_newton": tm["n_d2h"] / nn, "h2d_per_newton": tm["n_h2d"] / nn,
             "d2h_per_cg": tm["n_d2h"] / nm, "h2d_per_cg": tm["n_h2d"] / nm}
 

@@ -59,8 +59,8 @@ def transfers(tm: dict) -> str:
             f"{tm['n_d2h'] / nm:.2f} per CG iteration; h2d {tm['n_h2d']} = {tm['n_h2d'] / nn:.1f} per Newton step, "
             f"{tm['n_h2d'] / nm:.2f} per CG iteration ({tm['n_newton']} Newton steps, {tm['n_matvec']} CG iterations); "
             f"preconditioner builds {tm['n_factor']} ({tm['n_factor'] / nn:.2f} per Newton step), device-loop refits "
-            f"{tm.get('n_refit', 0)}; synchronisations with those inside Warp's set-up of the device loop's builds: "
-            f"{(tm['n_d2h'] + tm.get('n_build_sync', 0)) / nn:.2f} per Newton step")
+            f"{tm['n_refit']}; synchronisations with those inside Warp's set-up of the device loop's builds: "
+            f"{(tm['n_d2h'] + tm['n_build_sync']) / nn:.2f} per Newton step")
 
 
 def main():

@@ -190,16 +190,6 @@ N_SC = 14
 
 
 @wp.kernel
-def ipm_reset(sc: wp.array(dtype=wp.float64), first: int, last: int, big: int):
-    """Slots first .. last - 1 to 0; with ``big`` the minima among them (min s, the steps) to 1e300."""
-    for i in range(first, last):
-        v = wp.float64(0.0)
-        if big != 0 and (i == _SMIN or i == _RS or i == _RG):
-            v = wp.float64(1.0e300)
-        sc[i] = v
-
-
-@wp.kernel
 def ipm_row_sums(m_r: wp.array(dtype=wp.float64), row_g: wp.array(dtype=wp.float64),
                  row_gs: wp.array(dtype=wp.float64), row_u: wp.array(dtype=wp.float64),
                  row_smin: wp.array(dtype=wp.float64), row_r: wp.array(dtype=wp.float64), mu_f: wp.float64,
@@ -243,11 +233,6 @@ def ipm_target(sc: wp.array(dtype=wp.float64), nn: wp.float64, mu_f: wp.float64)
     mu_aff = (mu * nn + ap * sc[_M0] + ad * sc[_M1] + ap * ad * sc[_M2]) / nn
     sigma = wp.min(wp.float64(1.0), wp.max(wp.float64(0.0), mu_aff / mu))
     sc[_MUT] = wp.max(sigma * sigma * sigma * mu, mu_f)
-
-
-@wp.kernel
-def ipm_set_target(sc: wp.array(dtype=wp.float64), mu_t: wp.float64):
-    sc[_MUT] = mu_t
 
 
 @wp.kernel
@@ -311,7 +296,8 @@ class _IPM:
                            self.row_r, self.col_r],
                   device=p.device)
         self.upd = False
-        wp.launch(ipm_reset, dim=1, inputs=[self.sc, _GS, _RC + 1, 1], device=p.device)
+        self.sc[_GS:_RC + 1].zero_()
+        self.sc[_SMIN:_SMIN + 1].fill_(1e300)
         wp.launch(ipm_row_sums, dim=p.n_r, inputs=[self.m_r, e.row_g, self.row_gs, e.row_u, self.row_smin, self.row_r,
                                                   self.mu_f, self.sc], device=p.device)
         wp.launch(ipm_col_sums, dim=p.n_c, inputs=[self.m_c, e.col_g, self.col_r, self.mu_f, self.sc], device=p.device)
@@ -335,7 +321,9 @@ class _IPM:
                   inputs=[p.n_c, self.G, self.S, e.d_a, e.d_b, e.dy_a, self.a_a, self.a_b, self.a_y, self.sc,
                           int(corr)],
                   outputs=[self.row_rs, self.row_rg, self.row_m, self.col_m], device=p.device)
-        wp.launch(ipm_reset, dim=1, inputs=[self.sc, _RS, (_RG if corr else _M3) + 1, 1], device=p.device)
+        self.sc[_RS:_RG + 1].fill_(1e300)
+        if not corr:
+            self.sc[_M0:_M3 + 1].zero_()
         wp.launch(ipm_ratio_sums, dim=p.n_r, inputs=[self.row_rs, self.row_rg, self.row_m, int(corr), self.sc],
                   device=p.device)
 
@@ -376,7 +364,7 @@ class _IPM:
                 # the primal-dual weights, until they are close enough for the dual Newton of the annealing
                 if res_c <= CENTERED:
                     break
-                wp.launch(ipm_set_target, dim=1, inputs=[self.sc, mu_f], device=d)
+                self.sc[_MUT:_MUT + 1].fill_(mu_f)
                 self._solve(False, rtol=1e-2)
                 for a in (self.a_a, self.a_b, self.a_y):  # no corrector term: T = mu_f (also in the G update)
                     a.zero_()

@@ -678,19 +678,6 @@ def recover_rows(
     d_b[k] = (-g1[k] - acc + b[k] * vp) / e1[k]
 
 
-@wp.func
-def dd_add(h: wp.float64, lo: wp.float64, alpha: wp.float64, da: wp.float64, db: wp.float64):
-    """(h + lo) + alpha da + alpha db as a double-double pair (hi, lo)."""
-    a = alpha * da
-    s = h + a
-    e = two_sum_err(h, a, s)
-    bb = alpha * db
-    s2 = s + bb
-    e = e + two_sum_err(s, bb, s2) + lo
-    t = s2 + e
-    return t, e - (t - s2)
-
-
 @wp.kernel
 def dd_axpy(
     hi: wp.array(dtype=wp.float64),
@@ -709,9 +696,16 @@ def dd_axpy(
     alpha = factor)."""
     i = wp.tid()
     alpha = factor * wp.min(_ONE, coef * steps[slot])
-    h, lo_ = dd_add(hi[i], lo[i], alpha, d_a[i], d_b[i])
-    out_hi[i] = h
-    out_lo[i] = lo_
+    h = hi[i]
+    a = alpha * d_a[i]
+    s = h + a
+    e = two_sum_err(h, a, s)
+    bb = alpha * d_b[i]
+    s2 = s + bb
+    e = e + two_sum_err(s, bb, s2) + lo[i]
+    t = s2 + e
+    out_lo[i] = e - (t - s2)
+    out_hi[i] = t
 
 
 @wp.kernel

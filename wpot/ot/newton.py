@@ -37,10 +37,10 @@ import warp as wp
 from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
 from wpot.ot import linear
-from wpot.ot.options import EngineOptions
 from wpot.ot import resident
-from wpot.ot.resident import DeviceLoop
+from wpot.ot.options import EngineOptions
 from wpot.ot.problem import Internal
+from wpot.ot.resident import DeviceLoop
 
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
 #: this many iterations beyond the count of its first solve (or a full Newton step with it gains less than
@@ -108,7 +108,7 @@ class Point:
     f_sum: float = math.nan
     xphi: float = math.nan
     x: float = 0.0
-    sums: DualSums | None = None  # set by `Engine.free_pass` in the device loop, else by `Engine.dual_sums`
+    sums: DualSums | None = None  # set by `Engine.free_pass` (host loop) or `Engine.free_values` (device loop)
 
 
 @dataclass(frozen=True)
@@ -388,12 +388,7 @@ class Engine:
         leaves dlam = d_a + d_b and dy = dy_a on the device. Returns (linear iterations, linear solve
         converged); in the device loop that costs one read (`_direction_device` alone costs none)."""
         if self.dev is not None:
-            fresh = self._direction_device(pt, rtol)
-            self.dev.read()
-            n_lin, ok = self.dev.cg_result()
-            self.t.n_matvec += n_lin
-            self._after_solve(fresh, n_lin, ok)
-            return n_lin, ok
+            return self.direction_later(pt, rtol)()
         p = self.p
         t0 = time.perf_counter()
         self._select_weights()
@@ -621,15 +616,16 @@ class Engine:
 
         In the device loop each trial point costs one host read (its evaluation's sums; the first also
         brings the direction's CG count and step limit), and the line search starts at twice the last
-        accepted step of this call (at most the full step): a halving costs an evaluation and a read
-        (N = 2,000: reads 171 -> 153, Newton steps 96 -> 100)."""
+        accepted step of this call (at most the full step), since a halving costs an evaluation and a read
+        (at N = 2,000: 153 reads and 100 Newton steps, against 171 and 96 when every search starts at the
+        full step)."""
         n_newton = n_lin = 0
         last = 1.0  # the last accepted step, as a fraction of its first trial
         while pt.residual > self.o.newton_tol:
             if n_newton >= self.o.max_newton:
                 return pt, n_newton, n_lin, False
             reused = self._M is not None and not self._M_fresh_needed
-            fresh, k_lin, limit = self._step_start(beta, pt)
+            counts, limit = self._step_start(beta, pt)
             n_newton += 1
             self.t.n_newton += 1
             factor = 1.0 if self.dev is None else min(1.0, 2.0 * last)
@@ -640,11 +636,10 @@ class Engine:
                 else:
                     self.trial_from(self.dev.scal, resident.LIMIT_SLOT, resident.LIMIT_FRACTION, factor)
                 tp = self.evaluate(self.lam_t, self.y_t, beta, full=True)
-                if j == 0 and self.dev is not None:  # the read that came with this evaluation
-                    k_lin, ok = self.dev.cg_result()
-                    self.t.n_matvec += k_lin
-                    self._after_solve(fresh, k_lin, ok)
-                    limit = resident.step_alpha(self.dev.limit())
+                if j == 0:  # in the device loop, the read that came with this evaluation brought these
+                    k_lin, _ = counts()
+                    if self.dev is not None:
+                        limit = resident.step_alpha(self.dev.limit())
                 alpha = factor * limit
                 if tp.merit <= (1.0 - 1e-4 * alpha) * pt.merit:
                     accepted = True
@@ -667,10 +662,10 @@ class Engine:
             pt = tp
         return pt, n_newton, n_lin, True
 
-    def _step_start(self, beta: float, pt: Point) -> tuple[str | bool, int, float]:
-        """The Newton direction at ``pt`` (the last evaluated point) and the first trial step: returns (how
-        the preconditioner was rebuilt, CG iterations, first step length); in the device loop the last
-        two come with the first trial's read (0 and NaN here, the step limit left on the device).
+    def _step_start(self, beta: float, pt: Point) -> tuple[Callable[[], tuple[int, bool]], float]:
+        """The Newton direction at ``pt`` (the last evaluated point) and the first trial step: returns (the
+        direction's `direction_later` function, first step length); in the device loop the step length
+        comes with the first trial's read (NaN here, the step limit left on the device).
 
         The step is cut to 90 % of the way to s = 0 on each row's pivot entry (its reduced cost moves by
         d_b exactly), for pivots in phi's 1/x tail (beta s > FTB_MIN_X): there the linear model overshoots
@@ -678,19 +673,17 @@ class Engine:
         the line search, otherwise every step would stop 90% of the way and the iteration stall."""
         rtol = min(CG_LOOSE, pt.residual)
         if self.dev is not None:
-            fresh = self._direction_device(Point(None, None, 0.0, 0.0), rtol)
-            wp.launch(resident.reset_limit, dim=1, inputs=[self.dev.scal], device=self.p.device)
-            wp.launch(resident.step_limit, dim=self.p.n_r,
-                      inputs=[self.d_b, self.s_piv, beta, FTB_MIN_X, self.dev.scal], device=self.p.device)
-            return fresh, 0, math.nan
-        k_lin, _ = self.direction(pt, rtol=rtol)
+            counts = self.direction_later(Point(None, None, 0.0, 0.0), rtol)
+            self.dev.step_limit(beta, FTB_MIN_X)
+            return counts, math.nan
+        counts = self.direction_later(pt, rtol)
         db = self.to_host(self.d_b)
         spv = self.to_host(self.s_piv)
         neg = (db < 0) & (spv * beta > FTB_MIN_X)
         limit = math.inf
         if np.any(neg):
             limit = float(np.min(spv[neg] / -db[neg]))
-        return False, k_lin, resident.step_alpha(limit)
+        return counts, resident.step_alpha(limit)
 
     # ------------------------------------------------------------------ duals
     def init_point(self, lam0: np.ndarray, y0: np.ndarray):

@@ -71,17 +71,16 @@ FULL_BUILD_EVERY = 6
 # slots of `DeviceLoop.scal`: the evaluation's sums (zeroed by each evaluation) ...
 _G2, _L1, _U, _XPHI, _AY = 0, 1, 2, 3, 4
 N_EVAL = 5
-# ... the last solve's results: step limit (fraction to zero), CG iterations, relative residual, converged ...
-_LIMIT, _IT, _REL, _OK = 5, 6, 7, 8
+# ... the last solve's results: step limit (fraction to zero), CG iterations, converged ...
+_LIMIT, _IT, _OK = 5, 6, 7
 # ... `DeviceLoop.free_sums`: sum g, lam . m_r, y . m_c, sum b lam^2, sum a mu^2, sum m^2 / (2 alpha') ...
-_F, _LM, _YM, _BL2, _AM2, _PEN = 9, 10, 11, 12, 13, 14
+_F, _LM, _YM, _BL2, _AM2, _PEN = 8, 9, 10, 11, 12, 13
 # ... and the solve before the last one's CG results (two directions between reads: the interior point's)
-_IT0, _REL0, _OK0 = 15, 16, 17
-N_SCAL = 18
+_IT0, _OK0 = 14, 15
+N_SCAL = 16
 # slots of `DeviceLoop.cg`: r.z, p.q, r.r (masked), r.z new, ||rhs||^2, a.p, rtol^2
 _RZ, _PQ, _RR, _RZN, _NB2, _AP, _TOL2 = 0, 1, 2, 3, 4, 5, 6
 N_CG = 7
-_BIG = wp.constant(wp.float64(1.0e300))
 _SHIFT = wp.constant(wp.float64(SINGULAR_SHIFT))
 
 
@@ -125,6 +124,35 @@ def residual_cols(m_c: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float6
     g2[l] = g
     wp.atomic_add(scal, _G2, g * g)
     wp.atomic_add(scal, _L1, wp.abs(g))
+
+
+@wp.kernel
+def free_sums_rows(row_f: wp.array(dtype=wp.float64), lam_hi: wp.array(dtype=wp.float64),
+                   lam_lo: wp.array(dtype=wp.float64), m_r: wp.array(dtype=wp.float64),
+                   b_r: wp.array(dtype=wp.float64), row_g: wp.array(dtype=wp.float64), partial: int,
+                   scal: wp.array(dtype=wp.float64)):
+    """Row terms of `wpot.ot.newton.DualSums` and sum g."""
+    k = wp.tid()
+    lam = lam_hi[k] + lam_lo[k]
+    wp.atomic_add(scal, _F, row_f[k])
+    wp.atomic_add(scal, _LM, lam * m_r[k])
+    wp.atomic_add(scal, _BL2, b_r[k] * (lam * lam))
+    if partial != 0:
+        wp.atomic_add(scal, _PEN, wp.float64(0.5) * (row_g[k] * row_g[k] / b_r[k]))
+
+
+@wp.kernel
+def free_sums_cols(y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64), x: wp.float64,
+                   m_c: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float64),
+                   col_g: wp.array(dtype=wp.float64), partial: int, scal: wp.array(dtype=wp.float64)):
+    """Column terms of `wpot.ot.newton.DualSums`."""
+    l = wp.tid()
+    y = y_hi[l] + y_lo[l]
+    mu = y - x
+    wp.atomic_add(scal, _YM, y * m_c[l])
+    wp.atomic_add(scal, _AM2, a_c[l] * (mu * mu))
+    if partial != 0:
+        wp.atomic_add(scal, _PEN, wp.float64(0.5) * (col_g[l] * col_g[l] / a_c[l]))
 
 
 # --------------------------------------------------------------------------- Newton system
@@ -267,10 +295,30 @@ def norm_dot(r: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), cg: w
 
 
 @wp.kernel
+def cg_first(cg: wp.array(dtype=wp.float64), tol2: wp.float64, scal: wp.array(dtype=wp.float64)):
+    """A new solve: its tolerance; the previous solve's results move to the slots of the one before."""
+    cg[_TOL2] = tol2
+    scal[_IT0] = scal[_IT]
+    scal[_OK0] = scal[_OK]
+
+
+@wp.kernel
+def cg_go(cg: wp.array(dtype=wp.float64), cond: wp.array(dtype=wp.int32), scal: wp.array(dtype=wp.float64)):
+    """The first condition: iterate unless the right-hand side is 0."""
+    if cg[_NB2] > wp.float64(0.0):
+        cond[0] = 1
+        scal[_OK] = wp.float64(0.0)
+    else:
+        cond[0] = 0
+        scal[_OK] = wp.float64(1.0)
+    scal[_IT] = wp.float64(0.0)
+
+
+@wp.kernel
 def cg_condition(cg: wp.array(dtype=wp.float64), it: wp.array(dtype=wp.int32), max_iter: int,
                  cond: wp.array(dtype=wp.int32), scal: wp.array(dtype=wp.float64)):
-    """Go on while ||r||^2 > rtol^2 ||rhs||^2, below ``max_iter`` and p.q > 0 (else CG broke down); the count,
-    relative residual and convergence into ``scal``. Resets the sums of the next iteration."""
+    """Go on while ||r||^2 > rtol^2 ||rhs||^2, below ``max_iter`` and p.q > 0 (else CG broke down); the count
+    and convergence into ``scal``. Resets the sums of the next iteration."""
     nb2 = cg[_NB2]
     rr = cg[_RR]
     rel2 = wp.float64(0.0)
@@ -282,7 +330,6 @@ def cg_condition(cg: wp.array(dtype=wp.float64), it: wp.array(dtype=wp.int32), m
         go = 1
     cond[0] = go
     scal[_IT] = wp.float64(it[0])
-    scal[_REL] = wp.sqrt(rel2)
     scal[_OK] = wp.where(ok, wp.float64(1.0), wp.float64(0.0))
     cg[_PQ] = wp.float64(0.0)
     cg[_AP] = wp.float64(0.0)
@@ -349,17 +396,12 @@ def cg_shift(cg: wp.array(dtype=wp.float64)):
 def step_limit(d_b: wp.array(dtype=wp.float64), s_piv: wp.array(dtype=wp.float64), beta: wp.float64,
                min_x: wp.float64, scal: wp.array(dtype=wp.float64)):
     """min over rows of s_piv / -d_b where d_b < 0 and beta s_piv > ``min_x`` (`Engine.newton`'s fraction
-    to s = 0), into scal (reset to 1e300 beforehand)."""
+    to s = 0), into scal (set to 1e300 beforehand)."""
     k = wp.tid()
     db = d_b[k]
     s = s_piv[k]
     if db < wp.float64(0.0) and s * beta > min_x:
         wp.atomic_min(scal, _LIMIT, s / -db)
-
-
-@wp.kernel
-def reset_limit(scal: wp.array(dtype=wp.float64)):
-    scal[_LIMIT] = _BIG
 
 
 #: the Newton step stops this fraction of the way to the step limit (`step_limit`), in ``scal[LIMIT_SLOT]``
@@ -418,7 +460,8 @@ class DeviceLoop:
         self.t_vals = wp.zeros(n_trip, dtype=wp.float64, device=d)
         self.P = wsp.bsr_zeros(p.n_c, p.n_c, wp.float64, device=d)
         self.dsum = z(1)
-        #: CG as one captured graph per solve (GPUs with conditional graph nodes; a test seam on the CPU)
+        #: CG as a captured graph (GPUs with conditional graph nodes; a test seam on the CPU, where Warp
+        #: captures too)
         self.captured = self.device.is_cuda and wp.is_conditional_graph_supported()
         self.n_reads = 0  # reads of ``scal``
         self._stage = None  # ``scal`` and another small array, for one read of both
@@ -435,7 +478,7 @@ class DeviceLoop:
         from wpot.ot.newton import Point
 
         e, p, d = self.e, self.e.p, self.e.p.device
-        wp.launch(zero_slots, dim=1, inputs=[self.scal, 0, N_EVAL], device=d)
+        self.scal[:N_EVAL].zero_()
         wp.launch(residual_rows, dim=p.n_r, inputs=[self.m_r, e.b, lam[0], lam[1], e.row_g, e.row_u, e.row_xphi,
                                                    self.g1, self.scal], device=d)
         if p.partial:
@@ -468,7 +511,7 @@ class DeviceLoop:
         """Sum g and the `wpot.ot.newton.DualSums` at the duals ``lam``, ``y``, the partial scalar ``x`` and
         the last evaluation, after `kernels.free_rows`, into ``scal`` (`free_values` reads them)."""
         e, p, d = self.e, self.e.p, self.e.p.device
-        wp.launch(zero_slots, dim=1, inputs=[self.scal, _F, N_SCAL], device=d)
+        self.scal[_F:_PEN + 1].zero_()
         wp.launch(free_sums_rows, dim=p.n_r, inputs=[e.row_f, lam[0], lam[1], self.m_r, e.b, e.row_g,
                                                     int(p.partial), self.scal], device=d)
         wp.launch(free_sums_cols, dim=p.n_c, inputs=[y[0], y[1], x, self.m_c, self.a_c, e.col_g, int(p.partial),
@@ -490,6 +533,12 @@ class DeviceLoop:
         if back == 0:
             return int(self.last[_IT]), bool(self.last[_OK])
         return int(self.last[_IT0]), bool(self.last[_OK0])
+
+    def step_limit(self, beta: float, min_x: float) -> None:
+        """The Newton step's limit (`step_limit`) for the last direction, into ``scal`` (no read)."""
+        self.scal[_LIMIT:_LIMIT + 1].fill_(1e300)
+        wp.launch(step_limit, dim=self.e.p.n_r, inputs=[self.e.d_b, self.e.s_piv, beta, min_x, self.scal],
+                  device=self.e.p.device)
 
     def limit(self) -> float:
         """The step limit of the last `step_limit`, from the last read of ``scal``."""
@@ -542,8 +591,8 @@ class DeviceLoop:
 
     def refit_preconditioner(self) -> None:
         """P's new values on the last build's pattern (entries outside it are dropped: P stays diagonally
-        dominant) and FSAI refitted on its supports: kernels only, no host read. (A refit that CG finds
-        no better than the stale preconditioner sets ``refit_ok`` False: the next rebuild is a full one.)"""
+        dominant) and FSAI refitted on its supports: kernels only, no host read. (The engine's reuse rule sets
+        ``refit_ok`` False after a refit that does not serve: the next rebuild is a full one.)"""
         self._assemble()
         wsp.bsr_set_from_triplets(self.P, self.t_rows, self.t_cols, self.t_vals, topology="masked")
         self.M.update(self.P)
@@ -600,60 +649,3 @@ class DeviceLoop:
         wp.launch(cg_direction, dim=p.n_c, inputs=[self.cg, self.z, e.v], device=d)
         wp.launch(cg_condition, dim=1, inputs=[self.cg, self.it, max_iter, self.cond, self.scal], device=d)
         wp.launch(cg_shift, dim=1, inputs=[self.cg], device=d)
-
-
-@wp.kernel
-def zero_slots(scal: wp.array(dtype=wp.float64), first: int, last: int):
-    for i in range(first, last):
-        scal[i] = wp.float64(0.0)
-
-
-@wp.kernel
-def free_sums_rows(row_f: wp.array(dtype=wp.float64), lam_hi: wp.array(dtype=wp.float64),
-                   lam_lo: wp.array(dtype=wp.float64), m_r: wp.array(dtype=wp.float64),
-                   b_r: wp.array(dtype=wp.float64), row_g: wp.array(dtype=wp.float64), partial: int,
-                   scal: wp.array(dtype=wp.float64)):
-    """Row terms of `wpot.ot.newton.DualSums` and sum g."""
-    k = wp.tid()
-    lam = lam_hi[k] + lam_lo[k]
-    wp.atomic_add(scal, _F, row_f[k])
-    wp.atomic_add(scal, _LM, lam * m_r[k])
-    wp.atomic_add(scal, _BL2, b_r[k] * (lam * lam))
-    if partial != 0:
-        wp.atomic_add(scal, _PEN, wp.float64(0.5) * (row_g[k] * row_g[k] / b_r[k]))
-
-
-@wp.kernel
-def free_sums_cols(y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64), x: wp.float64,
-                   m_c: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float64),
-                   col_g: wp.array(dtype=wp.float64), partial: int, scal: wp.array(dtype=wp.float64)):
-    """Column terms of `wpot.ot.newton.DualSums`."""
-    l = wp.tid()
-    y = y_hi[l] + y_lo[l]
-    mu = y - x
-    wp.atomic_add(scal, _YM, y * m_c[l])
-    wp.atomic_add(scal, _AM2, a_c[l] * (mu * mu))
-    if partial != 0:
-        wp.atomic_add(scal, _PEN, wp.float64(0.5) * (col_g[l] * col_g[l] / a_c[l]))
-
-
-@wp.kernel
-def cg_first(cg: wp.array(dtype=wp.float64), tol2: wp.float64, scal: wp.array(dtype=wp.float64)):
-    """A new solve: its tolerance; the previous solve's results move to the slots of the one before."""
-    cg[_TOL2] = tol2
-    scal[_IT0] = scal[_IT]
-    scal[_REL0] = scal[_REL]
-    scal[_OK0] = scal[_OK]
-
-
-@wp.kernel
-def cg_go(cg: wp.array(dtype=wp.float64), cond: wp.array(dtype=wp.int32), scal: wp.array(dtype=wp.float64)):
-    """The first condition: iterate unless the right-hand side is 0."""
-    if cg[_NB2] > wp.float64(0.0):
-        cond[0] = 1
-        scal[_OK] = wp.float64(0.0)
-    else:
-        cond[0] = 0
-        scal[_OK] = wp.float64(1.0)
-    scal[_IT] = wp.float64(0.0)
-    scal[_REL] = wp.float64(0.0)
