@@ -26,9 +26,10 @@ preconditioner, over whole annealing runs at N = 300 and 1,000; Jacobi needs 10-
 whole solve with both loops' reuse rules (2.3-2.8x, `benchmarks/ot_speed.py`; up to 4x on unequal masses).
 When the host loop would refactorize, the device loop first refits: P's new values on the last build's
 pattern (`bsr_set_from_triplets(..., topology="masked")`) and FSAI refitted on its supports (`FSAI.update`),
-kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) synchronises inside Warp
-(BSR assembly and FSAI's set-up: 5 reads counted on the CPU build, and a stream synchronisation on CUDA);
-it runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every
+kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) selects FSAI's supports on
+the device too (``defer_pattern``: the first `FSAI.update` selects them) and synchronises 3 times inside Warp:
+P's entry count and the selection's ready flag (2 reads, counted on the CPU build) and a stream
+synchronisation on CUDA, where FSAI's eager set-up would read 5 times. It runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every
 `FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
@@ -57,9 +58,10 @@ __all__ = ["BUILD_SYNCS", "DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
 #: Jacobi 10-15x)
 FSAI_ROW = 32
 
-#: synchronisations of one full preconditioner build inside Warp (BSR assembly and FSAI set-up): 5 reads
-#: counted on the CPU build (tests/test_ot_resident.py bounds them) and one stream synchronisation on CUDA
-BUILD_SYNCS = 6
+#: synchronisations of one full preconditioner build inside Warp: FSAI's constructor reads P's entry count
+#: and its first update the ready flag of the support selection (2 reads counted on the CPU build;
+#: tests/test_ot_resident.py bounds them), and the constructor synchronises the stream on CUDA
+BUILD_SYNCS = 3
 #: at least every this many rebuilds of the preconditioner is a full one (a new pattern): a refit on an old
 #: pattern can serve far worse than a fresh build without exceeding the reuse rule (the interior point on
 #: unequal masses). Measured on --mass-spread 1.5, N = 500 (benchmarks/ot_speed.py), CG iterations / full
@@ -423,7 +425,8 @@ def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int) -> int:
     n_trip = n_r * kk * (kk - 1) + n_c * (2 * kc + 1)
     triplets = (2 * i32 + f64) * n_trip
     bsr = (i32 + f64) * n_trip + i32 * (n_c + 1)
-    fsai = 4 * (i32 + f64) * n_c * FSAI_ROW + f64 * n_c
+    # G, its transpose and the support selection's columns, ranks, values and candidates (`FSAI_ROW` a row)
+    fsai = (5 * i32 + 4 * f64) * n_c * FSAI_ROW + 2 * f64 * n_c
     return vectors + triplets + bsr + fsai
 
 
@@ -582,11 +585,13 @@ class DeviceLoop:
                           skip, self.row_slots], outputs=[self.t_rows, self.t_cols, self.t_vals], device=d)
 
     def build_preconditioner(self) -> None:
-        """P assembled into a new sparsity pattern and FSAI on it (its set-up synchronises inside Warp)."""
+        """P assembled into a new sparsity pattern and FSAI on it, its supports selected on the device by the
+        first update (the same factor as FSAI's eager set-up, in `BUILD_SYNCS` synchronisations, not 6)."""
         self._assemble()
         wsp.bsr_set_from_triplets(self.P, self.t_rows, self.t_cols, self.t_vals)
         self.M = FSAI(self.P, max_row_size=FSAI_ROW, reuse_pattern=True, regularize_refit=True,
-                      validate_topology=False)
+                      validate_topology=False, defer_pattern=True)
+        self.M.update(self.P)
         self.refit_ok = True
 
     def refit_preconditioner(self) -> None:
