@@ -363,7 +363,7 @@ def main() -> None:
               f"{tr['h2d_per_newton']:>10.1f} {tr['d2h_per_cg']:>7.2f} {tr['h2d_per_cg']:>7.2f} "
               f"{tr['factor_per_newton']:>13.2f} {tr['syncs_per_newton_with_builds']:>12.2f}")
     print("  (syncs/newton: d2h plus, for the device loop's full preconditioner builds, the synchronisations inside "
-          "Warp's BSR and FSAI set-up, wpot.ot.resident.BUILD_SYNCS each; its refits have none)")
+          "FSAI's set-up, wpot.ot.resident.BUILD_SYNCS each; its refits have none)")
     print(f"\n{'exact LP on ' + a.device + ' (d2h: syncs)':<44} {'rounds':>6} {'d2h/round':>10} {'h2d/round':>10}")
     for r in [report["pair"], *report["large_exact"]]:
         tr = r["round_transfers"]

@@ -215,7 +215,7 @@ def test_device_loop_reads_at_most_twice_per_newton_step(monkeypatch, case):
     assert t.n_matvec >= 3 * t.n_newton
     # nothing is uploaded per step (at set-up only: the masses, the starting duals, the interior point's plan)
     assert t.n_h2d <= 10
-    # a full preconditioner build reads a few scalars inside Warp (BSR assembly, FSAI set-up; reported by
+    # a full preconditioner build reads a few scalars inside Warp (FSAI set-up; reported by
     # benchmarks/ot_speed.py); the refits, most of the rebuilds, read nothing (their reads would be in
     # spy.numpy, which equals the engine's own count above)
     assert t.n_factor > 0 and spy.build_reads <= (resident.BUILD_SYNCS - 1) * t.n_factor  # + a stream sync on CUDA

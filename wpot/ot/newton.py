@@ -49,8 +49,8 @@ from wpot.ot.resident import DeviceLoop
 REFRESH_EXTRA_CG = 2
 #: the device loop refits a stale FSAI preconditioner on its last pattern (no host read) while CG with the
 #: refit needs at most this many times the count of its last full build (+ REFRESH_EXTRA_CG); a full build
-#: synchronises ~6 times inside Warp. Measured at N = 1,000 (random R^8 points), full builds / CG
-#: iterations: 1.0: 8 / 637 (annealing), 5 / 455 (ipm); 2.0: 5 / 676, 4 / 491; 3.0: 4 / 711, 4 / 491
+#: synchronises `resident.BUILD_SYNCS` times inside Warp. Measured at N = 1,000 (random R^8 points), full
+#: builds / CG iterations: 1.0: 8 / 637 (annealing), 5 / 455 (ipm); 2.0: 5 / 676, 4 / 491; 3.0: 4 / 711, 4 / 491
 REFIT_SLOWDOWN = 2.0
 #: forcing term of the inexact Newton steps (Eisenstat-Walker style): CG stops at a relative residual of
 #: min(CG_LOOSE, residual), but never tighter than ``cg_rtol``. Far from the solution (the damped steps of the

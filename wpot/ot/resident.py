@@ -29,8 +29,8 @@ pattern (`bsr_set_from_triplets(..., topology="masked")`) and FSAI refitted on i
 kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) selects FSAI's supports on
 the device too (``defer_pattern``: the first `FSAI.update` selects them) and synchronises 3 times inside Warp:
 P's entry count and the selection's ready flag (2 reads, counted on the CPU build) and a stream
-synchronisation on CUDA, where FSAI's eager set-up would read 5 times. It runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every
-`FULL_BUILD_EVERY` rebuilds.
+synchronisation on CUDA, where FSAI's eager set-up would read 5 times. It runs first, again when a refit
+does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every `FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
