@@ -63,6 +63,13 @@ def transfers(tm: dict) -> str:
             f"{(tm['n_d2h'] + tm['n_build_sync']) / nn:.2f} per Newton step")
 
 
+def newton_loops(args) -> list[tuple[str, dict]]:
+    """The Newton loops to time, as (label, solver options)."""
+    return [(f"{loop} loop" + (f", {pc}" if loop == "device" and len(args.device_preconditioner) > 1 else ""),
+             {"newton_loop": loop, **({"device_preconditioner": pc} if loop == "device" else {})})
+            for loop in args.newton_loop for pc in (args.device_preconditioner if loop == "device" else [None])]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="*", default=[500, 1000, 3400], help="random problems of these N (none: only --tosca)")
@@ -73,6 +80,8 @@ def main():
                     help="wpot solve_balanced methods to time (default all three)")
     ap.add_argument("--newton-loop", nargs="+", default=["host"], choices=["host", "device"],
                     help="Newton loops to time for anneal and ipm (SolverOptions.newton_loop; default host, the CPU's)")
+    ap.add_argument("--device-preconditioner", nargs="+", default=["multilevel"], choices=["multilevel", "fsai"],
+                    help="the device loop's preconditioners to time (SolverOptions.device_preconditioner)")
     ap.add_argument("--tosca", type=int, default=0,
                     help="also time this many full-resolution TOSCA pairs (tosca_isometric_5k, 5,000 vertices, "
                     "WKS cost of wpot's defaults) beside ot.emd")
@@ -92,8 +101,8 @@ def main():
     from wpot.ot import balanced as wbalanced
 
     for m in ("exact", "anneal", "ipm"):  # compile the kernels outside the timings
-        for loop in args.newton_loop:
-            wo.solve_balanced(problem(60), device=args.device, method=m, newton_loop=loop)
+        for _, kw in newton_loops(args):
+            wo.solve_balanced(problem(60), device=args.device, method=m, **kw)
 
     # capture the engine's timers (kept on the Engine that the annealing loop drives)
     timers = {}
@@ -192,13 +201,13 @@ def compare_on(C, a, b, args, timers):
                   f"support {rounds[-1].support} entries ({rounds[-1].support / len(a):.1f} a row); "
                   f"priced out per round: {' '.join(str(x.violations) for x in rounds)}")
             continue
-        for loop in args.newton_loop:
+        for label, kw in newton_loops(args):
             t = time.perf_counter()
-            r = wo.solve_balanced(C, a, b, device=args.device, method=method, newton_loop=loop)
+            r = wo.solve_balanced(C, a, b, device=args.device, method=method, **kw)
             tw = time.perf_counter() - t
             gap, merr = report("wpot", r.plan, tw)
             tm = {k: v for k, v in timers.items()}
-            row(f"wpot solve_balanced {method}, {loop} loop ({args.device})", tw, gap, merr,
+            row(f"wpot solve_balanced {method}, {label} ({args.device})", tw, gap, merr,
                 f"conv={r.converged} beta={r.beta:.1e} newton={r.n_newton} cg={r.n_linear}  ({tw / t_emd:.2f}x ot.emd)")
             print("      time split (solver kernels and CG; for ipm the rest is its own passes): "
                   + ", ".join(f"{k} {tm[k]:.2f}s" for k in ("eval", "prep", "precond", "cg", "other"))

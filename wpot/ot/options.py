@@ -15,12 +15,14 @@ from wpot._validate import boolean, integer_at_least, nonnegative_finite, one_of
 from wpot.ot.problem import FeatureCost
 from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2, DEFAULT_STEP
 
-__all__ = ["SolverOptions", "EngineOptions", "LINEAR_SOLVERS", "NEWTON_LOOPS"]
+__all__ = ["SolverOptions", "EngineOptions", "DEVICE_PRECONDITIONERS", "LINEAR_SOLVERS", "NEWTON_LOOPS"]
 
 #: the linear solvers of the Newton systems (see `SolverOptions.linear_solver`)
 LINEAR_SOLVERS = ("cg", "direct")
 #: where the Newton steps' vectors live (see `SolverOptions.newton_loop`)
 NEWTON_LOOPS = ("host", "device")
+#: the device loop's preconditioners (see `SolverOptions.device_preconditioner`)
+DEVICE_PRECONDITIONERS = ("multilevel", "fsai")
 #: default relative change of U that stops the annealing (Algorithm 1). Since U(beta) - U* ~ N1 N2 /
 #: beta_n, the change over one step of 10 is ~9x the remaining gap: tol = 1e-6 leaves a gap ~1e-7 (measured
 #: <= 2e-7 relative to ot.emd on the tests' and benchmark's problems).
@@ -78,6 +80,11 @@ class SolverOptions:
         Newton step). "host": CG's vectors and the SuperLU preconditioner on the host (a transfer each way
         per CG iteration; fewer CG iterations, which is what counts on the CPU). None (default): "device"
         on a GPU, "host" on the CPU. "device" needs ``linear_solver="cg"``.
+    device_preconditioner : the device loop's preconditioner of the same sparse Schur approximation P.
+        "multilevel" (default): a V-cycle over aggregates of P's unknowns with FSAI smoothing on P
+        (`wpot.ot.multilevel`; builds read P once). "fsai": FSAI alone (local, so CG needs more iterations
+        at high beta, where P's inverse couples far-apart unknowns). Only the device loop has it: setting it
+        with ``newton_loop="host"`` is an error.
     matvec_lanes : threads per row of the strided kernels that run the passes over W (the Schur matvec,
         the evaluation pass). None (default): the device's choice, strided lanes
         (`wpot.ot.kernels.MATVEC_LANES`) on GPUs, where neighbouring threads then read neighbouring
@@ -110,6 +117,7 @@ class SolverOptions:
     plan_topk: int = DEFAULT_PLAN_TOPK
     matvec_lanes: int | None = None
     newton_loop: str | None = None
+    device_preconditioner: str | None = None
     verbose: int = 0
 
     def __post_init__(self):
@@ -137,6 +145,12 @@ class SolverOptions:
             if self.newton_loop == "device" and self.linear_solver == "direct":
                 raise ValueError("newton_loop='device' needs linear_solver='cg' (the dense direct solve runs on "
                                  "the host); use newton_loop='host' or None with linear_solver='direct'")
+        if self.device_preconditioner is not None:
+            one_of("device_preconditioner", self.device_preconditioner, DEVICE_PRECONDITIONERS)
+            if self.newton_loop == "host" or self.linear_solver == "direct":
+                raise ValueError("device_preconditioner is the device loop's; the host loop (newton_loop='host' "
+                                 "or linear_solver='direct') factorizes its preconditioner with SuperLU: leave "
+                                 "device_preconditioner=None there")
         put("extrapolate", boolean("extrapolate", self.extrapolate))
         if self.dense_plan is not None:
             if not isinstance(self.dense_plan, (bool, np.bool_)):
@@ -193,7 +207,9 @@ class SolverOptions:
                              max_iter=self.max_iter, max_newton=self.max_newton, newton_tol=self.newton_tol,
                              linear_solver=self.linear_solver, cg_rtol=self.cg_rtol, cg_max_iter=self.cg_max_iter,
                              topk=self.topk, extrapolate=self.extrapolate, matvec_lanes=self.matvec_lanes,
-                             newton_loop=self.newton_loop, verbose=self.verbose)
+                             newton_loop=self.newton_loop,
+                             device_preconditioner=self.device_preconditioner or DEVICE_PRECONDITIONERS[0],
+                             verbose=self.verbose)
 
 
 def _number(value: Any) -> float | None:
@@ -226,6 +242,7 @@ class EngineOptions:
     extrapolate: bool
     matvec_lanes: int | None
     newton_loop: str | None
+    device_preconditioner: str
     verbose: int
 
 

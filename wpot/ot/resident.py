@@ -45,6 +45,7 @@ import warp.sparse as wsp
 from warp.optim.linear import FSAI
 
 from wpot.ot.linear import SINGULAR_SHIFT
+from wpot.ot.multilevel import Multilevel, multilevel_bytes
 
 if TYPE_CHECKING:  # pragma: no cover
     from wpot.ot.newton import Engine, Point
@@ -416,10 +417,11 @@ def step_alpha(limit: float) -> float:
     return min(1.0, LIMIT_FRACTION * limit)
 
 
-def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int) -> int:
+def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int, multilevel: bool = True) -> int:
     """Device bytes a `DeviceLoop` adds to its engine (n_r rows, n_c columns, ``kk`` / ``kc`` top weights per
-    row / column): its vectors, the triplets of P and P itself (an upper bound: duplicates are summed), and
-    FSAI's factor, transpose and set-up work (`FSAI_ROW` entries a row)."""
+    row / column): its vectors, the triplets of P and P itself (an upper bound: duplicates are summed),
+    FSAI's factor, transpose and set-up work (`FSAI_ROW` entries a row), and with ``multilevel`` the V-cycle's
+    levels (`wpot.ot.multilevel.multilevel_bytes`)."""
     f64, i32 = 8, 4
     vectors = f64 * (2 * n_r + 5 * n_c + N_SCAL + N_CG)
     n_trip = n_r * kk * (kk - 1) + n_c * (2 * kc + 1)
@@ -427,7 +429,8 @@ def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int) -> int:
     bsr = (i32 + f64) * n_trip + i32 * (n_c + 1)
     # G, its transpose and the support selection's columns, ranks, values and candidates (`FSAI_ROW` a row)
     fsai = (5 * i32 + 4 * f64) * n_c * FSAI_ROW + 2 * f64 * n_c
-    return vectors + triplets + bsr + fsai
+    levels = multilevel_bytes(n_c, n_trip) if multilevel else 0
+    return vectors + triplets + bsr + fsai + levels
 
 
 class DeviceLoop:
@@ -453,6 +456,8 @@ class DeviceLoop:
         self.it = wp.zeros(1, dtype=wp.int32, device=d)
         self.cond = wp.zeros(1, dtype=wp.int32, device=d)
         self.M: FSAI | None = None
+        self.ml: Multilevel | None = None  # the V-cycle around M (device_preconditioner="multilevel")
+        self.multilevel = eng.o.device_preconditioner == "multilevel"
         self.refit_ok = False  # whether the next rebuild may refit the last pattern
         self.n_refits = 0  # refits since the last full build
         kk, kc = eng.kk, eng.ctop_val.shape[1]
@@ -592,6 +597,8 @@ class DeviceLoop:
         self.M = FSAI(self.P, max_row_size=FSAI_ROW, reuse_pattern=True, regularize_refit=True,
                       validate_topology=False, defer_pattern=True)
         self.M.update(self.P)
+        if self.multilevel:
+            self.ml = Multilevel(self.P, self.M, self.e.to_host)
         self.refit_ok = True
 
     def refit_preconditioner(self) -> None:
@@ -601,10 +608,15 @@ class DeviceLoop:
         self._assemble()
         wsp.bsr_set_from_triplets(self.P, self.t_rows, self.t_cols, self.t_vals, topology="masked")
         self.M.update(self.P)
+        if self.ml is not None:
+            self.ml.refit()
 
     def apply_preconditioner(self) -> None:
         """z = M^-1 r."""
-        self.M.matvec(self.r, self.z, self.z, 1.0, 0.0)
+        if self.ml is not None:
+            self.ml.apply(self.r, self.z)
+        else:
+            self.M.matvec(self.r, self.z, self.z, 1.0, 0.0)
 
     def solve(self, rtol: float, max_iter: int) -> None:
         """CG on S dy = rhs (rhs in ``r``) from dy = 0, into the engine's ``dy_a``; no host read (see the

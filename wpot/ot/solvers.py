@@ -96,7 +96,7 @@ def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, d
               + (6 * _F64 + _I32) * n_r * lanes)  # per-lane partial sums of the evaluation pass
     host = _HOST_BYTES_PER_POINT * (n_r + n_c) + _HOST_BYTES_PER_POINT_TOPK * (n_r + n_c) * options.topk
     if options.linear_solver == "cg" and options.newton_loop != "host":  # the device loop's arrays
-        engine += device_loop_bytes(n_r, n_c, kk, kc)
+        engine += device_loop_bytes(n_r, n_c, kk, kc, options.device_preconditioner != "fsai")
     if options.linear_solver == "cg" and options.newton_loop != "device":  # the host loop's LU factor
         host += _FACTOR_BYTES_PER_NONZERO * int(min(float(n_c) * n_c, float(n_c) ** _FACTOR_EXPONENT))
     plan_top = _PLAN_TOP_BYTES_PER_ENTRY * n1 * min(options.plan_topk, n2)
