@@ -28,12 +28,13 @@ def _masses(n, seed):
 
 
 # --------------------------------------------------------------------------- whole solves
+@pytest.mark.parametrize("pc", ["multilevel", "fsai"])
 @pytest.mark.parametrize("method", ["anneal", "ipm"])
-def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, method):
-    C = _cost(70, 85, seed=1)
+def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, method, pc):
+    C = _cost(70, 85, seed=1)  # 70 columns: P has a coarse level below it (wpot.ot.multilevel.COARSE_SIZE)
     a, b = _masses(70, 2), _masses(85, 3)
     host = wo.solve_balanced(C, a, b, method=method, device="cpu", newton_loop="host")
-    dev = wo.solve_balanced(C, a, b, method=method, device=device, newton_loop="device")
+    dev = wo.solve_balanced(C, a, b, method=method, device=device, newton_loop="device", device_preconditioner=pc)
     assert host.converged and dev.converged
     G0 = ot.emd(a, b, C, numItermax=10**8)
     u0 = float((G0 * C).sum())
@@ -140,6 +141,12 @@ def test_device_loop_options_are_validated():
         wo.SolverOptions(newton_loop="gpu")
     with pytest.raises(ValueError, match="newton_loop='device' needs linear_solver='cg'"):
         wo.SolverOptions(newton_loop="device", linear_solver="direct")
+    with pytest.raises(ValueError, match="device_preconditioner must be one of"):
+        wo.SolverOptions(device_preconditioner="ilu")
+    for kw in ({"newton_loop": "host"}, {"linear_solver": "direct"}):  # the host loop's is SuperLU
+        with pytest.raises(ValueError, match="device_preconditioner is the device loop's"):
+            wo.SolverOptions(device_preconditioner="fsai", **kw)
+    assert wo.SolverOptions(device_preconditioner="fsai").device_preconditioner == "fsai"  # newton_loop=None
 
 
 def test_default_loop_is_the_host_one_on_the_cpu():
@@ -257,8 +264,8 @@ def test_a_refit_at_the_same_point_reproduces_the_full_build():
 def test_the_captured_cg_loop_equals_the_plain_one(partial):
     # on a GPU with conditional graph nodes the CG loop is captured once per solve (wp.ScopedCapture around
     # wp.capture_while) and replayed; Warp captures on the CPU too, so the captured structure is run here and
-    # must give the plain loop's direction, bit for bit
-    C = _cost(50, 40, seed=12)
+    # must give the plain loop's direction, bit for bit (90 columns: the multilevel V-cycle, below P, is captured)
+    C = _cost(110, 90, seed=12)
     out = []
     for captured in (False, True):
         eng, pt = _engine_at(C, partial, beta=3e5, loop="device", cg_rtol=1e-10)
@@ -273,8 +280,8 @@ def test_the_captured_cg_loop_equals_the_plain_one(partial):
 
 def test_the_captured_cg_graph_is_reused_and_still_exact():
     # a whole Newton solve (many directions: refits reuse the captured graph, a full build captures anew)
-    # with the captured loop equals the plain loop's, bit for bit
-    C = _cost(60, 50, seed=13)
+    # with the captured loop equals the plain loop's, bit for bit (80 columns: a V-cycle with a coarse level)
+    C = _cost(100, 80, seed=13)
     out = []
     for captured in (False, True):
         eng, pt = _engine_at(C, False, beta=3e5, loop="device")

@@ -75,16 +75,16 @@ class SolverOptions:
     topk : weights per row and column of W in the preconditioner (default 4: as few CG iterations as 8
         with half the factorization's fill).
     newton_loop : where the Newton steps run (`wpot.ot.resident`). "device": every vector stays on the
-        device, CG and its preconditioner (FSAI of the same sparse Schur approximation, built on the device)
-        are kernels, and the host reads one small array per trial point (about one synchronisation per
-        Newton step). "host": CG's vectors and the SuperLU preconditioner on the host (a transfer each way
-        per CG iteration; fewer CG iterations, which is what counts on the CPU). None (default): "device"
-        on a GPU, "host" on the CPU. "device" needs ``linear_solver="cg"``.
-    device_preconditioner : the device loop's preconditioner of the same sparse Schur approximation P.
-        "multilevel" (default): a V-cycle over aggregates of P's unknowns with FSAI smoothing on P
-        (`wpot.ot.multilevel`; builds read P once). "fsai": FSAI alone (local, so CG needs more iterations
-        at high beta, where P's inverse couples far-apart unknowns). Only the device loop has it: setting it
-        with ``newton_loop="host"`` is an error.
+        device, CG and its preconditioner (of the same sparse Schur approximation, built on the device; see
+        ``device_preconditioner``) are kernels, and the host reads one small array per trial point (about one
+        synchronisation per Newton step). "host": CG's vectors and the SuperLU preconditioner on the host (a
+        transfer each way per CG iteration; fewer CG iterations, which is what counts on the CPU). None
+        (default): "device" on a GPU, "host" on the CPU. "device" needs ``linear_solver="cg"``.
+    device_preconditioner : the device loop's preconditioner of the sparse Schur approximation P. None
+        (default) or "multilevel": a V-cycle over aggregates of P's unknowns with FSAI smoothing on P
+        (`wpot.ot.multilevel`; a full build reads P once). "fsai": FSAI alone (local, so CG needs more
+        iterations at high beta, where P's inverse couples far-apart unknowns). Only the device loop has
+        one: setting it with ``newton_loop="host"`` or ``linear_solver="direct"`` is an error.
     matvec_lanes : threads per row of the strided kernels that run the passes over W (the Schur matvec,
         the evaluation pass). None (default): the device's choice, strided lanes
         (`wpot.ot.kernels.MATVEC_LANES`) on GPUs, where neighbouring threads then read neighbouring

@@ -20,17 +20,20 @@ The preconditioner is the sparse approximation P of the Schur complement that th
 (`wpot.ot.linear.assemble_sparse_schur`: the top-k weights per row and column of W, the exact diagonal),
 assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp BSR matrix and
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
-row on the device; applying it is two sparse products, no triangular solve). With `FSAI_ROW` entries a
-row CG needs 1.5-2x the iterations it needs with SuperLU's exact factors of P (each solve with a fresh
-preconditioner, over whole annealing runs at N = 300 and 1,000; Jacobi needs 10-15x), and more over a
-whole solve with both loops' reuse rules (2.3-2.8x, `benchmarks/ot_speed.py`; up to 4x on unequal masses).
+row on the device; applying it is two sparse products, no triangular solve), by default inside a multilevel
+V-cycle over aggregates of P's unknowns (`wpot.ot.multilevel`, ``SolverOptions.device_preconditioner``):
+FSAI is local, and at high beta P's inverse couples far-apart unknowns. Over whole solves with both loops'
+reuse rules (`benchmarks/ot_speed.py`, N = 1,000 / 3,400, annealing) CG needs 1.3 / 1.5x the iterations of the
+host loop's SuperLU factors of P with the V-cycle, 2.3 / 2.7x with FSAI alone (the README has the figures).
 When the host loop would refactorize, the device loop first refits: P's new values on the last build's
-pattern (`bsr_set_from_triplets(..., topology="masked")`) and FSAI refitted on its supports (`FSAI.update`),
-kernels only, no host read (`Timers.n_refit`). A full build (`Timers.n_factor`) selects FSAI's supports on
-the device too (``defer_pattern``: the first `FSAI.update` selects them) and synchronises 3 times inside Warp:
-P's entry count and the selection's ready flag (2 reads, counted on the CPU build) and a stream
-synchronisation on CUDA, where FSAI's eager set-up would read 5 times. It runs first, again when a refit
-does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at least every `FULL_BUILD_EVERY` rebuilds.
+pattern (`bsr_set_from_triplets(..., topology="masked")`), FSAI refitted on its supports (`FSAI.update`) and the
+V-cycle's coarse levels recomputed from P: kernels only, no host read (`Timers.n_refit`). A full build
+(`Timers.n_factor`) selects FSAI's supports on the device too (``defer_pattern``: the first `FSAI.update`
+selects them), which synchronises 3 times inside Warp (`BUILD_SYNCS`: P's entry count and the selection's
+ready flag, 2 reads counted on the CPU build, and a stream synchronisation on CUDA, where FSAI's eager set-up
+would read 5 times), and the V-cycle's aggregation reads P once (through `Engine.to_host`, so counted in
+``Timers.n_d2h``). It runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at
+least every `FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
