@@ -56,9 +56,9 @@ def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, metho
 def test_partial_device_loop_agrees_with_the_host_loop_and_the_qp(device):
     from conftest import partial_qp
 
-    C = _cost(40, 55, seed=4)
+    C = _cost(70, 85, seed=4)  # 70 columns: the multilevel V-cycle has a coarse level
     C /= C.max()
-    r1, r2 = _masses(40, 5), _masses(55, 6)
+    r1, r2 = _masses(70, 5), _masses(85, 6)
     host = wo.solve_partial(C, r1, r2, mass_penalty=0.05, method="anneal", device="cpu", newton_loop="host")
     dev = wo.solve_partial(C, r1, r2, mass_penalty=0.05, method="anneal", device=device, newton_loop="device")
     assert host.converged and dev.converged
