@@ -225,16 +225,17 @@ def multilevel_bytes(n: int, nnz: int, coarse_size: int = COARSE_SIZE) -> int:
 
 
 class _Level:
-    """One level's CSR matrix on the device and its vectors: b the right-hand side, x the solution, t the
-    residual; ``label`` maps its unknowns to the next level's (None on the last)."""
+    """One level's CSR matrix on the device and its vectors: t the residual and, on a coarse level (P's level
+    works on the caller's vectors and smooths with FSAI), b the right-hand side, x the solution and the Jacobi
+    diagonal; ``label`` maps its unknowns to the next level's (None on the last)."""
 
-    def __init__(self, offsets, columns, values, nnz: int, device) -> None:
+    def __init__(self, offsets, columns, values, nnz: int, device, coarse: bool = True) -> None:
         self.n = offsets.shape[0] - 1
         self.nnz = nnz
         self.offsets, self.columns, self.values = offsets, columns, values
-        z = lambda k: wp.zeros(k, dtype=wp.float64, device=device)  # noqa: E731
-        self.b, self.x, self.t = z(self.n), z(self.n), z(self.n)
-        self.dinv = z(self.n)
+        z = lambda: wp.zeros(self.n, dtype=wp.float64, device=device)  # noqa: E731
+        self.t = z()
+        self.b, self.x, self.dinv = (z(), z(), z()) if coarse else (None, None, None)
         self.diag_at: wp.array | None = None
         self.label: wp.array | None = None
         self.to_coarse: wp.array | None = None  # each entry's place in the next level's values
@@ -261,7 +262,7 @@ class Multilevel:
         nnz = int(offsets[-1])
         columns = host[n + 1: n + 1 + nnz].astype(np.int64)
         values = host[n + 1 + cap: n + 1 + cap + nnz]
-        self.levels = [_Level(P.offsets, P.columns, P.values, nnz, d)]
+        self.levels = [_Level(P.offsets, P.columns, P.values, nnz, d, coarse=False)]
         self.dense: tuple[wp.array, wp.array] | None = None
         A = sp.csr_matrix((values, columns, offsets), shape=(n, n))
         while A.shape[0] > coarse_size:
