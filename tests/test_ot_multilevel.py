@@ -135,3 +135,16 @@ def test_coarse_size_is_validated():
     B = _bsr(_tree_laplacian(20, seed=7))
     with pytest.raises(ValueError, match="coarse_size"):
         ml.Multilevel(B, _fsai(B), lambda a: a.numpy(), coarse_size=ml.MAX_DENSE + 1)
+
+
+def test_a_p_that_does_not_coarsen_gets_two_smoothing_steps():
+    # no off-diagonal entries: no aggregate forms, so the hierarchy is P alone, above coarse_size, without a
+    # dense level; the cycle is pre- and post-smoothing with the damped FSAI (exact for a diagonal):
+    # M = 2 w F - w^2 F P F = (2 w - w^2) P^-1
+    d = np.random.default_rng(8).uniform(1.0, 3.0, 100)
+    B = _bsr(sp.diags(d).tocsr())
+    M = ml.Multilevel(B, _fsai(B), lambda a: a.numpy())
+    assert M.n_levels == 1 and M.dense is None
+    r = np.random.default_rng(9).standard_normal(100)
+    w = ml.FSAI_WEIGHT
+    np.testing.assert_allclose(_apply(M, r), (2 * w - w * w) * r / d, rtol=1e-12)

@@ -252,7 +252,7 @@ class Multilevel:
             raise ValueError(f"coarse_size must be in [1, {MAX_DENSE}], got {coarse_size}")
         d = P.device
         self.device = d
-        self.P, self.F = P, smoother
+        self.F = smoother
         n = P.nrow
         cap = P.nnz  # an upper bound of the entry count, offsets[n]
         packed = wp.empty(n + 1 + 2 * cap, dtype=wp.float64, device=d)
@@ -322,15 +322,13 @@ class Multilevel:
             wp.launch(dense_mv, dim=lv.n, inputs=[self.dense[1], b, lv.n], outputs=[x], device=d)
             return
         self._smooth(k, b, x, False)
-        if k == len(self.levels) - 1:  # no coarser level and no dense one: a second smoothing step
-            wp.launch(residual, dim=lv.n, inputs=[lv.offsets, lv.columns, lv.values, x, b], outputs=[lv.t], device=d)
-            self._smooth(k, lv.t, x, True)
-            return
-        nxt = self.levels[k + 1]
-        wp.launch(residual, dim=lv.n, inputs=[lv.offsets, lv.columns, lv.values, x, b], outputs=[lv.t], device=d)
-        nxt.b.zero_()
-        wp.launch(restrict, dim=lv.n, inputs=[lv.label, lv.t], outputs=[nxt.b], device=d)
-        self._cycle(k + 1, nxt.b, nxt.x)
-        wp.launch(prolong, dim=lv.n, inputs=[lv.label, nxt.x], outputs=[x], device=d)
+        if k + 1 < len(self.levels):  # the coarse correction (on the last level without a dense one: none)
+            nxt = self.levels[k + 1]
+            wp.launch(residual, dim=lv.n, inputs=[lv.offsets, lv.columns, lv.values, x, b], outputs=[lv.t],
+                      device=d)
+            nxt.b.zero_()
+            wp.launch(restrict, dim=lv.n, inputs=[lv.label, lv.t], outputs=[nxt.b], device=d)
+            self._cycle(k + 1, nxt.b, nxt.x)
+            wp.launch(prolong, dim=lv.n, inputs=[lv.label, nxt.x], outputs=[x], device=d)
         wp.launch(residual, dim=lv.n, inputs=[lv.offsets, lv.columns, lv.values, x, b], outputs=[lv.t], device=d)
         self._smooth(k, lv.t, x, True)

@@ -460,7 +460,6 @@ class DeviceLoop:
         self.cond = wp.zeros(1, dtype=wp.int32, device=d)
         self.M: FSAI | None = None
         self.ml: Multilevel | None = None  # the V-cycle around M (device_preconditioner="multilevel")
-        self.multilevel = eng.o.device_preconditioner == "multilevel"
         self.refit_ok = False  # whether the next rebuild may refit the last pattern
         self.n_refits = 0  # refits since the last full build
         kk, kc = eng.kk, eng.ctop_val.shape[1]
@@ -600,7 +599,7 @@ class DeviceLoop:
         self.M = FSAI(self.P, max_row_size=FSAI_ROW, reuse_pattern=True, regularize_refit=True,
                       validate_topology=False, defer_pattern=True)
         self.M.update(self.P)
-        if self.multilevel:
+        if self.e.o.device_preconditioner == "multilevel":
             self.ml = Multilevel(self.P, self.M, self.e.to_host)
         self.refit_ok = True
 
