@@ -41,7 +41,7 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
-__all__ = ["DepthRenderer", "depth_images", "RAY_OFFSET"]
+__all__ = ["DepthRenderer", "depth_images", "inward_cone", "RAY_OFFSET"]
 
 if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.1x: the init banner and module-load lines are INFO messages
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
@@ -82,6 +82,33 @@ def _cast_kernel(
         out[k, i, j] = h0 - q.t
     else:
         out[k, i, j] = background
+
+
+@wp.kernel
+def _inward_kernel(
+    mesh_id: wp.uint64,
+    origins: wp.array(dtype=wp.vec3),
+    e1: wp.array(dtype=wp.vec3),
+    e2: wp.array(dtype=wp.vec3),
+    outward: wp.array(dtype=wp.vec3),
+    cone: wp.array(dtype=wp.vec3),
+    facing: wp.float32,
+    reach: wp.float32,
+    offset: wp.float32,
+    out: wp.array2d(dtype=wp.float32),
+):
+    i, k = wp.tid()
+    n = outward[i]
+    c = cone[k]
+    d = c[0] * e1[i] + c[1] * e2[i] - c[2] * n
+    q = wp.mesh_query_ray(mesh_id, origins[i] - offset * n, d, reach)
+    t = float(-1.0)
+    # a ray that leaves the volume meets the inner side of a face: its winding normal (times `facing`, the
+    # mesh's winding) points along the ray
+    if q.result:
+        if facing * wp.dot(q.normal, d) > 0.0:
+            t = q.t + offset * c[2]
+    out[i, k] = t
 
 
 def _mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -184,6 +211,78 @@ class DepthRenderer:
         out[...] = res_wp.numpy()
         return out
 
+
+    def inward_hits(self, points: ArrayLike, frames: ArrayLike, cone: ArrayLike, *, facing: int = 1) -> np.ndarray:
+        """How far rays shot into the volume travel before they leave it: the shape diameter function's rays.
+
+        From each point ``p`` (a surface point with frame ``e1, e2, o``, ``o`` its unit outward normal) one ray
+        per cone direction ``(x, y, z)`` leaves along ``x e1 + y e2 - z o`` (``z > 0`` points inwards). A ray
+        counts when the first face it meets is seen from inside (its winding normal, times ``facing``, points
+        along the ray): the ray crossed the solid and left it there.
+
+        Parameters
+        ----------
+        points : (n, 3) ray origins on the surface (mesh coordinates)
+        frames : (n, 3, 3) orthonormal frames, rows ``e1, e2, o`` with ``o`` the outward normal (either
+            handedness)
+        cone : (m, 3) unit directions in the frame, every ``z > 0`` (see `inward_cone`)
+        facing : +1 when the faces wind counter-clockwise seen from outside, -1 the other way
+            (`wpot.orientation.winding`)
+
+        Returns
+        -------
+        (n, m) float64 distances from each point to where each ray leaves the solid; NaN for a ray that
+        meets nothing or first meets a face from outside. Rays start ``1e-5`` of the mesh's size inside
+        the surface (so a face at the origin is not met at distance 0); the distance is counted from ``p``.
+        """
+        p = np.asarray(points, dtype=np.float64)
+        fr = np.asarray(frames, dtype=np.float64)
+        c = np.asarray(cone, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3 or fr.shape != (len(p), 3, 3):
+            raise ValueError(f"points must have shape (n, 3) and frames (n, 3, 3), got {p.shape} and {fr.shape}")
+        if c.ndim != 2 or c.shape[1] != 3 or len(c) == 0 or not np.all(c[:, 2] > 0):
+            raise ValueError(f"cone must have shape (m, 3), m >= 1, with every z > 0 (inwards), got {c.shape}")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(fr))):
+            raise ValueError("points and frames must be finite (got NaN or inf)")
+        if facing not in (1, -1):
+            raise ValueError(f"facing must be +1 or -1, got {facing!r}")
+        n, m = len(p), len(c)
+        if n == 0:
+            return np.empty((0, m))
+        dev = self.device
+        vec = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=dev)  # noqa: E731
+        out = wp.empty((n, m), dtype=wp.float32, device=dev)
+        local = p - self.origin
+        reach = float(np.linalg.norm(local, axis=1).max() + 2.0 * self.radius) * 1.01 + 1e-30
+        wp.launch(
+            _inward_kernel, dim=(n, m),
+            inputs=[self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]), vec(c), float(facing),
+                    reach, 1e-5 * self.radius],
+            outputs=[out], device=dev,
+        )
+        t = out.numpy().astype(np.float64)
+        return np.where(t >= 0, t, np.nan)
+
+
+def inward_cone(n_rays: int = 32, half_angle: float = 60.0) -> np.ndarray:
+    """(n_rays, 3) unit directions spread over the cap of half-angle ``half_angle`` degrees about +z.
+
+    ``n_rays / 4`` directions of a Fibonacci spiral over the cap (equal solid angle each, ``cos θ`` uniform over
+    ``[cos half_angle, 1]``), each with its mirror images ``(±x, ±y, z)``: the set does not change when the frame's
+    ``e1, e2`` change sign, the ambiguity of a frame found by PCA (`wpot.signatures.local_frames`).
+    """
+    if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 4 or n_rays % 4:
+        raise ValueError(f"n_rays must be a positive multiple of 4, got {n_rays!r}")
+    h = float(half_angle)
+    if not 0 < h < 90:
+        raise ValueError(f"half_angle must be in (0, 90) degrees, got {half_angle!r}")
+    q = n_rays // 4
+    i = np.arange(q) + 0.5
+    cz = 1.0 - (1.0 - np.cos(np.deg2rad(h))) * i / q
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    sz = np.sqrt(1.0 - cz * cz)
+    x, y = sz * np.cos(phi), sz * np.sin(phi)
+    return np.concatenate([np.stack([sx * x, sy * y, cz], axis=1) for sx in (1, -1) for sy in (1, -1)])
 
 def _check_views(centers: ArrayLike, frames: ArrayLike, half_sizes: ArrayLike, resolution: int):
     c = np.asarray(centers, dtype=np.float64)

@@ -75,12 +75,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from wpot._validate import integer_at_least
+from wpot._validate import integer_at_least, nonnegative_finite
 from wpot.mesh import Mesh
 from wpot.signatures.base import Signature, SignatureOptions, option, register_signature
 
 __all__ = ["VERSION", "LocalFrames", "local_frames", "ldsift", "ldsift_images", "sift_at_center", "keypoint_size", "to_slab",
-           "MIN_NEIGHBOURS", "SLAB", "LDSIFT", "LDSIFTOptions"]
+           "MIN_NEIGHBOURS", "SLAB", "THICKNESS_UNIT", "LDSIFT", "LDSIFTOptions"]
 
 #: a vertex's covariance neighbourhood N(v) must hold at least this many vertices besides v itself;
 #: when the ball of radius S(v) holds fewer, it is grown to the MIN_NEIGHBOURS nearest vertices
@@ -93,6 +93,9 @@ DEGENERATE_RTOL = 1e-10
 #: heights are clipped to [-slab S(v), +slab S(v)], and pixels that see no surface read -slab S(v).
 #: 0.25 classifies articulated shapes better; see the module docstring for why the default stays 1.0
 SLAB = 1.0
+#: the thickness column is ``thickness * THICKNESS_UNIT * log t(v)``: 512 is the L2 norm OpenCV gives a SIFT
+#: descriptor, so a weight w costs w descriptor norms per unit of |log| thickness ratio
+THICKNESS_UNIT = 512.0
 
 
 @dataclass(frozen=True)
@@ -302,7 +305,8 @@ def to_slab(images: np.ndarray, half_sizes: np.ndarray, *, slab: float = SLAB) -
 
 
 def ldsift(
-    mesh: Mesh, *, K: float = 3.0, resolution: int = 21, slab: float = SLAB, device: str | None = None
+    mesh: Mesh, *, K: float = 3.0, resolution: int = 21, slab: float = SLAB, device: str | None = None,
+    frames: LocalFrames | None = None,
 ) -> np.ndarray:
     """LD-SIFT signature of every vertex (paper sections 2.2 and 3.1).
 
@@ -316,6 +320,7 @@ def ldsift(
         ones read as the floor ``-slab S(v)``. 0.25 classifies articulated shapes (TOSCA) better, 1 keeps
         the broad features of smooth shapes (module docstring)
     device : Warp device for the depth rendering; None means Warp's default device
+    frames : precomputed `local_frames` of ``mesh`` at this K (computed here when None)
 
     Returns
     -------
@@ -330,7 +335,7 @@ def ldsift(
 
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 8:
         raise ValueError(f"resolution must be an integer >= 8 (SIFT needs room for its 4 x 4 bins), got {resolution!r}")
-    images = ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device)
+    images = ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device, frames=frames)
     return sift_at_center(to_uint8(images))
 
 
@@ -345,6 +350,8 @@ class LDSIFTOptions(SignatureOptions):
     resolution : R, pixels per side of the depth images (paper: 21); an integer >= 8.
     slab : depth slab half-thickness in units of S(v) (default `SLAB`; None means `SLAB`); positive. Keys carry
         it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default stay as they were.
+    thickness : weight w of the size column (`THICKNESS_UNIT` w log t(v), t the local thickness,
+        `wpot.signatures._thickness`); 0 (default) leaves it out; finite, >= 0. Keys carry it only when set.
     """
 
     K: float = option(3.0, keyword="ldsift_K", help="scale factor K: the image of a vertex covers 2 K D(v) (default {default:g})")
@@ -356,7 +363,16 @@ class LDSIFTOptions(SignatureOptions):
              "transport; 1 keeps the broad features of smooth shapes)",
     )
 
+    thickness: float = option(
+        0.0, keyword="ldsift_thickness", flag="--ldsift-thickness", key_omit_default=True,
+        help="weight w of a size column appended to LD-SIFT: w * 512 * log(local thickness), in the meshes' own "
+             "units, so that shapes made from one template at two sizes differ (default {default:g}: the paper's "
+             "scale-free LD-SIFT; 2 on solid articulated shapes such as TOSCA: balanced one-shot 84.9 %% "
+             "against 70.3 %% on TOSCA 5k)",
+    )
+
     def __post_init__(self) -> None:
+        object.__setattr__(self, "thickness", nonnegative_finite("thickness (ldsift_thickness)", self.thickness))
         object.__setattr__(self, "K", _check_K(self.K))
         object.__setattr__(self, "resolution", integer_at_least("resolution", self.resolution, 8))
         object.__setattr__(self, "slab", SLAB if self.slab is None else _check_slab(self.slab))
@@ -365,7 +381,15 @@ class LDSIFTOptions(SignatureOptions):
 @register_signature
 class LDSIFT(Signature):
     """LD-SIFT (paper §2.2, §3.1) as a registered `Signature`: (N, 128) per mesh, compared by L2. Nothing to fit;
-    the depth images are rendered on the instance's ``device``."""
+    the depth images are rendered on the instance's ``device``.
+
+    With ``thickness`` w > 0, one more column ``w THICKNESS_UNIT log t(v)`` (N, 129), t the vertex's local
+    thickness in the mesh's units (`wpot.signatures._thickness.thickness`). LD-SIFT alone is scale-free; the
+    column makes two vertices whose thickness differs by a factor r cost ``w |log r|`` descriptor norms more, so
+    shapes from one template at two sizes (TOSCA's David and Michael, 1.14 apart) are told apart while the
+    descriptor still carries the shape. w = 2 was chosen on TOSCA 5k (76 shapes, 200 cell-pooled samples,
+    balanced `ot.emd`, one-shot / leave-one-out): w = 0: 70.3 / 88.2 %; 0.2: 77.3 / 88.2; 0.6: 83.1 / 93.4;
+    2: 84.9 / 97.4; 6: 83.0 / 97.4; the thickness column alone: 82.9 / 96.1 %."""
 
     name = "ldsift"
     title = "LD-SIFT"
@@ -375,5 +399,12 @@ class LDSIFT(Signature):
 
     def __call__(self, mesh: Mesh) -> np.ndarray:
         """(N, 128) float64, `ldsift` of ``mesh``."""
+        from wpot.signatures._thickness import thickness
+
         o = self.options
-        return np.asarray(ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device), dtype=np.float64)
+        fr = local_frames(_check_mesh(mesh), K=o.K)
+        d = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
+        if o.thickness == 0:
+            return d
+        t = thickness(mesh, frames=fr, device=self.device)
+        return np.hstack([d, (o.thickness * THICKNESS_UNIT * np.log(t))[:, None]])

@@ -1,0 +1,137 @@
+"""Local thickness (shape diameter function) and LD-SIFT's thickness column."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from conftest import random_rotation
+from render.raycast import DepthRenderer, inward_cone
+from wpot.mesh import Mesh
+from wpot.signatures import _ldsift as L
+from wpot.signatures import get_signature
+from wpot.signatures import _thickness as T
+from wpot.signatures._thickness import thickness
+
+
+@pytest.fixture(scope="module")
+def sphere() -> Mesh:
+    s = trimesh.creation.icosphere(subdivisions=4, radius=2.0)
+    return Mesh(s.vertices, s.faces)
+
+
+def test_rays_in_a_sphere_travel_its_chords(sphere, device):
+    """A ray entering a sphere of radius r at angle θ to the inward normal leaves it after the chord 2 r cos θ."""
+    cone = inward_cone(32, 60.0)
+    assert np.allclose(np.linalg.norm(cone, axis=1), 1) and np.all(cone[:, 2] >= 0.5 - 1e-12)
+    # the set is its own image under the frame's sign flips (e1, e2) -> (±e1, ±e2)
+    for flip in ([-1, -1, 1], [1, -1, 1]):
+        assert {tuple(np.round(r, 12)) for r in cone * flip} == {tuple(np.round(r, 12)) for r in cone}
+    frames = L.local_frames(sphere).frames
+    hits = DepthRenderer(sphere, device=device).inward_hits(sphere.vertices, frames, cone)
+    chords = 2 * 2.0 * cone[:, 2]
+    assert np.isfinite(hits).all()
+    # the icosphere's flat faces sit inside the true sphere, and a PCA normal is a little off the radius:
+    # chords within 1 % of the diameter
+    np.testing.assert_allclose(hits, np.broadcast_to(chords, hits.shape), atol=0.01 * 4.0)
+    np.testing.assert_allclose(thickness(sphere, device=device), np.median(chords), rtol=0.01)
+
+
+def test_invariant_under_winding_rigid_motion_relabelling_and_covariant_under_scale(sphere):
+    v = sphere.vertices * (1 + 0.2 * np.sin(2 * sphere.vertices[:, [0]]))  # no symmetry
+    mesh = Mesh(v, sphere.faces)
+    t0 = thickness(mesh)
+    inside_out = Mesh(v, sphere.faces[:, ::-1])
+    np.testing.assert_allclose(thickness(inside_out), t0, rtol=1e-5)
+    rng = np.random.default_rng(3)
+    perm = rng.permutation(mesh.n_vertices)
+    moved = mesh.transformed(random_rotation(rng), np.array([5.0, -3.0, 40.0]), 3.5).relabelled(perm)
+    np.testing.assert_allclose(thickness(moved)[np.argsort(perm)], 3.5 * t0, rtol=1e-4)
+    assert t0.max() / t0.min() > 1.3  # the shape's thickness varies: the comparison above is not of constants
+
+
+def test_vertices_without_rays_take_their_neighbours_values():
+    """On a path 0-1-2-3-4 with values at 0 and 4 only: 1 and 3 take their known neighbour's value, then 2 the
+    mean of 1 and 3. A component with no value at all takes the median of the known values."""
+    path = [(0, 1, 5), (1, 2, 5), (2, 3, 5), (3, 4, 5)]  # a fan around vertex 5 links 0-1-2-3-4 in a path
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [2, 1, 0], [9, 9, 9], [10, 9, 9], [9, 10, 9]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # two components
+        mesh = Mesh(v.astype(float), np.array(path + [(6, 7, 8)]))
+    vals = np.array([1.0, 0, 0, 0, 5.0, 0, 0, 0, 0])
+    known = np.array([True, False, False, False, True, True, False, False, False])
+    vals[5] = 3.0
+    out = T._spread(vals, known, mesh)
+    # 1 sees 0 and 5 (and 2, unknown): (1 + 3) / 2; 3 sees 4 and 5: (5 + 3) / 2; 2 then sees 1, 3, 5
+    np.testing.assert_allclose(out[:6], [1.0, 2.0, (2.0 + 4.0 + 3.0) / 3, 4.0, 5.0, 3.0])
+    np.testing.assert_allclose(out[6:], 3.0)
+
+
+def test_a_cut_part_keeps_the_thickness_of_its_whole(sphere):
+    """A part reads the thickness its whole has wherever the whole's rays do not reach the cut."""
+    keep = sphere.vertices[sphere.faces].mean(axis=1)[:, 2] < 1.8  # the sphere without a small cap
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cut, index = Mesh(sphere.vertices, sphere.faces[keep]).cleaned()
+    frames = L.local_frames(sphere).frames
+    cone = inward_cone()
+    hits = DepthRenderer(sphere).inward_hits(sphere.vertices, frames, cone)
+    rays = cone[:, 0, None] * frames[:, None, 0] + cone[:, 1, None] * frames[:, None, 1] - cone[:, 2, None] * frames[:, None, 2]
+    ends = sphere.vertices[:, None] + hits[..., None] * rays
+    clear = (ends[..., 2].max(axis=1) < 1.75) & (sphere.vertices[:, 2] < 1.5)  # rays and frames away from the cut
+    t = thickness(cut)
+    assert np.isfinite(t).all()
+    sel = clear[index]
+    assert sel.sum() > 50
+    np.testing.assert_allclose(t[sel], thickness(sphere)[index[sel]], rtol=1e-5)
+    # rays that leave through the opening do not count, so near it the value comes from the rest
+    assert not np.allclose(t[~sel], thickness(sphere)[index[~sel]], rtol=1e-5)
+
+
+def test_a_flat_patch_has_no_thickness():
+    g = trimesh.creation.box(extents=(4.0, 4.0, 1.0))
+    top = g.vertices[g.faces].mean(axis=1)[:, 2] > 0.4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        patch, _ = Mesh(g.vertices, g.faces[top]).cleaned()
+    with pytest.raises(ValueError, match="ldsift_thickness"):
+        thickness(patch)
+
+
+def test_ldsift_thickness_column(sphere):
+    mesh = Mesh(sphere.vertices * (1 + 0.2 * np.sin(2 * sphere.vertices[:, [0]])), sphere.faces)
+    sig = get_signature("ldsift")
+    plain = sig()(mesh)
+    withcol = sig(sig.Options(thickness=2.0))(mesh)
+    assert plain.shape == (mesh.n_vertices, 128) and withcol.shape == (mesh.n_vertices, 129)
+    np.testing.assert_array_equal(withcol[:, :128], plain)
+    np.testing.assert_allclose(withcol[:, 128], 2.0 * L.THICKNESS_UNIT * np.log(thickness(mesh)))
+    # the column moves by w 512 log s when the shape is scaled by s; the descriptor does not
+    big = sig(sig.Options(thickness=2.0))(mesh.transformed(scale=1.25))
+    np.testing.assert_allclose(big[:, 128] - withcol[:, 128], 2.0 * L.THICKNESS_UNIT * np.log(1.25), atol=0.05)
+    # the option is keyed only when set, so runs and caches made without it keep their keys
+    assert "thickness" not in sig().params() and sig(sig.Options(thickness=2.0)).params()["thickness"] == 2.0
+    for bad in (-1.0, float("nan"), True, "2"):
+        with pytest.raises(ValueError, match="ldsift_thickness"):
+            sig.Options(thickness=bad)
+
+
+def test_tosca_david_and_michael_differ_by_their_size(shared_data):
+    """One template at two sizes: the thickness ratio is the size ratio, and every David is thinner than
+    every Michael (LD-SIFT alone cannot tell them apart)."""
+    folder = shared_data / "tosca_lowres"
+    if not folder.is_dir():
+        pytest.skip(f"TOSCA low-resolution meshes not found at {folder}")
+    from wpot.io import load_mesh
+
+    med, size = {}, {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TOSCA's few non-manifold edges
+        for name in ("david0", "david2", "michael0", "michael3"):
+            m = load_mesh(folder / f"{name}.mat")
+            med[name], size[name] = np.median(thickness(m)), np.sqrt(m.area)
+    for d, mi in (("david0", "michael0"), ("david2", "michael3")):
+        np.testing.assert_allclose(med[mi] / med[d], size[mi] / size[d], rtol=0.03)
+    assert max(med["david0"], med["david2"]) < min(med["michael0"], med["michael3"])
