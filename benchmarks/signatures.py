@@ -21,7 +21,8 @@ energies; LD-SIFT K = 3, 21 x 21 images):
   ``--solvers`` also times the other wpot solvers on the same mesh (dense only up to 5,000 vertices).
 * LD-SIFT split into frames / raster / sift (``benchmarks/ldsift_parts.py``'s ``time_ldsift``), then
   ``wpot.ldsift(mesh)`` (the figure held against the goal); its peer in the same run: the vectorized numpy
-  z-buffer of ``ldsift_parts.py`` for the raster stage (50 views, extrapolated to all vertices).
+  z-buffer of ``ldsift_parts.py`` for the raster stage (50 views, extrapolated to all vertices). Beside it, the
+  thickness column's extra time (``ldsift_thickness > 0``: frames again, then 32 Warp rays per vertex).
 
 Timings are wall-clock and, on a shared 2-core machine, noisy: OpenBLAS threads in particular slow
 down badly when other processes compete for the cores (try ``OPENBLAS_NUM_THREADS=1``).
@@ -149,6 +150,17 @@ def time_ldsift_api(mesh: Mesh, device: str | None = None) -> float:
     return dt
 
 
+def time_thickness(mesh: Mesh, device: str | None = None) -> float:
+    """Seconds of LD-SIFT's thickness column (``ldsift_thickness > 0``): frames, then the Warp rays."""
+    from wpot.signatures._thickness import thickness
+
+    t0 = time.perf_counter()
+    t = thickness(mesh, device=device)
+    dt = time.perf_counter() - t0
+    assert t.shape == (mesh.n_vertices,) and np.all(t > 0)
+    return dt
+
+
 def load_ldsift_parts():
     """``benchmarks/ldsift_parts.py`` as a module (its ``time_ldsift`` and peers), or None if absent."""
     path = HERE / "ldsift_parts.py"
@@ -198,7 +210,7 @@ def main() -> None:
     if args.solvers:
         cols += f" | {'other solvers':>39s}"
     if ldsift is not None:
-        cols += f" | {'frames':>6s} {'raster':>6s} {'sift':>6s} {'parts':>6s} {'wpot.ldsift':>11s}"
+        cols += f" | {'frames':>6s} {'raster':>6s} {'sift':>6s} {'parts':>6s} {'wpot.ldsift':>11s} {'thickness':>9s}"
         if not args.no_peers:
             cols += f" {'numpy raster':>12s}"
     print(cols)
@@ -225,7 +237,7 @@ def main() -> None:
             tot = sum(t.get(k, 0.0) for k in ("frames", "raster", "sift"))
             lapi = time_ldsift_api(mesh, args.device)
             line += (f" | {t.get('frames', float('nan')):6.2f} {t.get('raster', float('nan')):6.2f}"
-                     f" {t.get('sift', float('nan')):6.2f} {tot:6.2f} {lapi:11.2f}")
+                     f" {t.get('sift', float('nan')):6.2f} {tot:6.2f} {lapi:11.2f} {time_thickness(mesh, args.device):9.2f}")
             verdicts[-1] += f", LD-SIFT {lapi:.1f} s ({'within' if lapi <= args.goal else 'OVER'} {args.goal:g} s)"
             if not args.no_peers and hasattr(parts, "_peer_numpy_zbuffer"):
                 from wpot.signatures._ldsift import local_frames

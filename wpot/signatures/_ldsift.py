@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -397,8 +398,17 @@ class LDSIFT(Signature):
     version = VERSION
     Options = LDSIFTOptions
 
+    def params(self) -> dict[str, Any]:
+        """`Signature.params`, plus the thickness module's ``VERSION`` when the thickness column is on."""
+        from wpot.signatures import _thickness
+
+        p = super().params()
+        if self.options.thickness:
+            p["thickness_version"] = _thickness.VERSION
+        return p
+
     def __call__(self, mesh: Mesh) -> np.ndarray:
-        """(N, 128) float64, `ldsift` of ``mesh``."""
+        """(N, 128) float64, `ldsift` of ``mesh``; (N, 129) with the thickness column."""
         from wpot.signatures._thickness import thickness
 
         o = self.options

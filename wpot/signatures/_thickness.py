@@ -10,8 +10,8 @@ appends ``log`` thickness as one more signature column when ``thickness`` (``lds
 
 Definition: from vertex v, `N_RAYS` rays are cast into the solid within a cone of half-angle `CONE_ANGLE`
 degrees about the inward normal (`render.raycast.DepthRenderer.inward_hits`, one Warp launch), laid out in the
-vertex's LD-SIFT frame (`local_frames`), symmetric under that frame's sign ambiguity, so that the rays and their
-median do not depend on how the shape is posed in space. A ray counts
+vertex's frame (the vertex normal, and the LD-SIFT frame's e1 made tangent, `local_frames`) and symmetric under
+that frame's sign ambiguity, so that the rays and their median do not depend on how the shape is posed in space. A ray counts
 when it leaves the solid through a face seen from inside; the thickness is the median length of those rays.
 A vertex with fewer than `MIN_RAYS` such rays (a thin fin, a place where the surface crosses itself, the rim of
 a cut part whose rays escape through the opening) takes the mean of its neighbours' values, spread along the
@@ -26,8 +26,10 @@ import numpy as np
 
 from wpot.mesh import Mesh
 
-__all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS"]
+__all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
 
+#: bumped whenever `thickness` changes its values; part of LD-SIFT's cache key when its thickness column is on
+VERSION = 1
 #: rays per vertex, and the half-angle of their cone in degrees about the inward normal (Shapira et al.: 30
 #: rays in a 120 degree cone); a multiple of 4 (`render.raycast.inward_cone`)
 N_RAYS = 32
@@ -53,6 +55,25 @@ def _spread(values: np.ndarray, known: np.ndarray, mesh: Mesh) -> np.ndarray:
         out[new] = num[new] / den[new]
         known |= new
     return out
+
+
+def _ray_frames(outward: np.ndarray, e1: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) frames of the rays: rows ``e1`` made tangent to the outward normal, ``o x e1``, ``o``.
+
+    The axis is the vertex normal, not the LD-SIFT frame's PCA normal: that one is fitted over a ball of radius
+    S(v), which on a finger or an ear thinner than S(v) takes in both sides and tilts along the part (TOSCA8,
+    200 cell-pooled samples, w = 2, balanced `ot.emd`, one-shot: 95.0 % with the vertex normal, 92.0 % with the
+    PCA normal; TOSCA 5k: 84.6 against 81.9 %).
+    """
+    t = e1 - np.einsum("ij,ij->i", e1, outward)[:, None] * outward
+    norm = np.linalg.norm(t, axis=1)
+    flat = norm < 1e-6  # e1 along the normal (a degenerate frame): any tangent will do
+    if flat.any():
+        helper = np.where(np.abs(outward[flat, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        t[flat] = np.cross(outward[flat], helper)
+        norm[flat] = np.linalg.norm(t[flat], axis=1)
+    t /= norm[:, None]
+    return np.stack([t, np.cross(outward, t), outward], axis=1)
 
 
 def thickness(
@@ -83,8 +104,7 @@ def thickness(
             "the mesh encloses no volume (a flat or nearly flat patch), so it has no thickness; LD-SIFT's "
             "thickness column (ldsift_thickness, --ldsift-thickness) needs solid shapes: leave it at 0 for this data"
         )
-    fr = (local_frames(mesh) if frames is None else frames).frames.copy()
-    fr[:, 2] *= facing  # local_frames' n follows the vertex normals, which point inwards on a mesh wound inside out
+    fr = _ray_frames(mesh.vertex_normals * facing, (local_frames(mesh) if frames is None else frames).frames[:, 0])
     hits = DepthRenderer(mesh, device=device).inward_hits(
         mesh.vertices, fr, inward_cone(n_rays, cone_angle), facing=facing
     )
