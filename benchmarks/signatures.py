@@ -237,7 +237,8 @@ def main() -> None:
             tot = sum(t.get(k, 0.0) for k in ("frames", "raster", "sift"))
             lapi = time_ldsift_api(mesh, args.device)
             line += (f" | {t.get('frames', float('nan')):6.2f} {t.get('raster', float('nan')):6.2f}"
-                     f" {t.get('sift', float('nan')):6.2f} {tot:6.2f} {lapi:11.2f} {time_thickness(mesh, args.device):9.2f}")
+                     f" {t.get('sift', float('nan')):6.2f} {tot:6.2f} {lapi:11.2f}"
+                     f" {time_thickness(mesh, args.device):9.2f}")
             verdicts[-1] += f", LD-SIFT {lapi:.1f} s ({'within' if lapi <= args.goal else 'OVER'} {args.goal:g} s)"
             if not args.no_peers and hasattr(parts, "_peer_numpy_zbuffer"):
                 from wpot.signatures._ldsift import local_frames

@@ -78,7 +78,7 @@ def test_a_cut_part_keeps_the_thickness_of_its_whole(sphere):
     frames = T._ray_frames(sphere.vertex_normals, L.local_frames(sphere).frames[:, 0])
     cone = inward_cone()
     hits = DepthRenderer(sphere).inward_hits(sphere.vertices, frames, cone)
-    rays = cone[:, 0, None] * frames[:, None, 0] + cone[:, 1, None] * frames[:, None, 1] - cone[:, 2, None] * frames[:, None, 2]
+    rays = np.einsum("kc,nci->nki", cone * [1, 1, -1], frames)  # x e1 + y e2 - z o
     ends = sphere.vertices[:, None] + hits[..., None] * rays
     clear = (ends[..., 2].max(axis=1) < 1.75) & (sphere.vertices[:, 2] < 1.5)  # rays and frames away from the cut
     t = thickness(cut)

@@ -11,8 +11,9 @@ appends ``log`` thickness as one more signature column when ``thickness`` (``lds
 Definition: from vertex v, `N_RAYS` rays are cast into the solid within a cone of half-angle `CONE_ANGLE`
 degrees about the inward normal (`render.raycast.DepthRenderer.inward_hits`, one Warp launch), laid out in the
 vertex's frame (the vertex normal, and the LD-SIFT frame's e1 made tangent, `local_frames`) and symmetric under
-that frame's sign ambiguity, so that the rays and their median do not depend on how the shape is posed in space. A ray counts
-when it leaves the solid through a face seen from inside; the thickness is the median length of those rays.
+that frame's sign ambiguity, so that the rays and their median do not depend on how the shape is posed in space.
+A ray counts when it leaves the solid through a face seen from inside; the thickness is the median length of
+those rays.
 A vertex with fewer than `MIN_RAYS` such rays (a thin fin, a place where the surface crosses itself, the rim of
 a cut part whose rays escape through the opening) takes the mean of its neighbours' values, spread along the
 edges from the vertices that have one.
