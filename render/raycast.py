@@ -3,7 +3,8 @@
 One view per row of ``centers``: an orthographic camera above the plane through ``centers[k]`` with
 normal ``frames[k, 2]`` looks straight down (direction ``-n``). All views are rendered in one Warp
 launch of shape ``(n, R, R)``; each thread casts one ray against a BVH (`warp.Mesh`) built once per
-mesh by `DepthRenderer`.
+mesh by `DepthRenderer`. The same BVH also casts rays *into* the solid from surface points
+(`DepthRenderer.inward_hits`, one launch of shape ``(n, m)``), for the local thickness.
 
 Conventions (for view k, with ``e1, e2, n = frames[k]``, ``c = centers[k]``, ``S = half_sizes[k]``)
 ------------------------------------------------------------------------------------------------------
