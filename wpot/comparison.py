@@ -641,7 +641,9 @@ class Comparer:
         their places. Asymmetric, no transport, no map. A distance for retrieving a part's class among whole
         shapes: on the partial-poses development benchmark (LD-SIFT, all eight TOSCA classes), a part's own
         class was nearer than every other class for 87.5 % of part-to-pose pairs by it, against 57.1 % by the
-        partial transport's SU (Eq. 27) and 77.7 % by `PartMap.cost`."""
+        partial transport's SU (Eq. 27) and 77.7 % by `PartMap.cost`. With LD-SIFT's thickness column
+        (``ldsift_thickness``), which tells apart classes of one template at two sizes, 94.2 % at w = 1 and
+        92.4 % at w = 2 (held-out parts: 89.3 / 88.8 % against 83.0 % without)."""
         from wpot.cost import nearest_costs
 
         self._fit_to_pair(part, whole, ("part", "whole"))
