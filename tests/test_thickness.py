@@ -111,6 +111,12 @@ def test_ldsift_thickness_column(sphere):
     # the column moves by w 512 log s when the shape is scaled by s; the descriptor does not
     big = sig(sig.Options(thickness=2.0))(mesh.transformed(scale=1.25))
     np.testing.assert_allclose(big[:, 128] - withcol[:, 128], 2.0 * L.THICKNESS_UNIT * np.log(1.25), atol=0.05)
+    # the flat keyword reaches the signature through a Comparer, and with_options switches it
+    from wpot import Comparer
+
+    c = Comparer(signature="ldsift", cache_dir=False)
+    np.testing.assert_array_equal(c.with_options(ldsift_thickness=2.0).signatures(mesh), withcol)
+    assert c.signatures(mesh).shape == (mesh.n_vertices, 128)
     # the option is keyed only when set, so runs and caches made without it keep their keys
     keyed = sig(sig.Options(thickness=2.0)).params()
     assert "thickness" not in sig().params() and keyed["thickness"] == 2.0 and keyed["thickness_version"] == T.VERSION
