@@ -398,6 +398,8 @@ BAD_VALUES = {
     "--n-eigen": (["--n-eigen", "0"], "--n-eigen must be an integer >= 3, got 0"),
     "--n-energies": (["--n-energies", "3"], "--n-energies must be an integer > 28"),
     "--ldsift-slab": (["--signature", "ldsift", "--ldsift-slab", "-1"], "--ldsift-slab must be a positive finite number"),
+    "--ldsift-thickness": (["--signature", "ldsift", "--ldsift-thickness", "-1"],
+                           "--ldsift-thickness must be a finite number >= 0, got -1"),
     "--hks-n-times": (["--signature", "hks", "--hks-n-times", "1"], "--hks-n-times must be an integer >= 2, got 1"),
     "--match-ratio": (["--match-ratio", "1.5"], "--match-ratio must be in (0, 1], got 1.5"),
     "--device": (["--device", "nowhere"], "--device: unknown Warp device 'nowhere'"),

@@ -373,7 +373,7 @@ class LDSIFTOptions(SignatureOptions):
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "thickness", nonnegative_finite("thickness (ldsift_thickness)", self.thickness))
+        object.__setattr__(self, "thickness", nonnegative_finite("thickness", self.thickness))
         object.__setattr__(self, "K", _check_K(self.K))
         object.__setattr__(self, "resolution", integer_at_least("resolution", self.resolution, 8))
         object.__setattr__(self, "slab", SLAB if self.slab is None else _check_slab(self.slab))

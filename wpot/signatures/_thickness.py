@@ -103,7 +103,7 @@ def thickness(
     if facing == 0:
         raise ValueError(
             "the mesh encloses no volume (a flat or nearly flat patch), so it has no thickness; LD-SIFT's "
-            "thickness column (ldsift_thickness, --ldsift-thickness) needs solid shapes: leave it at 0 for this data"
+            "thickness column needs solid shapes: leave ldsift_thickness at 0 for this data"
         )
     fr = _ray_frames(mesh.vertex_normals * facing, (local_frames(mesh) if frames is None else frames).frames[:, 0])
     hits = DepthRenderer(mesh, device=device).inward_hits(
@@ -114,12 +114,13 @@ def thickness(
     if not known.any():
         raise ValueError(
             "no ray cast into the mesh leaves it through a face seen from inside, so its thickness cannot be "
-            "measured (is the surface open or inconsistently wound?); leave ldsift_thickness (--ldsift-thickness) at 0"
+            "measured (is the surface open or inconsistently wound?); leave ldsift_thickness at 0"
         )
     if known.mean() < MIN_MEASURED:
         warnings.warn(
-            f"the thickness (ldsift_thickness) was measured at only {known.mean():.0%} of the mesh's vertices; the "
-            "rest are filled in from their neighbours (a very open surface, or inconsistently wound faces?)",
+            f"the thickness of LD-SIFT's thickness column (ldsift_thickness) was measured at only {known.mean():.0%} "
+            "of the mesh's vertices; the rest are filled in from their neighbours (a very open surface, or "
+            "inconsistently wound faces?)",
             stacklevel=2,
         )
     with warnings.catch_warnings():
