@@ -65,7 +65,8 @@ blurs with a reflected border, and no padding between tiles reproduces both (mea
 differences up to 54 of 255 with reflected padding); it was not faster either (about 0.2 ms per image
 both ways). The per-image loop costs about 0.2 ms per vertex.
 
-`LDSIFT` is the registered signature (`wpot.signatures.base`): options K, resolution, slab; nothing to fit.
+`LDSIFT` is the registered signature (`wpot.signatures.base`): options K, resolution, slab, thickness (an optional
+size column, `wpot.signatures._thickness`); nothing to fit.
 """
 from __future__ import annotations
 
