@@ -462,8 +462,7 @@ class Matchers:
         kw = dict(signature=a.signature, transport=a.transport, max_vertices=a.max_vertices or None,
                   vertices_per_sample=a.vertices_per_sample, pooling=a.pooling, mass_penalty=a.mass_penalty,
                   penalty_scale=a.penalty_scale, ldsift_slab=a.ldsift_slab, ldsift_thickness=a.ldsift_thickness,
-                  n_eigen=a.n_eigen,
-                  n_energies=a.n_energies)
+                  n_eigen=a.n_eigen, n_energies=a.n_energies)
         self.comparer = Comparer(device=a.device, **kw)
         self.device = a.device
         self.log = log

@@ -195,8 +195,7 @@ class DepthRenderer:
         top = reach + margin if np.isposinf(ceiling) else np.minimum(ceiling * s, reach + margin)
         depth = top + reach + margin
         dev = self.device
-        vec = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=dev)  # noqa: E731
-        flt = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.float32, device=dev)  # noqa: E731
+        vec, flt = self._upload(wp.vec3), self._upload(wp.float32)
         res_wp = wp.empty((n, res, res), dtype=wp.float32, device=dev)
         wp.launch(
             _cast_kernel,
@@ -212,6 +211,9 @@ class DepthRenderer:
         out[...] = res_wp.numpy()
         return out
 
+    def _upload(self, dtype: Any):
+        """A function that copies a float array to this renderer's device as float32 ``dtype`` (wp.vec3: rows)."""
+        return lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=self.device)
 
     def inward_hits(self, points: ArrayLike, frames: ArrayLike, cone: ArrayLike, *, facing: int = 1) -> np.ndarray:
         """How far rays shot into the volume travel before they leave it: the shape diameter function's rays.
@@ -251,7 +253,7 @@ class DepthRenderer:
         if n == 0:
             return np.empty((0, m))
         dev = self.device
-        vec = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=dev)  # noqa: E731
+        vec = self._upload(wp.vec3)
         out = wp.empty((n, m), dtype=wp.float32, device=dev)
         local = p - self.origin
         reach = float(np.linalg.norm(local, axis=1).max() + 2.0 * self.radius) * 1.01 + 1e-30
@@ -284,6 +286,7 @@ def inward_cone(n_rays: int = 32, half_angle: float = 60.0) -> np.ndarray:
     sz = np.sqrt(1.0 - cz * cz)
     x, y = sz * np.cos(phi), sz * np.sin(phi)
     return np.concatenate([np.stack([sx * x, sy * y, cz], axis=1) for sx in (1, -1) for sy in (1, -1)])
+
 
 def _check_views(centers: ArrayLike, frames: ArrayLike, half_sizes: ArrayLike, resolution: int):
     c = np.asarray(centers, dtype=np.float64)
