@@ -5,7 +5,7 @@ Why: at high beta the sparse Schur approximation P is nearly the weighted Laplac
 unknowns far apart, and FSAI's factor (`wpot.ot.resident.FSAI_ROW` entries a row) is local. On the same Schur
 systems, taken from annealing runs (random R^8 points), CG needed 15-16 iterations with FSAI where it needed 4-6
 with P's exact factors at N = 600, and 24 against 6-7 at N = 1,500; reordering P first changed nothing. The
-V-cycle below needed 7-8 and 10-11 (the issue-19 notes have the offline comparison).
+V-cycle below needed 7-8 and 10-11.
 
 Hierarchy, built on the host with each full build of the preconditioner from one read of P:
 
