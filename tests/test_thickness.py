@@ -117,6 +117,14 @@ def test_ldsift_thickness_column(sphere):
     c = Comparer(signature="ldsift", cache_dir=False)
     np.testing.assert_array_equal(c.with_options(ldsift_thickness=2.0).signatures(mesh), withcol)
     assert c.signatures(mesh).shape == (mesh.n_vertices, 128)
+    # cached piece by piece: the descriptor under the key it has without the column, so every weight shares it
+    assert sig(sig.Options(thickness=2.0)).pieces()["descriptor"] == sig().params() == sig().pieces()["descriptor"]
+    assert len(c.signature_cache) == 2  # the descriptor and the thickness, not one entry per weight
+    half = c.with_options(ldsift_thickness=0.5).signatures(mesh)
+    assert len(c.signature_cache) == 2 and not half.flags.writeable
+    np.testing.assert_array_equal(half, sig(sig.Options(thickness=0.5))(mesh))
+    with pytest.raises(ValueError, match="'descriptor' and 'thickness'"):
+        sig().piece("signature", mesh)
     # the option is keyed only when set, so runs and caches made without it keep their keys
     keyed = sig(sig.Options(thickness=2.0)).params()
     assert "thickness" not in sig().params() and keyed["thickness"] == 2.0 and keyed["thickness_version"] == T.VERSION

@@ -59,7 +59,8 @@ __all__ = [
 
 #: fraction of the device's free memory a solve may plan to use (`Comparer`'s default ``memory_limit``)
 MEMORY_FRACTION = 0.8
-#: signatures kept in a `Comparer`'s memory cache, by count and bytes (the disk cache has no bound)
+#: signatures kept in a `Comparer`'s memory cache, by shapes and bytes (the disk cache has no bound); the count of
+#: entries allows for two cached pieces a shape (`wpot.signatures.base.Signature.pieces`)
 MAX_CACHED_SHAPES = 128
 MAX_CACHED_BYTES = 2 << 30
 
@@ -369,7 +370,8 @@ class Comparer:
         self.cache_dir = cache_dir
         self.memory_limit = None if memory_limit is None else _validate.positive_finite("memory_limit", memory_limit)
         if caches is None:
-            caches = (Cache("signatures", max_entries=MAX_CACHED_SHAPES, max_bytes=MAX_CACHED_BYTES, cache_dir=cache_dir),
+            caches = (Cache("signatures", max_entries=2 * MAX_CACHED_SHAPES, max_bytes=MAX_CACHED_BYTES,
+                            cache_dir=cache_dir),
                       _spectrum_cache(cache_dir))
         self.signature_cache, self.spectrum_cache = caches
         self.stage = get_signature(config.signature)(config.signature_options, device=self.device,
@@ -505,12 +507,17 @@ class Comparer:
         """Per-vertex signatures of the full mesh, (N, d) float64, read-only.
 
         Cached by mesh content and the signature's parameters (`wpot.cache.Cache`, namespace "signatures"): in
-        memory, and on disk under ``cache_dir`` (or ``$WPOT_CACHE_DIR``). A signature fitted to a dataset
-        (WKS) must be fitted first (`fit`, ``energies=``, or `compare`, which fits it to its pair).
+        memory, and on disk under ``cache_dir`` (or ``$WPOT_CACHE_DIR``); a signature made of pieces
+        (`wpot.signatures.base.Signature.pieces`, e.g. LD-SIFT with its thickness column) is cached piece by
+        piece. A signature fitted to a dataset (WKS) must be fitted first (`fit`, ``energies=``, or `compare`,
+        which fits it to its pair).
         """
-        entry = self.signature_cache.get_or_compute(mesh.fingerprint, self.stage.params(),
-                                                    lambda: {"signature": self.stage(mesh)})
-        sig = entry["signature"]
+        stage = self.stage
+        sig = stage.assemble({
+            name: self.signature_cache.get_or_compute(
+                mesh.fingerprint, params, lambda name=name: {"signature": stage.piece(name, mesh)})["signature"]
+            for name, params in stage.pieces().items()})
+        sig.setflags(write=False)  # a cached piece already is; an assembled array is new
         if sig.shape[0] != mesh.n_vertices:
             raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
         return sig

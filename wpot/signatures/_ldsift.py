@@ -71,8 +71,8 @@ size column, `wpot.signatures._thickness`); nothing to fit.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -410,14 +410,36 @@ class LDSIFT(Signature):
             p["thickness_version"] = _thickness.VERSION
         return p
 
-    def __call__(self, mesh: Mesh) -> np.ndarray:
-        """(N, 128) float64, `ldsift` of ``mesh``; (N, 129) with the thickness column."""
+    def pieces(self) -> dict[str, dict[str, Any]]:
+        """Cached as the descriptor (under the key LD-SIFT has without the thickness column, so runs with and
+        without it, or at two weights of it, share one) and, with the column, the thickness itself (keyed by K,
+        which sets the frames its rays lie in, and the thickness module's ``VERSION``)."""
+        from wpot.signatures import _thickness
+
+        out = {"descriptor": type(self)(replace(self.options, thickness=0.0)).params()}
+        if self.options.thickness:
+            out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": _thickness.VERSION}
+        return out
+
+    def piece(self, name: str, mesh: Mesh) -> np.ndarray:
+        """``"descriptor"``: (N, 128) `ldsift`; ``"thickness"``: (N,) the local thickness in the mesh's units."""
         from wpot.signatures._thickness import thickness
 
+        if name not in ("descriptor", "thickness"):
+            raise ValueError(f"LD-SIFT's cached pieces are 'descriptor' and 'thickness', got {name!r}")
         o = self.options
         fr = local_frames(_check_mesh(mesh), K=o.K)
-        d = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
-        if o.thickness == 0:
+        if name == "thickness":
+            return thickness(mesh, frames=fr, device=self.device)
+        return ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
+
+    def assemble(self, pieces: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The descriptor, with the column ``w THICKNESS_UNIT log t`` appended when w > 0."""
+        d = pieces["descriptor"]
+        if self.options.thickness == 0:
             return d
-        t = thickness(mesh, frames=fr, device=self.device)
-        return np.hstack([d, (o.thickness * THICKNESS_UNIT * np.log(t))[:, None]])
+        return np.hstack([d, (self.options.thickness * THICKNESS_UNIT * np.log(pieces["thickness"]))[:, None]])
+
+    def __call__(self, mesh: Mesh) -> np.ndarray:
+        """(N, 128) float64, `ldsift` of ``mesh``; (N, 129) with the thickness column."""
+        return self.assemble({name: self.piece(name, mesh) for name in self.pieces()})

@@ -272,6 +272,25 @@ class Signature:
         """(N, d) float64 signatures of every vertex of ``mesh`` (uncached); a `ValueError` when not fitted."""
         raise NotImplementedError
 
+    # ------------------------------------------------------------------------------ cached pieces
+    def pieces(self) -> dict[str, dict[str, Any]]:
+        """The pieces the signature is cached as, by name, each with its own cache key (the ``params`` of
+        `wpot.cache.Cache`). `wpot.Comparer.signatures` caches each piece (`piece`) under its key and joins them
+        (`assemble`), so that settings that only change how the pieces are joined reuse the cached pieces: LD-SIFT
+        with and without its thickness column, or at two weights of it, shares one descriptor. The default is one
+        piece, ``"signature"``: the whole signature under `params`."""
+        return {"signature": self.params()}
+
+    def piece(self, name: str, mesh: Any) -> np.ndarray:
+        """The piece ``name`` (a key of `pieces`) of ``mesh``, uncached; by default the whole signature."""
+        if name != "signature":
+            raise ValueError(f"{self.title} has one cached piece, 'signature'; got {name!r}")
+        return self(mesh)
+
+    def assemble(self, pieces: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The (N, d) signature from its pieces by name (as `pieces` names them); by default the one piece."""
+        return pieces["signature"]
+
     def __repr__(self) -> str:
         opts = ", ".join(f"{k}={v!r}" for k, v in self.options.to_dict().items())
         fit = ""
