@@ -47,7 +47,8 @@ def method(w: float) -> str:
 
 
 def score(recs: list[dict], parts: dict[str, dict], w: float) -> dict:
-    """Top-1 and rank of the first whole of the part's class, per part, for weight ``w`` (complete parts only)."""
+    """Top-1 and rank of the first whole of the part's class (None when the library has none), per part, for
+    weight ``w``; parts not compared with every whole yet are left out."""
     from wpot.datasets import class_label
 
     by_part: dict[str, list[tuple[float, str]]] = defaultdict(list)
@@ -62,7 +63,8 @@ def score(recs: list[dict], parts: dict[str, dict], w: float) -> dict:
         ds.sort()
         cls = parts[pt]["class"]
         labels = [class_label(name) for _, name in ds]
-        rows[pt] = {"top1": labels[0] == cls, "rank": labels.index(cls) + 1, "taken_for": ds[0][1],
+        rank = labels.index(cls) + 1 if cls in labels else None  # None: no other pose of its class
+        rows[pt] = {"top1": labels[0] == cls, "rank": rank, "taken_for": ds[0][1],
                     "kind": parts[pt]["kind"], "large": parts[pt]["fraction"] >= LARGE}
     return rows
 
@@ -83,7 +85,7 @@ def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], out:
         lines.append(f"| {w:g} | {pct(lambda r: True)} | {pct(lambda r: r['large'])} | "
                      f"{pct(lambda r: not r['large'])} | "
                      + " | ".join(pct(lambda r, k=k: r["kind"] == k) for k in KINDS)
-                     + f" | {np.mean([r['rank'] for r in rows.values()]):.2f} |")
+                     + f" | {np.mean([r['rank'] for r in rows.values() if r['rank']]):.2f} |")
         fails.append(f"w = {w:g}: " + (", ".join(f"{pt} ({parts[pt]['fraction']:.0%}) -> {r['taken_for']}"
                                                   for pt, r in sorted(rows.items()) if not r["top1"]) or "none"))
     text = "\n".join(lines + ["", "failures (part, its share of the area, the nearest whole):"] + fails)

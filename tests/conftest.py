@@ -99,3 +99,16 @@ def partial_qp(C: np.ndarray, r1: np.ndarray, r2: np.ndarray, mass_penalty: floa
     prob = cp.Problem(cp.Minimize(obj), [cp.sum(G) == 1])
     prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
     return prob.value, m1.value, m2.value
+
+
+def load_benchmark(name: str):
+    """``benchmarks/<name>.py`` as a module, registered in ``sys.modules`` under ``name`` (dataclasses look their
+    module up by name)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod

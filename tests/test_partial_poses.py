@@ -3,25 +3,19 @@ the identity match of a part onto its own source (error 0, all mass on the true 
 another pose, and the mass share over sampled cells. Skipped when ../shared/data is absent."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+
+from conftest import load_benchmark
 
 pytestmark = pytest.mark.data
 
 
 @pytest.fixture(scope="module")
 def pp():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "partial_poses.py"
-    spec = importlib.util.spec_from_file_location("partial_poses", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["partial_poses"] = mod  # dataclasses look their module up by name
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("partial_poses")
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,6 @@ benchmarks/fuzz_readers.py; these tests check each guarantee once, quickly."""
 from __future__ import annotations
 
 import concurrent.futures as cf
-import importlib.util
 import re
 import shutil
 import sqlite3
@@ -233,11 +232,9 @@ def test_non_converged_pairs_are_flagged_in_the_store_and_the_report(data, tmp_p
 
 # ----------------------------------------------------------------------------------------- reader fuzzing
 def _fuzzer():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "fuzz_readers.py"
-    spec = importlib.util.spec_from_file_location("fuzz_readers", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    from conftest import load_benchmark
+
+    return load_benchmark("fuzz_readers")
 
 
 def test_readers_raise_only_value_or_os_errors_on_generated_inputs(tmp_path):
