@@ -412,13 +412,15 @@ class LDSIFT(Signature):
 
     def pieces(self) -> dict[str, dict[str, Any]]:
         """Cached as the descriptor (under the key LD-SIFT has without the thickness column, so runs with and
-        without it, or at two weights of it, share one) and, with the column, the thickness itself (keyed by K,
-        which sets the frames its rays lie in, and the thickness module's ``VERSION``)."""
+        without it, or at two weights of it, share one) and, with the column, the thickness itself (keyed by the
+        thickness module's ``VERSION``, and by K and this module's `VERSION`, which set the frames its rays lie
+        in)."""
         from wpot.signatures import _thickness
 
         out = {"descriptor": type(self)(replace(self.options, thickness=0.0)).params()}
         if self.options.thickness:
-            out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": _thickness.VERSION}
+            out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": _thickness.VERSION,
+                                "frames_version": VERSION}
         return out
 
     def piece(self, name: str, mesh: Mesh) -> np.ndarray:
