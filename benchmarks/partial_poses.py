@@ -55,7 +55,8 @@ cumulative curve over [0, 0.25], and the same against the truth or its mirror, w
 symmetric-tolerant score), with the share of lateral points whose match is the mirror
 (`wpot.evaluate.symmetric_flip`); the share of the mass T receives (the plan's column sums, spread over each
 sample's cell) that lands on the true region, beside the area share of that region (what a uniform spread
-gives); class retrieval (per same-class pair (P, T): T is nearer P than every other-class whole); time per
+gives); class retrieval (per same-class pair (P, T): T is nearer P than every other-class whole;
+`part_retrieval.py` looks the same parts up among all TOSCA 5k shapes instead); time per
 pair (the comparison only; signatures, samples and self-comparisons are per-shape set-up, timed apart).
 
 Results go to ``--out`` (outside the repository) as they are computed, so a stopped run resumes:
