@@ -42,18 +42,18 @@ from jsonl_store import JsonlStore, results_folder  # noqa: E402
 from partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts  # noqa: E402
 
 
-def method(w: float) -> str:
-    return f"nn-ldsift-w{w:g}"
+def method(w: float, slab: float | None = None) -> str:
+    return f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}")
 
 
-def score(recs: list[dict], parts: dict[str, dict], w: float) -> dict:
+def score(recs: list[dict], parts: dict[str, dict], w: float, slab: float | None = None) -> dict:
     """Top-1 and rank of the first whole of the part's class (None when the library has none), per part, for
     weight ``w``; parts not compared with every whole yet are left out."""
     from wpot.datasets import class_label
 
     by_part: dict[str, list[tuple[float, str]]] = defaultdict(list)
     for r in recs:
-        if r["method"] == method(w):
+        if r["method"] == method(w, slab):
             by_part[r["part"]].append((r["distance"], r["whole"]))
     n_wholes = max((len(v) for v in by_part.values()), default=0)
     rows = {}
@@ -69,12 +69,13 @@ def score(recs: list[dict], parts: dict[str, dict], w: float) -> dict:
     return rows
 
 
-def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], out: Path, log) -> None:
+def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, out: Path,
+           log) -> None:
     lines = ["| w | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS) + " | mean rank of the class |",
              "|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
     for w in weights:
-        rows = score(store.records, parts, w)
+        rows = score(store.records, parts, w, slab)
         if not rows:
             continue
 
@@ -100,6 +101,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
                     help="tosca_isometric_5k (default: ../shared/data/tosca_isometric_5k)")
     ap.add_argument("--weights", default="0,1,2", help="LD-SIFT thickness weights w, comma-separated (default 0,1,2)")
+    ap.add_argument("--ldsift-slab", type=float, default=None,
+                    help="LD-SIFT's depth slab (ldsift_slab; default: LD-SIFT's own), a method of its own in --out")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true")
     a = ap.parse_args(argv)
@@ -109,6 +112,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--weights must be numbers separated by commas, got {a.weights!r}")
     if not all(np.isfinite(w) and w >= 0 for w in weights):
         raise SystemExit(f"--weights must be finite and >= 0, got {a.weights!r}")
+    if a.ldsift_slab is not None and not (np.isfinite(a.ldsift_slab) and a.ldsift_slab > 0):
+        raise SystemExit(f"--ldsift-slab must be a positive number, got {a.ldsift_slab}")
     parts = read_parts(a.parts)
     if not parts:
         raise SystemExit(f"--parts {a.parts}: no parts.jsonl there; run partial_poses.py with --out {a.parts} first")
@@ -118,7 +123,7 @@ def main(argv=None) -> int:
     store = JsonlStore(out, keys=("part", "whole"), folder="unused")
     if not a.report_only:
         run(a, parts, weights, store, log)
-    report(store, parts, weights, out, log)
+    report(store, parts, weights, a.ldsift_slab, out, log)
     return 0
 
 
@@ -129,7 +134,8 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log)
 
     members = class_members(a.tosca)
     wholes = [n for names in members.values() for n in names]
-    base = wpot.Comparer(signature="ldsift", device=a.device)
+    slab = {} if a.ldsift_slab is None else {"ldsift_slab": a.ldsift_slab}
+    base = wpot.Comparer(signature="ldsift", device=a.device, **slab)
     comparers = {w: base.with_options(ldsift_thickness=w) for w in weights}
     meshes: dict = {}
 
@@ -147,11 +153,11 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log)
             if name == p["source"]:
                 continue
             for w, c in comparers.items():
-                if (method(w), pt, name) in store.done:
+                if (method(w, a.ldsift_slab), pt, name) in store.done:
                     continue
                 t = time.perf_counter()
                 d = c.nearest_signature_distance(part_meshes[pt], mesh(name))
-                store.add({"method": method(w), "part": pt, "whole": name, "distance": d,
+                store.add({"method": method(w, a.ldsift_slab), "part": pt, "whole": name, "distance": d,
                            "seconds": time.perf_counter() - t}, None)
         log(f"whole {k + 1}/{len(wholes)} {name}: {time.perf_counter() - t0:.0f} s")
 

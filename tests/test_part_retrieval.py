@@ -37,5 +37,7 @@ def test_bad_arguments_are_refused_by_flag(pr, tmp_path, weights, says):
     (tmp_path / "parts.jsonl").write_text(json.dumps({"part": "cat0_head-L", "class": "cat"}) + "\n")
     with pytest.raises(SystemExit, match=f"--weights .*{says}|--weights must be {says}"):
         pr.main(["--parts", str(tmp_path), "--out", str(tmp_path / "out"), "--weights", weights])
+    with pytest.raises(SystemExit, match="--ldsift-slab must be a positive number"):
+        pr.main(["--parts", str(tmp_path), "--out", str(tmp_path / "out"), "--ldsift-slab", "0"])
     with pytest.raises(SystemExit, match="--parts .*no parts.jsonl"):
         pr.main(["--parts", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
