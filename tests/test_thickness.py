@@ -124,7 +124,7 @@ def test_ldsift_thickness_column(sphere):
     assert len(c.signature_cache) == 2 and not half.flags.writeable
     np.testing.assert_array_equal(half, sig(sig.Options(thickness=0.5))(mesh))
     with pytest.raises(ValueError, match="'descriptor' and 'thickness'"):
-        sig().piece("signature", mesh)
+        sig().compute_pieces(mesh, ["signature"])
     # the option is keyed only when set, so runs and caches made without it keep their keys
     keyed = sig(sig.Options(thickness=2.0)).params()
     assert "thickness" not in sig().params() and keyed["thickness"] == 2.0 and keyed["thickness_version"] == T.VERSION

@@ -512,11 +512,14 @@ class Comparer:
         piece. A signature fitted to a dataset (WKS) must be fitted first (`fit`, ``energies=``, or `compare`,
         which fits it to its pair).
         """
-        stage = self.stage
-        sig = stage.assemble({
-            name: self.signature_cache.get_or_compute(
-                mesh.fingerprint, params, lambda name=name: {"signature": stage.piece(name, mesh)})["signature"]
-            for name, params in stage.pieces().items()})
+        stage, cache = self.stage, self.signature_cache
+        keys = stage.pieces()
+        got = {name: cache.get(mesh.fingerprint, params) for name, params in keys.items()}
+        missing = [name for name, entry in got.items() if entry is None]
+        if missing:
+            for name, value in stage.compute_pieces(mesh, missing).items():
+                got[name] = cache.put(mesh.fingerprint, keys[name], {"signature": value})
+        sig = stage.assemble({name: entry["signature"] for name, entry in got.items()})
         sig.setflags(write=False)  # a cached piece already is; an assembled array is new
         if sig.shape[0] != mesh.n_vertices:
             raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")

@@ -72,7 +72,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -423,17 +423,22 @@ class LDSIFT(Signature):
                                 "frames_version": VERSION}
         return out
 
-    def piece(self, name: str, mesh: Mesh) -> np.ndarray:
-        """``"descriptor"``: (N, 128) `ldsift`; ``"thickness"``: (N,) the local thickness in the mesh's units."""
+    def compute_pieces(self, mesh: Mesh, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """``"descriptor"``: (N, 128) `ldsift`; ``"thickness"``: (N,) the local thickness in the mesh's units;
+        both from one computation of the frames."""
         from wpot.signatures._thickness import thickness
 
-        if name not in ("descriptor", "thickness"):
-            raise ValueError(f"LD-SIFT's cached pieces are 'descriptor' and 'thickness', got {name!r}")
+        bad = sorted(set(names) - {"descriptor", "thickness"})
+        if bad:
+            raise ValueError(f"LD-SIFT's cached pieces are 'descriptor' and 'thickness', got {bad}")
         o = self.options
         fr = local_frames(_check_mesh(mesh), K=o.K)
-        if name == "thickness":
-            return thickness(mesh, frames=fr, device=self.device)
-        return ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
+        out = {}
+        if "descriptor" in names:
+            out["descriptor"] = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
+        if "thickness" in names:
+            out["thickness"] = thickness(mesh, frames=fr, device=self.device)
+        return out
 
     def assemble(self, pieces: Mapping[str, np.ndarray]) -> np.ndarray:
         """The descriptor, with the column ``w THICKNESS_UNIT log t`` appended when w > 0."""
@@ -444,4 +449,4 @@ class LDSIFT(Signature):
 
     def __call__(self, mesh: Mesh) -> np.ndarray:
         """(N, 128) float64, `ldsift` of ``mesh``; (N, 129) with the thickness column."""
-        return self.assemble({name: self.piece(name, mesh) for name in self.pieces()})
+        return self.assemble(self.compute_pieces(mesh, list(self.pieces())))

@@ -275,17 +275,19 @@ class Signature:
     # ------------------------------------------------------------------------------ cached pieces
     def pieces(self) -> dict[str, dict[str, Any]]:
         """The pieces the signature is cached as, by name, each with its own cache key (the ``params`` of
-        `wpot.cache.Cache`). `wpot.Comparer.signatures` caches each piece (`piece`) under its key and joins them
-        (`assemble`), so that settings that only change how the pieces are joined reuse the cached pieces: LD-SIFT
-        with and without its thickness column, or at two weights of it, shares one descriptor. The default is one
-        piece, ``"signature"``: the whole signature under `params`."""
+        `wpot.cache.Cache`). `wpot.Comparer.signatures` caches each piece under its key, computes the missing
+        ones in one `compute_pieces` call and joins them (`assemble`), so that settings that only change how
+        the pieces are joined reuse the cached pieces: LD-SIFT with and without its thickness column, or at two
+        weights of it, shares one descriptor. The default is one piece, ``"signature"``: the whole signature
+        under `params`."""
         return {"signature": self.params()}
 
-    def piece(self, name: str, mesh: Any) -> np.ndarray:
-        """The piece ``name`` (a key of `pieces`) of ``mesh``, uncached; by default the whole signature."""
-        if name != "signature":
-            raise ValueError(f"{self.title} has one cached piece, 'signature'; got {name!r}")
-        return self(mesh)
+    def compute_pieces(self, mesh: Any, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """The pieces ``names`` (keys of `pieces`) of ``mesh``, uncached, by name; in one call, so that work the
+        pieces share is done once. By default the whole signature."""
+        if list(names) != ["signature"]:
+            raise ValueError(f"{self.title} has one cached piece, 'signature'; got {list(names)}")
+        return {"signature": self(mesh)}
 
     def assemble(self, pieces: Mapping[str, np.ndarray]) -> np.ndarray:
         """The (N, d) signature from its pieces by name (as `pieces` names them); by default the one piece."""
