@@ -71,7 +71,8 @@ def score(recs: list[dict], parts: dict[str, dict], w: float, slab: float | None
 
 def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, out: Path,
            log) -> None:
-    lines = ["| w | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS) + " | mean rank of the class |",
+    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}", "",
+             "| w | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS) + " | mean rank of the class |",
              "|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
     for w in weights:
