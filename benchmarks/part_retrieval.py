@@ -7,23 +7,30 @@
 which holds the part itself. The part's class has other poses there (2 to 19 of them), and so has every other
 class: what a user faces who looks a part up in a dataset of whole shapes.
 
-**Distance**: `Comparer.nearest_signature_distance(part, whole)` (the mean, over the part's vertices, of the cost
-to the nearest signature of the whole), LD-SIFT with each ``--weights`` w of its thickness column
+**Costs**: for each part and each whole of its library, the cost from each vertex of the part to the nearest
+signature of the whole (`Comparer.nearest_costs`), LD-SIFT with each ``--weights`` w of its thickness column
 (``ldsift_thickness``); w = 0, the paper's LD-SIFT, is the peer in the same run. One `Comparer` and its
 ``with_options`` copies share the signature cache, where LD-SIFT is kept as its descriptor and its thickness
 apart, so every weight reuses one descriptor a shape.
 
-**Reported** per weight, over the parts, each part weighing the same: top-1 (the nearest whole is of the
-part's class), by kind and by size (parts >= 20 % / < 20 % of the area); the mean rank of the nearest whole of
-the part's class (1 = top-1); and each failure with the class it was taken for. `partial_poses.py` reports a
-stricter, per-pair score: every same-class pose it drew nearer than one drawn pose of each other class.
+**Two scorings of the same costs**, per weight:
+- *nearest whole*: the class of the whole with the least mean cost (`Comparer.nearest_signature_distance`);
+- *retrieve*: the first class of `Comparer.retrieve` (`wpot.retrieval.rank_classes`: each vertex's costs
+  standardised over the library, a class scored by the union of its ``--k-nearest`` nearest members).
 
-Results go to ``--out`` (outside the repository) as they are computed, one line per (weight, part, whole) in
-``pairs.jsonl``, so a stopped run resumes; then ``results.md``.
+**Reported** per weight and scoring, over the parts, each part weighing the same: top-1 (the part's class comes
+first), by kind and by size (parts >= 20 % / < 20 % of the area); the mean rank of the part's class (1 = top-1);
+and each failure with the class it was taken for. `partial_poses.py` reports a stricter, per-pair score: every
+same-class pose it drew nearer than one drawn pose of each other class.
 
-Usage (one busy CPU core: about 20 minutes for 112 parts, 75 wholes and three weights):
+Results go to ``--out`` (outside the repository) as they are computed, one line per (weight, part) in
+``pairs.jsonl`` and the part's (N, M) costs in ``costs/<method>/<part>__library.npz`` (float32, with the
+wholes' names), so a stopped run resumes and ``--report-only`` rescores at another ``--k-nearest``; then
+``results.md``.
 
-    OPENBLAS_NUM_THREADS=1 WPOT_CACHE_DIR=/work/runs/cache python benchmarks/part_retrieval.py \\
+Usage (two CPU cores: about 10 minutes a weight for 112 parts and 75 wholes):
+
+    WPOT_CACHE_DIR=/work/runs/cache python benchmarks/part_retrieval.py \\
         --parts /work/runs/partial_poses --out /work/runs/part_retrieval --weights 0,1,2
     python benchmarks/part_retrieval.py --parts /work/runs/partial_poses --out /work/runs/part_retrieval --report-only
 """
@@ -32,7 +39,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -46,56 +52,72 @@ def method(w: float, slab: float | None = None) -> str:
     return f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}")
 
 
-def score(recs: list[dict], parts: dict[str, dict], w: float, slab: float | None = None) -> dict:
-    """Top-1 and rank of the first whole of the part's class (None when the library has none), per part, for
-    weight ``w``; parts not compared with every whole yet are left out."""
-    from wpot.datasets import class_label
+LIBRARY = "library"  # the second key of a record: the part's library (every whole but its source)
+SCORINGS = ("nearest whole", "retrieve")
 
-    by_part: dict[str, list[tuple[float, str]]] = defaultdict(list)
-    for r in recs:
-        if r["method"] == method(w, slab):
-            by_part[r["part"]].append((r["distance"], r["whole"]))
-    n_wholes = max((len(v) for v in by_part.values()), default=0)
+
+def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[str, dict]:
+    """Both scorings of one part from its (N, M) ``costs`` to ``wholes``: per scoring, top-1, the rank of class
+    ``cls`` (None when the library has none of it) and what the part was taken for (the first whole or class)."""
+    from wpot.datasets import class_label
+    from wpot.retrieval import rank_classes
+
+    labels = [class_label(n) for n in wholes]
+    order = np.argsort(costs.mean(axis=0), kind="stable")
+    ranked = [labels[j] for j in order]
+    r = rank_classes(costs, labels, options=options)
+    return {"nearest whole": {"top1": ranked[0] == cls, "rank": ranked.index(cls) + 1 if cls in ranked else None,
+                              "taken_for": wholes[order[0]]},
+            "retrieve": {"top1": r.label == cls, "rank": r.rank(cls) if cls in r.classes else None,
+                         "taken_for": f"{r.label} ({wholes[r.members[0][0]]})"}}
+
+
+def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | None, options) -> dict:
+    """Per part with stored costs for weight ``w``: its kind, its size, and `score_part`."""
     rows = {}
-    for pt, ds in by_part.items():
-        if len(ds) < n_wholes:
-            continue  # not finished
-        ds.sort()
-        cls = parts[pt]["class"]
-        labels = [class_label(name) for _, name in ds]
-        rank = labels.index(cls) + 1 if cls in labels else None  # None: no other pose of its class
-        rows[pt] = {"top1": labels[0] == cls, "rank": rank, "taken_for": ds[0][1],
-                    "kind": parts[pt]["kind"], "large": parts[pt]["fraction"] >= LARGE}
+    for rec in store.records:
+        if rec["method"] != method(w, slab) or rec["part"] not in parts:
+            continue
+        p = parts[rec["part"]]
+        with np.load(store.npz_path(rec["method"], rec["part"], LIBRARY), allow_pickle=False) as z:
+            costs, wholes = z["costs"].astype(np.float64), [str(x) for x in z["wholes"]]
+        rows[rec["part"]] = {"kind": p["kind"], "large": p["fraction"] >= LARGE,
+                             **score_part(costs, wholes, p["class"], options)}
     return rows
 
 
-def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, out: Path,
-           log) -> None:
-    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}", "",
-             "| w | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS) + " | mean rank of the class |",
-             "|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
+def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, options,
+           out: Path, log) -> None:
+    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}; retrieve: k_nearest "
+             f"{options.k_nearest}, standardize {options.standardize}", "",
+             "| w | scoring | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS)
+             + " | mean rank of the class |", "|---|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
     for w in weights:
-        rows = score(store.records, parts, w, slab)
+        rows = score(store, parts, w, slab, options)
         if not rows:
             continue
+        for sc in SCORINGS:
+            def pct(sel) -> str:
+                v = [r[sc]["top1"] for r in rows.values() if sel(r)]
+                return f"{np.mean(v):.1%} ({len(v)})" if v else "–"
 
-        def pct(sel) -> str:
-            v = [r["top1"] for r in rows.values() if sel(r)]
-            return f"{np.mean(v):.1%} ({len(v)})" if v else "–"
-
-        lines.append(f"| {w:g} | {pct(lambda r: True)} | {pct(lambda r: r['large'])} | "
-                     f"{pct(lambda r: not r['large'])} | "
-                     + " | ".join(pct(lambda r, k=k: r["kind"] == k) for k in KINDS)
-                     + f" | {np.mean([r['rank'] for r in rows.values() if r['rank']]):.2f} |")
-        fails.append(f"w = {w:g}: " + (", ".join(f"{pt} ({parts[pt]['fraction']:.0%}) -> {r['taken_for']}"
-                                                  for pt, r in sorted(rows.items()) if not r["top1"]) or "none"))
-    text = "\n".join(lines + ["", "failures (part, its share of the area, the nearest whole):"] + fails)
+            ranks = [r[sc]["rank"] for r in rows.values() if r[sc]["rank"]]
+            lines.append(f"| {w:g} | {sc} | {pct(lambda r: True)} | {pct(lambda r: r['large'])} | "
+                         f"{pct(lambda r: not r['large'])} | "
+                         + " | ".join(pct(lambda r, k=k: r["kind"] == k) for k in KINDS)
+                         + f" | {np.mean(ranks):.2f} |")
+            fails.append(f"w = {w:g}, {sc}: " + (", ".join(
+                f"{pt} ({parts[pt]['fraction']:.0%}) -> {r[sc]['taken_for']}"
+                for pt, r in sorted(rows.items()) if not r[sc]["top1"]) or "none"))
+    text = "\n".join(lines + ["", "failures (part, its share of the area, what it was taken for):"] + fails)
     (out / "results.md").write_text(text + "\n")
     log(text)
 
 
 def main(argv=None) -> int:
+    from wpot.retrieval import RetrievalOptions
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", type=Path, required=True, help="a partial_poses.py --out folder (its parts)")
     ap.add_argument("--out", type=Path, required=True, help="results folder, outside the repository")
@@ -104,6 +126,8 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default="0,1,2", help="LD-SIFT thickness weights w, comma-separated (default 0,1,2)")
     ap.add_argument("--ldsift-slab", type=float, default=None,
                     help="LD-SIFT's depth slab (ldsift_slab; default: LD-SIFT's own), a method of its own in --out")
+    ap.add_argument("--k-nearest", type=int, default=RetrievalOptions.k_nearest,
+                    help="retrieve's k_nearest: a class is the union of this many of its members (default %(default)s)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true")
     a = ap.parse_args(argv)
@@ -115,16 +139,18 @@ def main(argv=None) -> int:
         raise SystemExit(f"--weights must be finite and >= 0, got {a.weights!r}")
     if a.ldsift_slab is not None and not (np.isfinite(a.ldsift_slab) and a.ldsift_slab > 0):
         raise SystemExit(f"--ldsift-slab must be a positive number, got {a.ldsift_slab}")
+    if a.k_nearest < 1:
+        raise SystemExit(f"--k-nearest must be at least 1, got {a.k_nearest}")
     parts = read_parts(a.parts)
     if not parts:
         raise SystemExit(f"--parts {a.parts}: no parts.jsonl there; run partial_poses.py with --out {a.parts} first")
     if not _vtx(a.tosca).is_dir():
         raise SystemExit(f"--tosca {a.tosca}: not found (tosca_isometric_5k, see ../shared/data/README)")
     out, log = results_folder(a.out)
-    store = JsonlStore(out, keys=("part", "whole"), folder="unused")
+    store = JsonlStore(out, keys=("part", "library"), folder="costs")
     if not a.report_only:
         run(a, parts, weights, store, log)
-    report(store, parts, weights, a.ldsift_slab, out, log)
+    report(store, parts, weights, a.ldsift_slab, RetrievalOptions(k_nearest=a.k_nearest), out, log)
     return 0
 
 
@@ -134,33 +160,25 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log)
     from wpot.mesh import cut
 
     members = class_members(a.tosca)
-    wholes = [n for names in members.values() for n in names]
+    wholes = {n: load_mesh(_vtx(a.tosca) / f"{n}.off", warn=False) for names in members.values() for n in names}
     slab = {} if a.ldsift_slab is None else {"ldsift_slab": a.ldsift_slab}
     base = wpot.Comparer(signature="ldsift", device=a.device, **slab)
     comparers = {w: base.with_options(ldsift_thickness=w) for w in weights}
-    meshes: dict = {}
-
-    def mesh(name: str):
-        if name not in meshes:
-            meshes[name] = load_mesh(_vtx(a.tosca) / f"{name}.off", warn=False)
-        return meshes[name]
-
-    part_meshes = {pt: cut(mesh(p["source"]), np.load(a.parts / "parts" / f"{pt}.npz")["idx"])[0]
-                   for pt, p in parts.items()}
     log(f"{len(parts)} parts, {len(wholes)} wholes, weights {weights}; wpot {wpot.__file__}")
     t0 = time.perf_counter()
-    for k, name in enumerate(wholes):  # whole by whole: each whole is loaded and its signatures computed once
-        for pt, p in parts.items():
-            if name == p["source"]:
-                continue
-            for w, c in comparers.items():
-                if (method(w, a.ldsift_slab), pt, name) in store.done:
-                    continue
-                t = time.perf_counter()
-                d = c.nearest_signature_distance(part_meshes[pt], mesh(name))
-                store.add({"method": method(w, a.ldsift_slab), "part": pt, "whole": name, "distance": d,
-                           "seconds": time.perf_counter() - t}, None)
-        log(f"whole {k + 1}/{len(wholes)} {name}: {time.perf_counter() - t0:.0f} s")
+    for k, (pt, p) in enumerate(parts.items()):
+        todo = {w: c for w, c in comparers.items() if (method(w, a.ldsift_slab), pt, LIBRARY) not in store.done}
+        if not todo:
+            continue
+        part = cut(wholes[p["source"]], np.load(a.parts / "parts" / f"{pt}.npz")["idx"])[0]
+        library = [n for n in wholes if n != p["source"]]
+        for w, c in todo.items():
+            t = time.perf_counter()
+            costs = c.nearest_costs(part, [wholes[n] for n in library])
+            store.add({"method": method(w, a.ldsift_slab), "part": pt, "library": LIBRARY, "n_wholes": len(library),
+                       "seconds": time.perf_counter() - t},
+                      {"costs": costs.astype(np.float32), "wholes": np.array(library)})
+        log(f"part {k + 1}/{len(parts)} {pt}: {time.perf_counter() - t0:.0f} s")
 
 
 if __name__ == "__main__":

@@ -880,6 +880,8 @@ def main(argv=None) -> int:
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and figure from --out")
+    ap.add_argument("--parts-only", action="store_true",
+                    help="only cut and record the parts in --out (for part_retrieval.py --parts), match nothing")
     ap.add_argument("--report-all", action="store_true", help="report every method stored in --out")
     a = ap.parse_args(argv)
     a.vertices_per_sample = a.vertices_per_sample or None
@@ -901,8 +903,12 @@ def main(argv=None) -> int:
         others = {s: [] for s in others}
     matchers = Matchers(a, log)
     tags = {m: matchers.tags[m] for m in a.methods}
+    if a.parts_only and a.report_only:
+        ap.error("--parts-only and --report-only exclude each other")
     if not a.report_only:
         keep = run(a, out, store, log, matchers, members, sources, targets, others)
+        if a.parts_only:
+            return 0
     else:
         keep = None
         if a.limit is not None:
@@ -940,6 +946,8 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
     for p in parts:
         log(f"part {p.name}: {p.fraction:.1%} of the area, {len(p.idx)} vertices {json.dumps(p.detail)}")
     log(f"{len(parts)} parts from {len({p.source for p in parts})} sources in {time.perf_counter() - t_start:.0f} s")
+    if a.parts_only:
+        return set()
     settings = store_settings(out)
     settings.update({mt.tags[m]: mt.settings[m] for m in a.methods})
     (out / "settings.json").write_text(json.dumps(settings, indent=1, default=str))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from conftest import load_benchmark
@@ -14,22 +15,53 @@ def pr():
     return load_benchmark("part_retrieval")
 
 
-def test_top1_and_rank_of_the_class(pr):
+def test_both_scorings_of_one_part(pr):
+    """Nearest whole against `retrieve` on costs built so that they disagree: cat2 explains nine of the part's
+    ten vertices best but the tenth (a vertex the pose moved) badly, so its mean loses to dog3's."""
+    from wpot.retrieval import RetrievalOptions
+
+    costs = np.column_stack([np.r_[np.full(9, 1.1), 1.0],   # dog3
+                             np.r_[np.full(9, 0.9), 5.0],   # cat2
+                             np.full(10, 3.0)])             # cat4
+    wholes = ["dog3", "cat2", "cat4"]
+    r = pr.score_part(costs, wholes, "cat", RetrievalOptions())
+    assert r["nearest whole"] == {"top1": False, "rank": 2, "taken_for": "dog3"}
+    assert r["retrieve"] == {"top1": True, "rank": 1, "taken_for": "cat (cat2)"}
+    # by its nearest member alone and without standardising, retrieve is the nearest whole's class
+    raw = pr.score_part(costs, wholes, "cat", RetrievalOptions(k_nearest=1, standardize=False))["retrieve"]
+    assert raw == {"top1": False, "rank": 2, "taken_for": "dog (dog3)"}
+    # a class the library lacks has no rank
+    none = pr.score_part(costs, wholes, "wolf", RetrievalOptions())
+    assert none["nearest whole"]["rank"] is None and none["retrieve"]["rank"] is None
+
+
+def test_stored_costs_are_scored_and_reported(pr, tmp_path):
+    """Costs stored by the run (npz beside pairs.jsonl) give the same scores as `score_part`; a part without
+    stored costs is left out; the report names every failure with what the part was taken for."""
+    from wpot.retrieval import RetrievalOptions
+
+    from jsonl_store import JsonlStore
+
     parts = {"cat0_limb-S": {"class": "cat", "kind": "limb", "fraction": 0.08},
-             "dog2_head-L": {"class": "dog", "kind": "head", "fraction": 0.25},
-             "wolf0_cut-L": {"class": "wolf", "kind": "cut", "fraction": 0.4}}
-    d = {("cat0_limb-S", "dog3"): 0.5, ("cat0_limb-S", "cat2"): 0.7, ("cat0_limb-S", "cat4"): 0.9,
-         ("dog2_head-L", "dog3"): 0.2, ("dog2_head-L", "cat2"): 0.7, ("dog2_head-L", "cat4"): 0.1,
-         ("wolf0_cut-L", "wolf1"): 0.1, ("wolf0_cut-L", "cat2"): 0.7}  # wolf0_cut-L: one whole missing
-    recs = [{"method": pr.method(1.0), "part": p, "whole": w, "distance": v} for (p, w), v in d.items()]
-    recs.append({"method": pr.method(0.0), "part": "wolf0_cut-L", "whole": "cat4", "distance": 0.0})
-    rows = pr.score(recs, parts, 1.0)
-    assert set(rows) == {"cat0_limb-S", "dog2_head-L"}  # the unfinished part is not scored
-    assert rows["cat0_limb-S"] == {"top1": False, "rank": 2, "taken_for": "dog3", "kind": "limb", "large": False}
-    assert rows["dog2_head-L"]["top1"] is False and rows["dog2_head-L"]["rank"] == 2
-    assert rows["dog2_head-L"]["taken_for"] == "cat4" and rows["dog2_head-L"]["large"]
-    alone = pr.score(recs, parts, 0.0)["wolf0_cut-L"]  # another weight, scored apart; no wolf in its library
-    assert alone["top1"] is False and alone["rank"] is None
+             "dog2_head-L": {"class": "dog", "kind": "head", "fraction": 0.25}}
+    store = JsonlStore(tmp_path, keys=("part", "library"), folder="costs")
+    rng = np.random.default_rng(0)
+    costs = rng.uniform(1, 2, size=(12, 4))
+    wholes = ["dog3", "cat2", "cat4", "wolf1"]
+    store.add({"method": pr.method(2.0), "part": "cat0_limb-S", "library": pr.LIBRARY},
+              {"costs": costs.astype(np.float32), "wholes": np.array(wholes)})
+    o = RetrievalOptions()
+    rows = pr.score(JsonlStore(tmp_path, keys=("part", "library"), folder="costs"), parts, 2.0, None, o)
+    assert set(rows) == {"cat0_limb-S"}  # dog2_head-L has no costs yet
+    expect = pr.score_part(costs.astype(np.float32).astype(np.float64), wholes, "cat", o)
+    assert {k: rows["cat0_limb-S"][k] for k in pr.SCORINGS} == expect
+    assert rows["cat0_limb-S"]["kind"] == "limb" and rows["cat0_limb-S"]["large"] is False
+    pr.report(store, parts, [2.0], None, o, tmp_path, lambda m: None)
+    text = (tmp_path / "results.md").read_text()
+    for sc in pr.SCORINGS:
+        top1 = expect[sc]["top1"]
+        assert f"| 2 | {sc} | {float(top1):.1%} (1) |" in text
+        assert (f"w = 2, {sc}: none" in text) == top1
 
 
 @pytest.mark.parametrize("weights, says", [("1,x", "numbers separated by commas"), ("-1", "finite and >= 0")])

@@ -68,6 +68,10 @@ _EXPORTS: dict[str, str] = {
     "LocateOptions": "wpot.locate",
     "PartMap": "wpot.locate",
     "LocateWarning": "wpot.locate",
+    # a part's class looked up in a labelled library of whole shapes
+    "rank_classes": "wpot.retrieval",
+    "RetrievalOptions": "wpot.retrieval",
+    "ClassRanking": "wpot.retrieval",
     "cumulative_curve": "wpot.evaluate",
     "curve_auc": "wpot.evaluate",
     "list_shapes": "wpot.datasets",
@@ -119,7 +123,7 @@ _EXPORTS: dict[str, str] = {
     "classify_run": "wpot.report",
     "build_report": "wpot.report",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling", "registration", "history", "report", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling", "registration", "retrieval", "history", "report", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 

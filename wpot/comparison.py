@@ -656,12 +656,39 @@ class Comparer:
         92.4 % at w = 2 (held-out parts: 89.3 / 88.8 % against 83.0 % without). Looked up among all 76 TOSCA 5k
         shapes (`benchmarks/part_retrieval.py`), the nearest whole was of the part's class for 97.3 % of the
         parts at w = 2, 96.4 % at w = 1 and 92.0 % without (held-out parts: 98.2 / 97.3 / 90.2 %)."""
+        self._fit_to_pair(part, whole, ("part", "whole"))
+        return float(self.nearest_costs(part, [whole]).mean())
+
+    def nearest_costs(self, part: Mesh, wholes: Sequence[Mesh]) -> np.ndarray:
+        """(N, M) float64: for each of the part's N vertices and each of the M wholes, the cost from the vertex's
+        signature to the nearest signature of the whole (`wpot.cost.nearest_costs`); column j's mean is
+        `nearest_signature_distance` ``(part, wholes[j])``. What `retrieve` ranks classes from. A signature that
+        needs fitting (WKS) must be fitted first (`fit`)."""
         from wpot.cost import nearest_costs
 
-        self._fit_to_pair(part, whole, ("part", "whole"))
-        _, best = nearest_costs(self.signatures(part), self.signatures(whole), metric=self.stage.metric,
-                                device=self.device)
-        return float(best.mean())
+        wholes = list(wholes)
+        if not wholes:
+            raise ValueError("wholes must hold at least one mesh")
+        if self.stage.needs_fit and not self.stage.fitted:
+            raise ValueError(f"{self.signature} needs fitting: call fit(wholes) first")
+        sig = self.signatures(part)
+        return np.column_stack([nearest_costs(sig, self.signatures(w), metric=self.stage.metric,
+                                              device=self.device)[1] for w in wholes])
+
+    def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
+        """Rank the classes of a library of whole shapes for ``part`` (`wpot.retrieval.rank_classes`): from each
+        vertex's cost to the nearest signature of each whole (`nearest_costs`), standardised per vertex, a
+        class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
+        a `wpot.retrieval.RetrievalOptions`. Returns a `wpot.retrieval.ClassRanking`, whose ``whole_costs``
+        are `nearest_signature_distance` for each whole. On TOSCA it ranks first the part's class where the
+        nearest whole fails on a pose that two classes share (README, "Parts looked up in a library")."""
+        from wpot.retrieval import rank_classes
+
+        wholes = list(wholes)
+        if len(wholes) != len(labels):
+            raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and "
+                             f"{len(labels)} labels")
+        return rank_classes(self.nearest_costs(part, wholes), labels, options=options)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
         """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.locate.locate_part`): this comparer's

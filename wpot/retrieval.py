@@ -1,0 +1,129 @@
+"""Looking a part up in a labelled library of whole shapes: which class is the part from?
+
+`Comparer.nearest_signature_distance` scores one whole: the mean, over the part's vertices, of the cost from
+each vertex's signature to the nearest signature of the whole. Taking the class of the nearest whole fails in
+one way on TOSCA (`benchmarks/part_retrieval.py`): a part cut from a pose that two other classes share (TOSCA's
+three humans all have a neutral pose 0) is taken for one of them, because LD-SIFT is extrinsic and one pose of
+two bodies looks more alike than two poses of one body. The vertices where the pose differs (a hand, an elbow)
+then cost much more in every pose of the part's own class than in the other class's pose 0, and they decide
+the mean. `rank_classes` scores a class from the same per-vertex costs in two steps that take that weight
+away from them:
+
+1. **Standardised per vertex** (``standardize``): each vertex's costs to the library's wholes become z-scores
+   over the library, so that every vertex weighs the same, whether its costs spread widely (a vertex the pose
+   moves) or hardly (a vertex every whole explains equally well, or none does, such as one on the part's cut).
+2. **A class as the union of its nearest members** (``k_nearest``): a vertex's cost to a class is its least
+   cost over the class's ``k_nearest`` members nearest to the part (by their mean), so a part whose arm is
+   posed as in one pose of its class and whose hand as in another is explained by the two together. A class's
+   score is the mean of these costs over the part's vertices; the smallest score ranks first. ``k_nearest``
+   stays small because a class with more members would otherwise gain from its size alone.
+
+Measured with LD-SIFT and its thickness column at w = 2 (README, "Parts looked up in a library"): see the
+README's table for the figures beside the nearest whole's class.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from wpot import _validate
+
+__all__ = ["RetrievalOptions", "ClassRanking", "rank_classes"]
+
+
+@dataclass(frozen=True)
+class RetrievalOptions:
+    """Options of `rank_classes` (the module docstring says what each does).
+
+    k_nearest : a class's score takes each vertex's least cost over this many of its members, those nearest to
+        the part by their mean cost (all of them when the class has fewer); 1 scores a class by its nearest
+        member alone
+    standardize : turn each vertex's costs into z-scores over the library's wholes first
+    """
+
+    k_nearest: int = 3
+    standardize: bool = True
+
+    def __post_init__(self) -> None:
+        _validate.integer_at_least("k_nearest", self.k_nearest, 1)
+        _validate.boolean("standardize", self.standardize)
+
+
+@dataclass(frozen=True)
+class ClassRanking:
+    """The library's classes ranked for one part (`rank_classes`).
+
+    Attributes
+    ----------
+    classes : (C,) the classes, best first
+    scores : (C,) float64, their scores in the same order, ascending (the unit of the costs, or z-scores with
+        ``standardize``)
+    members : (C,) for each class in that order, the indices (into the library) of the members that scored it,
+        nearest first
+    whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`)
+    """
+
+    classes: tuple[str, ...]
+    scores: np.ndarray
+    members: tuple[tuple[int, ...], ...]
+    whole_costs: np.ndarray
+
+    @property
+    def label(self) -> str:
+        """The best class."""
+        return self.classes[0]
+
+    def rank(self, label: str) -> int:
+        """1-based rank of class ``label`` (1 = best)."""
+        if label not in self.classes:
+            raise ValueError(f"class {label!r} is not in the library; it has {sorted(self.classes)}")
+        return self.classes.index(label) + 1
+
+    def __repr__(self) -> str:
+        top = ", ".join(f"{c} {s:.3g}" for c, s in zip(self.classes[:3], self.scores[:3]))
+        return f"ClassRanking({len(self.classes)} classes: {top}{', ...' if len(self.classes) > 3 else ''})"
+
+
+def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalOptions | None = None
+                 ) -> ClassRanking:
+    """Rank the classes of a library of whole shapes for one part.
+
+    Parameters
+    ----------
+    costs : (N, M) for each of the part's N vertices and each of the library's M wholes, the cost from the
+        vertex's signature to the nearest signature of the whole (`wpot.cost.nearest_costs`); finite
+    labels : (M,) the class of each whole
+    options : `RetrievalOptions` (default: standardised, ``k_nearest=3``)
+    """
+    o = RetrievalOptions() if options is None else options
+    if not isinstance(o, RetrievalOptions):
+        raise TypeError(f"options must be a RetrievalOptions, got {type(o).__name__}")
+    c = np.asarray(costs, dtype=np.float64)
+    labels = [str(x) for x in labels]
+    if c.ndim != 2 or c.shape[0] == 0 or c.shape[1] == 0:
+        raise ValueError(f"costs must be a non-empty (n_vertices, n_wholes) array, got shape {c.shape}")
+    if len(labels) != c.shape[1]:
+        raise ValueError(f"labels must have one class per whole: costs has {c.shape[1]} wholes, labels "
+                         f"{len(labels)}")
+    if not np.isfinite(c).all():
+        raise ValueError("costs must be finite")
+    whole_costs = c.mean(axis=0)
+    z = c
+    if o.standardize:
+        sd = c.std(axis=1, keepdims=True)
+        z = np.divide(c - c.mean(axis=1, keepdims=True), sd, out=np.zeros_like(c), where=sd > 0)
+    means = z.mean(axis=0)
+    names = sorted(set(labels))
+    lab = np.asarray(labels)
+    scores, members = [], []
+    for name in names:
+        cols = np.flatnonzero(lab == name)
+        cols = cols[np.argsort(means[cols], kind="stable")[:o.k_nearest]]
+        scores.append(float(z[:, cols].min(axis=1).mean()))
+        members.append(tuple(int(j) for j in cols))
+    order = np.argsort(scores, kind="stable")
+    return ClassRanking(tuple(names[i] for i in order), np.asarray(scores)[order],
+                        tuple(members[i] for i in order), whole_costs)
