@@ -329,3 +329,32 @@ def test_summary_says_why_balanced_transport_matched_nothing():
     # 120 > 100 / 0.9: no vertex of A can put 0.9 of its mass on one vertex of B
     assert "only when 120 <= 100/0.9; use --transport partial" in text
     assert "only when" not in "\n".join(_summary_lines(c, 0.8))  # 120 <= 125: the sizes are not the reason
+
+
+def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
+    """`wpot retrieve` ranks the classes as `Comparer.retrieve` does on the same meshes (LD-SIFT with its
+    thickness column at 2, the command's default), prints them best first and saves the whole ranking."""
+    import wpot as wp_
+    from wpot.io import save_mesh
+
+    blob = wp_.load_mesh(dataset / "blob1.off")
+    part = wp_.cut(blob, np.arange(blob.n_vertices // 2))[0]
+    save_mesh(part, tmp_path / "part.off")
+    library = sorted(p for p in dataset.glob("*.off") if p.stem != "blob1")
+    (tmp_path / "list.txt").write_text("\n".join(str(p) for p in library))
+    r = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "list.txt"), "--out", str(tmp_path / "r.json"),
+             "--device", "cpu")
+    assert r.returncode == 0, r.stderr
+    saved = json.loads((tmp_path / "r.json").read_text())
+    c = wp_.Comparer(signature="ldsift", ldsift_thickness=2.0, device="cpu", cache_dir=False)
+    ref = c.retrieve(wp_.load_mesh(tmp_path / "part.off"), [wp_.load_mesh(p) for p in library],
+                     [wp_.class_label(p.stem) for p in library])
+    assert saved["classes"] == list(ref.classes)
+    np.testing.assert_allclose(saved["scores"], ref.scores, rtol=1e-6, atol=1e-9)
+    assert saved["whole_costs"] == pytest.approx(dict(zip((p.stem for p in library), ref.whole_costs)))
+    printed = re.findall(r"^\s+\d+\. (\S+)\s+score", r.stdout, re.M)
+    assert printed == list(ref.classes)
+    bad = wpot("retrieve", str(tmp_path / "part.off"), str(dataset), "--k-nearest", "0")
+    _one_line_error(bad, "--k-nearest must be at least 1")
+    bad = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "nowhere"))
+    _one_line_error(bad, "no such folder or list file")

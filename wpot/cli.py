@@ -244,6 +244,30 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     p.set_defaults(func=cmd_all_vs_all)
 
+    p = sub.add_parser("retrieve", help="rank the classes of a labelled library of whole shapes for a part",
+                       description="Look a part up in a library of whole shapes: each vertex's cost to the nearest "
+                       "signature of each whole, standardised over the library, a class scored as the union of its "
+                       "--k-nearest nearest members (wpot.retrieval). Prints the classes, best first. Set "
+                       "WPOT_CACHE_DIR to keep the library's signatures between calls.")
+    p.add_argument("part", help=f"the part: a mesh file ({formats})")
+    p.add_argument("library", help="the whole shapes: a folder of mesh files, or a text file listing one mesh path "
+                                   "per line")
+    p.add_argument("--labels", default=None, help="label CSV: a 'name' column and one column per label level, the "
+                   "first the class (default: each file name without its trailing digits, cat10 -> cat)")
+    p.add_argument("--k-nearest", type=int, default=3,
+                   help="a class is the union of this many of its members nearest to the part (default 3)")
+    p.add_argument("--top", type=int, default=5, help="classes to print (default 5)")
+    p.add_argument("--out", default=None,
+                   help="JSON file for the whole ranking: classes, scores, the members that scored each class, "
+                        "and every whole's mean cost (default: none)")
+    from wpot.signatures import add_signature_arguments, signature_names
+
+    p.add_argument("--signature", choices=signature_names(), default="ldsift",
+                   help="vertex signature (default: ldsift, with its thickness column at 2)")
+    add_signature_arguments(p, defaults={"ldsift_thickness": 2.0})
+    p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
+    p.set_defaults(func=cmd_retrieve)
+
     run_help = "an all-vs-all run folder (the --out of `wpot all-vs-all`)"
     p = sub.add_parser("classify", help="1-NN classification from a run's distance matrix")
     p.add_argument("run", help=run_help)
@@ -815,6 +839,47 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
     if fails:
         raise CliError(f"{len(fails)} pairs failed (first: pair {fails[0][:2]}: {cli_words(fails[0][2])}); "
                        "rerun to retry them")
+
+
+def cmd_retrieve(a: argparse.Namespace) -> None:
+    from wpot.comparison import Comparer
+    from wpot.config import ComparisonConfig
+    from wpot.datasets import list_shapes
+    from wpot.io import load_mesh
+    from wpot.retrieval import RetrievalOptions
+    from wpot.signatures import signature_options_from_args
+
+    if a.k_nearest < 1:
+        raise CliError(f"--k-nearest must be at least 1, got {a.k_nearest}")
+    if a.top < 1:
+        raise CliError(f"--top must be at least 1, got {a.top}")
+    if a.labels is not None and not Path(a.labels).is_file():
+        raise CliError(f"label CSV not found: {a.labels}")
+    lib = Path(a.library)
+    if not lib.exists():
+        raise CliError(f"no such folder or list file: {a.library}")
+    source = lib if lib.is_dir() else [x.strip() for x in lib.read_text().splitlines() if x.strip()]
+    shapes = list_shapes(source, labels=a.labels)
+    part = _load(a.part, "part").mesh
+    config = ComparisonConfig(signature=a.signature, signature_options=signature_options_from_args(a.signature, a))
+    comparer = Comparer(config, device=a.device)
+    wholes = [load_mesh(path) for path in shapes.paths]
+    if comparer.stage.needs_fit:
+        comparer.fit(wholes)
+    r = comparer.retrieve(part, wholes, list(shapes.labels["class"]),
+                          options=RetrievalOptions(k_nearest=a.k_nearest))
+    print(f"{a.part} against {len(wholes)} wholes of {len(r.classes)} classes ({signature_title(a.signature)}):")
+    for k, (cls, score, members) in enumerate(zip(r.classes, r.scores, r.members)):
+        if k == a.top:
+            break
+        print(f"  {k + 1}. {cls}  score {score:.4g}  nearest {shapes.names[members[0]]}")
+    if a.out:
+        out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,
+               "classes": list(r.classes), "scores": [float(x) for x in r.scores],
+               "members": [[shapes.names[j] for j in m] for m in r.members],
+               "whole_costs": {n: float(c) for n, c in zip(shapes.names, r.whole_costs)}}
+        Path(a.out).write_text(json.dumps(out, indent=1))
+        print(f"saved {a.out}")
 
 
 def cmd_classify(a: argparse.Namespace) -> None:
