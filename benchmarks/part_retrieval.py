@@ -69,7 +69,7 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[
     return {"nearest whole": {"top1": ranked[0] == cls, "rank": ranked.index(cls) + 1 if cls in ranked else None,
                               "taken_for": wholes[order[0]]},
             "retrieve": {"top1": r.label == cls, "rank": r.rank(cls) if cls in r.classes else None,
-                         "taken_for": f"{r.label} ({wholes[r.members[0][0]]})"}}
+                         "taken_for": f"{r.label} ({wholes[r.members[0][0]]})", "margin": r.margin}}
 
 
 def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | None, options) -> dict:
@@ -84,6 +84,19 @@ def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | Non
         rows[rec["part"]] = {"kind": p["kind"], "large": p["fraction"] >= LARGE,
                              **score_part(costs, wholes, p["class"], options)}
     return rows
+
+
+def margin_line(w: float, rows: dict, share: float = 0.1) -> str:
+    """How well `ClassRanking.margin` flags retrieve's misses: how many of them lie in the ``share`` of the parts
+    with the smallest margins, and top-1 over the other parts."""
+    m = np.array([r["retrieve"]["margin"] for r in rows.values()])
+    ok = np.array([r["retrieve"]["top1"] for r in rows.values()])
+    low = np.argsort(m, kind="stable")[:int(round(share * len(m)))]
+    rest = np.setdiff1d(np.arange(len(m)), low)
+    worst = f"{m[~ok].max():.3g}" if (~ok).any() else "–"
+    return (f"\nw = {w:g}, retrieve's margin (second class's score less the first's): the {share:.0%} of parts with "
+            f"the smallest margins ({len(low)}) hold {int((~ok[low]).sum())} of the {int((~ok).sum())} misses; top-1 "
+            f"over the other parts {ok[rest].mean():.1%}; the misses' largest margin {worst}\n")
 
 
 def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, options,
@@ -110,6 +123,7 @@ def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab
             fails.append(f"w = {w:g}, {sc}: " + (", ".join(
                 f"{pt} ({parts[pt]['fraction']:.0%}) -> {r[sc]['taken_for']}"
                 for pt, r in sorted(rows.items()) if not r[sc]["top1"]) or "none"))
+        lines.append(margin_line(w, rows))
     text = "\n".join(lines + ["", "failures (part, its share of the area, what it was taken for):"] + fails)
     (out / "results.md").write_text(text + "\n")
     log(text)

@@ -26,10 +26,11 @@ def test_both_scorings_of_one_part(pr):
     wholes = ["dog3", "cat2", "cat4"]
     r = pr.score_part(costs, wholes, "cat", RetrievalOptions())
     assert r["nearest whole"] == {"top1": False, "rank": 2, "taken_for": "dog3"}
+    assert r["retrieve"].pop("margin") > 0
     assert r["retrieve"] == {"top1": True, "rank": 1, "taken_for": "cat (cat2)"}
     # by its nearest member alone and without standardising, retrieve is the nearest whole's class
     raw = pr.score_part(costs, wholes, "cat", RetrievalOptions(k_nearest=1, standardize=False))["retrieve"]
-    assert raw == {"top1": False, "rank": 2, "taken_for": "dog (dog3)"}
+    assert raw == {"top1": False, "rank": 2, "taken_for": "dog (dog3)", "margin": pytest.approx(1.31 - 1.09)}
     # a class the library lacks has no rank
     none = pr.score_part(costs, wholes, "wolf", RetrievalOptions())
     assert none["nearest whole"]["rank"] is None and none["retrieve"]["rank"] is None
@@ -73,3 +74,13 @@ def test_bad_arguments_are_refused_by_flag(pr, tmp_path, weights, says):
         pr.main(["--parts", str(tmp_path), "--out", str(tmp_path / "out"), "--ldsift-slab", "0"])
     with pytest.raises(SystemExit, match="--parts .*no parts.jsonl"):
         pr.main(["--parts", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
+
+
+def test_margin_line_counts_the_misses_among_the_least_sure(pr):
+    """Ten parts; the two misses have the two smallest margins, so the least sure 20 % hold both."""
+    rows = {f"p{k}": {"retrieve": {"margin": float(k), "top1": k >= 2}} for k in range(10)}
+    line = pr.margin_line(2.0, rows, share=0.2)
+    assert "smallest margins (2) hold 2 of the 2 misses; top-1 over the other parts 100.0%" in line
+    assert "largest margin 1" in line
+    rows["p9"]["retrieve"]["top1"] = False  # a confident miss
+    assert "hold 2 of the 3 misses; top-1 over the other parts 87.5%" in pr.margin_line(2.0, rows, share=0.2)

@@ -58,6 +58,8 @@ def test_a_class_is_the_union_of_its_nearest_members():
     assert one.classes == ("b", "a") and np.allclose(one.scores, [1.2, 1.5])
     assert two.classes == ("a", "b") and np.allclose(two.scores, [1.0, 1.2])
     assert sorted(two.members[0]) == [0, 1] and two.rank("b") == 2
+    assert two.margin == pytest.approx(0.2) and one.margin == pytest.approx(0.3)
+    assert rank_classes(c[:, :2], labels[:2]).margin == float("inf")  # one class: nothing to be unsure between
     with pytest.raises(ValueError, match="'z' is not in the library"):
         two.rank("z")
 
