@@ -354,6 +354,7 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     assert saved["whole_costs"] == pytest.approx(dict(zip((p.stem for p in library), ref.whole_costs)))
     printed = re.findall(r"^\s+\d+\. (\S+)\s+score", r.stdout, re.M)
     assert printed == list(ref.classes)
+    assert saved["margin"] == pytest.approx(ref.margin) and f"margin {ref.margin:.3g}" in r.stdout
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(dataset), "--k-nearest", "0")
     _one_line_error(bad, "--k-nearest must be at least 1")
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "nowhere"))

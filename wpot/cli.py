@@ -873,9 +873,12 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         if k == a.top:
             break
         print(f"  {k + 1}. {cls}  score {score:.4g}  nearest {shapes.names[members[0]]}")
+    if len(r.classes) > 1:
+        print(f"margin {r.margin:.3g}: the second class's score less the first's"
+              + (" (under about 0.12: doubtful, see the README)" if r.margin < 0.12 else ""))
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,
-               "classes": list(r.classes), "scores": [float(x) for x in r.scores],
+               "classes": list(r.classes), "scores": [float(x) for x in r.scores], "margin": r.margin,
                "members": [[shapes.names[j] for j in m] for m in r.members],
                "whole_costs": {n: float(c) for n, c in zip(shapes.names, r.whole_costs)}}
         Path(a.out).write_text(json.dumps(out, indent=1))
