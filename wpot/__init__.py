@@ -123,8 +123,9 @@ _EXPORTS: dict[str, str] = {
     "classify_run": "wpot.report",
     "build_report": "wpot.report",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling", "registration",
-               "retrieval", "history", "report", "evaluate", "datasets", "examples", "pipeline", "plot", "refine", "cli")
+_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling",
+               "registration", "retrieval", "history", "report", "evaluate", "datasets", "examples", "pipeline",
+               "plot", "refine", "cli")
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 
