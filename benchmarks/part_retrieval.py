@@ -63,9 +63,9 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[
     from wpot.retrieval import rank_classes
 
     labels = [class_label(n) for n in wholes]
-    order = np.argsort(costs.mean(axis=0), kind="stable")
-    ranked = [labels[j] for j in order]
     r = rank_classes(costs, labels, options=options)
+    order = np.argsort(r.whole_costs, kind="stable")
+    ranked = [labels[j] for j in order]
     return {"nearest whole": {"top1": ranked[0] == cls, "rank": ranked.index(cls) + 1 if cls in ranked else None,
                               "taken_for": wholes[order[0]]},
             "retrieve": {"top1": r.label == cls, "rank": r.rank(cls) if cls in r.classes else None,

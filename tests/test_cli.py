@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
 import subprocess
 import sys
@@ -341,7 +342,9 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     part = wp_.cut(blob, np.arange(blob.n_vertices // 2))[0]
     save_mesh(part, tmp_path / "part.off")
     library = sorted(p for p in dataset.glob("*.off") if p.stem != "blob1")
-    (tmp_path / "list.txt").write_text("\n".join(str(p) for p in library))
+    # a list file as all-vs-all reads it: paths relative to the list, '#' comments
+    rel = [os.path.relpath(p, tmp_path) for p in library]
+    (tmp_path / "list.txt").write_text("# the library\n" + "\n".join(f"{q}  # {Path(q).stem}" for q in rel))
     r = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "list.txt"), "--out", str(tmp_path / "r.json"),
              "--device", "cpu")
     assert r.returncode == 0, r.stderr
@@ -359,3 +362,5 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     _one_line_error(bad, "--k-nearest must be at least 1")
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "nowhere"))
     _one_line_error(bad, "no such folder or list file")
+    bad = wpot("retrieve", str(tmp_path / "part.off"), str(library[0]))
+    _one_line_error(bad, "got the single mesh")

@@ -800,6 +800,14 @@ def cmd_compare(a: argparse.Namespace) -> None:
         print("saved " + ", ".join(str(f) for f in files))
 
 
+def _check_dataset(source: str, labels: str | None) -> None:
+    """A dataset's folder or list file, and its label CSV when one is given, exist."""
+    if labels is not None and not Path(labels).is_file():
+        raise CliError(f"label CSV not found: {labels}")
+    if not Path(source).exists():
+        raise CliError(f"no such folder or list file: {source}")
+
+
 def cmd_all_vs_all(a: argparse.Namespace) -> None:
     from wpot.pipeline import run_all_vs_all
 
@@ -811,10 +819,7 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
         if a.scheduler != "local" and a.jobs is not None:
             raise CliError(f"--jobs sets local processes; a running cluster ({a.scheduler}) has the workers it was started with")
     jobs = (1 if a.scheduler is None else 0) if a.jobs is None else a.jobs
-    if a.labels is not None and not Path(a.labels).is_file():
-        raise CliError(f"label CSV not found: {a.labels}")
-    if not Path(a.source).exists():
-        raise CliError(f"no such folder or list file: {a.source}")
+    _check_dataset(a.source, a.labels)
     t0 = time.perf_counter()
     config = config_from_args(a)
     repair = _repair(a)
@@ -844,8 +849,9 @@ def cmd_all_vs_all(a: argparse.Namespace) -> None:
 def cmd_retrieve(a: argparse.Namespace) -> None:
     from wpot.comparison import Comparer
     from wpot.config import ComparisonConfig
-    from wpot.datasets import list_shapes
+    from wpot.datasets import MESH_EXTENSIONS, list_shapes
     from wpot.io import load_mesh
+    from wpot.pipeline import read_mesh_list
     from wpot.retrieval import RetrievalOptions
     from wpot.signatures import signature_options_from_args
 
@@ -853,13 +859,11 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         raise CliError(f"--k-nearest must be at least 1, got {a.k_nearest}")
     if a.top < 1:
         raise CliError(f"--top must be at least 1, got {a.top}")
-    if a.labels is not None and not Path(a.labels).is_file():
-        raise CliError(f"label CSV not found: {a.labels}")
+    _check_dataset(a.library, a.labels)
     lib = Path(a.library)
-    if not lib.exists():
-        raise CliError(f"no such folder or list file: {a.library}")
-    source = lib if lib.is_dir() else [x.strip() for x in lib.read_text().splitlines() if x.strip()]
-    shapes = list_shapes(source, labels=a.labels)
+    if lib.suffix.lower() in MESH_EXTENSIONS:
+        raise CliError(f"the library must be a folder of meshes or a list of them, got the single mesh {a.library}")
+    shapes = list_shapes(lib if lib.is_dir() else read_mesh_list(lib), labels=a.labels)
     part = _load(a.part, "part").mesh
     config = ComparisonConfig(signature=a.signature, signature_options=signature_options_from_args(a.signature, a))
     comparer = Comparer(config, device=a.device)

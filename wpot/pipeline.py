@@ -207,6 +207,19 @@ class ShapeSpec:
         return load_mesh(self.path, warn=warn)
 
 
+def read_mesh_list(path: str | Path) -> list[Path]:
+    """The mesh paths a list file names: one per line, ``#`` starts a comment, a relative path is relative to
+    the list's folder."""
+    p = Path(path)
+    out = []
+    for line in p.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            q = Path(line)
+            out.append(q if q.is_absolute() else p.parent / q)
+    return out
+
+
 def discover_shapes(
     source: str | Path | Sequence[str | Path | Mesh], *, labels: str | Path | None = None
 ) -> list[ShapeSpec]:
@@ -224,13 +237,7 @@ def discover_shapes(
         if p.is_file() and p.suffix.lower() in MESH_EXTENSIONS:
             raise ValueError(f"an all-vs-all needs a folder or a list of meshes, got the single mesh {str(p)!r}")
         if p.is_file():
-            items: list[Any] = []
-            for line in p.read_text().splitlines():
-                line = line.split("#", 1)[0].strip()
-                if line:
-                    q = Path(line)
-                    items.append(q if q.is_absolute() else p.parent / q)
-            source = items
+            source = read_mesh_list(p)
         elif not p.is_dir():
             raise FileNotFoundError(f"no such folder or list file: {str(p)!r}")
     else:
