@@ -318,13 +318,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda", help='Warp device (default "cuda")')
     ap.add_argument("--small", action="store_true", help="small sizes, for the CPU (a few minutes)")
-    ap.add_argument("--out", default=None, help="folder for gpu_suite.json")
+    ap.add_argument("--out", default=None, help="folder for gpu_suite.json, rewritten after each section (a run "
+                    "stopped at its time limit keeps what it finished)")
+    ap.add_argument("--n-agree", type=int, default=None, help="size of the agreement problems (default 1000; 200 "
+                    "with --small)")
+    ap.add_argument("--n-exact", type=int, nargs="*", default=None, help="sizes of the large exact LPs (default "
+                    "20000 50000; 300 with --small)")
     a = ap.parse_args()
     n_agree, n_pair, n_large, max_iter = (200, 800, 300, 4) if a.small else (1000, 5000, 20000, 12)
     n_exact = (300,) if a.small else (20000, 50000)
+    n_agree = a.n_agree or n_agree
+    n_exact = n_exact if a.n_exact is None else tuple(a.n_exact)
     n_batch, n_batch_points = (20, 100) if a.small else (500, 300)
     report: dict = {"environment": environment(a.device)}
     print("environment:", report["environment"])
+
+    def save() -> None:
+        if a.out:
+            out = Path(a.out)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "gpu_suite.json").write_text(json.dumps(report, indent=2, default=float))
 
     report["agreement"] = agreement(a.device, n_agree)
     print(f"\n{'agreement with the CPU':<44} {'conv':>5} {'rel diff U':>11} {'max marg diff':>14} {'s':>8}")
@@ -332,6 +345,7 @@ def main() -> None:
         print(f"{r['problem']:<44} {str(r['converged']):>5} {r['rel_diff_U']:>11.2e} {r['max_marginal_diff']:>14.2e} "
               f"{r['seconds']:>8.2f}")
 
+    save()
     r = report["pair"] = tosca_sized_pair(a.device, n_pair)
     peer = (f"ot.emd {r['emd_seconds']:.2f} s; gaps {r['gap']:.1e} (exact), {r['ipm_gap']:.1e} (ipm)"
             if "emd_seconds" in r else "ot.emd: POT not installed here")
@@ -347,11 +361,22 @@ def main() -> None:
           f"{r['partial_rounds']} rounds, converged {r['partial_converged']}, certified gap "
           f"{r['partial_gap_bound_rel']:.1e} of the objective")
 
+    save()
+    r = report["batch"] = batch_of_pairs(a.device, n_batch, n_batch_points)
+    print(f"\n{r['problem']}: {r['pairs_per_s']:.1f} pairs/s (one by one {r['single_pairs_per_s']:.1f}; ot.emd "
+          f"{r['emd_pairs_per_s']:.1f} pairs/s); "
+          f"every result equal to its one-pair solve: {r['identical']}")
+    if "mdot_pairs_per_s" in r:
+        print(f"  MDOT-TNT, the same pairs in one batched call: {r['mdot_pairs_per_s']:.1f} pairs/s, its plans up to "
+              f"{r['mdot_max_gap']:.1e} above the exact optima, {r['mdot_failed']} of {n_batch} results NaN")
+
+    save()
     report["large_exact"] = [large_exact(a.device, n) for n in n_exact]
     for r in report["large_exact"]:
         print(f"{r['problem']}: {r['seconds']:.1f} s ({r['rounds']} rounds: LP {r['t_lp']:.1f} s, passes "
               f"{r['t_pass']:.1f} s; support {r['support']}), certified gap {r['gap_bound_rel']:.1e} of U, "
               f"converged {r['converged']}")
+    save()
     r = report["large"] = large_matrix_free(a.device, n_large, max_iter)
     print(f"{r['problem']}: {r['seconds']:.1f} s for {r['betas']} betas (max_iter {max_iter}), gap bound "
           f"{r['gap_bound_rel']:.1e} of U, converged {r['converged']}")
@@ -373,24 +398,15 @@ def main() -> None:
         tr = r["round_transfers"]
         print(f"{r['problem']:<44} {tr['n_rounds']:>6} {tr['d2h_per_round']:>10.1f} {tr['h2d_per_round']:>10.1f}")
 
-    r = report["batch"] = batch_of_pairs(a.device, n_batch, n_batch_points)
-    print(f"\n{r['problem']}: {r['pairs_per_s']:.1f} pairs/s (one by one {r['single_pairs_per_s']:.1f}; ot.emd "
-          f"{r['emd_pairs_per_s']:.1f} pairs/s); "
-          f"every result equal to its one-pair solve: {r['identical']}")
-    if "mdot_pairs_per_s" in r:
-        print(f"  MDOT-TNT, the same pairs in one batched call: {r['mdot_pairs_per_s']:.1f} pairs/s, its plans up to "
-              f"{r['mdot_max_gap']:.1e} above the exact optima, {r['mdot_failed']} of {n_batch} results NaN")
-
+    save()
     report["not_available"] = {}
     if "mdot_seconds" not in report["pair"]:
         report["not_available"]["MDOT-TNT peer"] = "not run (pip install mdot-tnt, with PyTorch)"
     for k, v in report["not_available"].items():
         print(f"{k}: {v}")
+    save()
     if a.out:
-        out = Path(a.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "gpu_suite.json").write_text(json.dumps(report, indent=2, default=float))
-        print(f"saved {out / 'gpu_suite.json'}")
+        print(f"saved {Path(a.out) / 'gpu_suite.json'}")
 
 
 if __name__ == "__main__":
