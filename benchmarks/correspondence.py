@@ -12,7 +12,7 @@ a vertex of Y with
   k = 10 to 200 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
   defaults: ``orient=True`` (two candidates: the map with the parts found mirrored sent through the shape's
   left/right symmetry, and the map of an orientation-aware functional map fitted from WKS; of those oriented
-  about as well as the better one, the least stretched; `wpot.orientation`, `wpot.fmap`) and ``samples=2000``
+  about as well as the better one, the least stretched; `wpot.maps.orientation`, `wpot.maps.fmap`) and ``samples=2000``
   (rounds before the last on farthest-point samples). Its time per pair includes the symmetry detection of a
   shape the first time the shape is a source (then cached).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
@@ -164,7 +164,7 @@ class ZoomOutMatcher:
     time per pair is wpot's plus the refinement's."""
 
     def __init__(self, base: WpotMatcher) -> None:
-        from wpot.refine import ZOOMOUT_K_END, ZOOMOUT_SAMPLES
+        from wpot.maps.zoomout import ZOOMOUT_K_END, ZOOMOUT_SAMPLES
 
         self.base = base
         self.tag = base.tag + ZOOMOUT_SUFFIX
@@ -176,7 +176,7 @@ class ZoomOutMatcher:
         return {**self.base.settings(), "zoomout": self.options}
 
     def match(self, x: str, y: str) -> tuple[np.ndarray, float, dict]:
-        from wpot.refine import zoomout
+        from wpot.maps.zoomout import zoomout
 
         pred, dt, info = self.base.match_cached(x, y)
         t0 = time.perf_counter()

@@ -15,7 +15,7 @@ mode (inline, ``--jobs 2``, ``--scheduler local --jobs 2``) it
 It also counts pairs *recomputed* after a kill: pairs that were in flight when the kill came (started, not
 committed) and so ran again. Those are allowed (the work of an unfinished pair is lost); committing a pair
 twice is not. The count comes from a start log: a ``sitecustomize`` module put on the subprocesses'
-``PYTHONPATH`` wraps ``wpot.pipeline._pair_task`` to append "i j" to a file at every pair start, in the
+``PYTHONPATH`` wraps ``wpot.runs.workers.pair_task`` to append "i j" to a file at every pair start, in the
 coordinator and in every worker process (process pool and Dask alike). The instrumentation lives here only;
 nothing in wpot knows about it.
 
@@ -51,7 +51,7 @@ SITECUSTOMIZE = textwrap.dedent('''
     import os
     if os.environ.get("WPOT_CAMPAIGN_LOG"):
         import functools
-        import wpot.pipeline as _p
+        import wpot.runs.loop as _p
         _orig = _p._pair_task
 
         @functools.wraps(_orig)
@@ -104,7 +104,7 @@ class Campaign:
 
 def read_run(run: Path) -> dict:
     """The finished store's matrices and bookkeeping (read with RunStore, as `wpot classify` would)."""
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     with RunStore(run) as s:
         betas, d_beta = s.distance_matrices()

@@ -24,9 +24,9 @@ Sections, each printed as a table and saved to ``DIR/gpu_suite.json`` when ``--o
    the exact LP to the end, with its certified gap (the dual bound over all N^2 entries), and the annealing
    for its first 12 (4) betas;
 5. host-device transfers of each run above on ``--device``: for the annealing per Newton step and per CG
-   iteration, as the engine counts them (`wpot.ot.newton.Timers`: the same counts on every device, up to the
-   end of the annealing), in the device-resident Newton loop (`wpot.ot.resident`, the default on a GPU) and
-   the host loop; for the exact LP per pricing round (`wpot.ot.exact.Round`). Device-to-host reads are the
+   iteration, as the engine counts them (`wpot.ot.anneal.state.Timers`: the same counts on every device, up to the
+   end of the annealing), in the device-resident Newton loop (`wpot.ot.anneal.resident`, the default on a GPU) and
+   the host loop; for the exact LP per pricing round (`wpot.ot.exact.balanced.Round`). Device-to-host reads are the
    synchronisations on a GPU;
 6. a batch of pairs (500 pairs of 300 points; 20 of 100 with ``--small``): `wpot.ot.solve_batch`, whose
    pricing passes share one launch a round, in pairs per second beside the same pairs solved one by one and
@@ -101,9 +101,9 @@ def _random_problem(n: int, dim: int, seed: int):
 
 @contextmanager
 def engine_timers():
-    """Collects each solve's engine timers (`wpot.ot.newton.Timers.as_dict`, taken when its annealing
+    """Collects each solve's engine timers (`wpot.ot.anneal.state.Timers.as_dict`, taken when its annealing
     returns, as benchmarks/ot_speed.py takes them) into the yielded list."""
-    from wpot.ot import balanced, partial
+    from wpot.ot.anneal import balanced, partial
 
     got: list[dict] = []
     originals = (balanced.anneal, partial.anneal)
@@ -392,7 +392,7 @@ def main() -> None:
               f"{tr['h2d_per_newton']:>10.1f} {tr['d2h_per_cg']:>7.2f} {tr['h2d_per_cg']:>7.2f} "
               f"{tr['factor_per_newton']:>13.2f} {tr['syncs_per_newton_with_builds']:>12.2f}")
     print("  (syncs/newton: d2h plus, for the device loop's full preconditioner builds, the synchronisations inside "
-          "FSAI's set-up, wpot.ot.resident.BUILD_SYNCS each; its refits have none)")
+          "FSAI's set-up, wpot.ot.anneal.resident.BUILD_SYNCS each; its refits have none)")
     print(f"\n{'exact LP on ' + a.device + ' (d2h: syncs)':<44} {'rounds':>6} {'d2h/round':>10} {'h2d/round':>10}")
     for r in [report["pair"], *report["large_exact"]]:
         tr = r["round_transfers"]

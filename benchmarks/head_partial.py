@@ -1,6 +1,6 @@
 """Calibrate partial transport's mass penalty on the HEAD dataset (paper §4.2, §5.1, Fig. 1 and 7).
 
-Builds HEAD (`wpot.datasets.build_head_dataset`) into ``--out`` (never into the repository), then compares
+Builds HEAD (`wpot.paper.head.build_head_dataset`) into ``--out`` (never into the repository), then compares
 heads against full shapes with partial transport (WKS and LD-SIFT) for a sweep of relative mass penalties κ
 (`wpot.comparison.solver_mass_penalty`, ``penalty_scale="relative"``) and, for contrast, the paper's
 ``α = 1/ρ²`` (``penalty_scale="paper", mass_penalty=1``). Both meshes are subsampled to ``--max-vertices``
@@ -284,7 +284,7 @@ def main(argv=None) -> int:
         logf.write(msg + "\n")
         logf.flush()
 
-    from wpot.datasets import build_head_dataset, load_head_dataset
+    from wpot.paper.head import build_head_dataset, load_head_dataset
 
     dsdir = out / "head_dataset"
     ds = load_head_dataset(dsdir) if (dsdir / "manifest.json").is_file() else \

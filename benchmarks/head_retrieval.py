@@ -1,6 +1,6 @@
 """Part retrieval on a HEAD dataset from `wpot all-vs-all` runs (paper §4.2, Fig. 7; issue 20's HEAD on TOSCA8).
 
-For each run folder (an all-vs-all over a HEAD dataset folder written by `wpot.datasets.build_head_dataset`,
+For each run folder (an all-vs-all over a HEAD dataset folder written by `wpot.paper.head.build_head_dataset`,
 e.g. the paper's own HEAD from TOSCA's low-resolution shapes), it prints, from the run's D(∞) matrix:
 whether each head's nearest full shape is its parent (the paper: LD-SIFT partial "identifies the correct head
 for each cat and each horse") and of its species, the share of heads whose parent is among the two nearest,
@@ -10,7 +10,7 @@ are `wpot report RUN...`'s.
     python benchmarks/head_retrieval.py DATASET RUN [RUN ...]
 
     # building the paper's HEAD and its four runs:
-    python -c "import wpot.datasets as d; d.build_head_dataset('../shared/data/tosca_isometric_5k', 'head8', \\
+    python -c "from wpot.paper.head import build_head_dataset; build_head_dataset('../shared/data/tosca_isometric_5k', 'head8', \\
         lowres='../shared/data/tosca_lowres', per_class=6)"
     wpot all-vs-all head8 --labels head8/labels.csv --pooling cell --vertices-per-sample 20 \\
         --signature ldsift --transport partial --out runs/ld_par      # and wks / balanced
@@ -33,7 +33,7 @@ def main() -> int:
 
     from wpot.datasets import read_label_csv
     from wpot.evaluate import leave_one_out_1nn, part_retrieval
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     manifest = json.loads((a.dataset / "manifest.json").read_text())
     parent = manifest["parent"]

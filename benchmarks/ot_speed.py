@@ -52,7 +52,7 @@ def row(name, t, gap, merr, extra=""):
 
 
 def transfers(tm: dict) -> str:
-    """The engine's host-device transfers (`wpot.ot.newton.Timers` as a dict, up to the end of the annealing)
+    """The engine's host-device transfers (`wpot.ot.anneal.state.Timers` as a dict, up to the end of the annealing)
     per Newton step and per CG iteration (Schur matvec)."""
     nn, nm = max(tm["n_newton"], 1), max(tm["n_matvec"], 1)
     return (f"host-device transfers: d2h (syncs) {tm['n_d2h']} = {tm['n_d2h'] / nn:.1f} per Newton step, "
@@ -98,7 +98,7 @@ def main():
     import ot
 
     import wpot.ot as wo
-    from wpot.ot import balanced as wbalanced
+    from wpot.ot.anneal import balanced as wbalanced
 
     for m in ("exact", "anneal", "ipm"):  # compile the kernels outside the timings
         for _, kw in newton_loops(args):

@@ -15,7 +15,7 @@ apart, so every weight reuses one descriptor a shape.
 
 **Two scorings of the same costs**, per weight:
 - *nearest whole*: the class of the whole with the least mean cost (`Comparer.nearest_signature_distance`);
-- *retrieve*: the first class of `Comparer.retrieve` (`wpot.retrieval.rank_classes`: each vertex's costs
+- *retrieve*: the first class of `Comparer.retrieve` (`wpot.maps.retrieval.rank_classes`: each vertex's costs
   standardised over the library, a class scored by the union of its ``--k-nearest`` nearest members).
 
 **Reported** per weight and scoring, over the parts, each part weighing the same: top-1 (the part's class comes
@@ -60,7 +60,7 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[
     """Both scorings of one part from its (N, M) ``costs`` to ``wholes``: per scoring, top-1, the rank of class
     ``cls`` (None when the library has none of it) and what the part was taken for (the first whole or class)."""
     from wpot.datasets import class_label
-    from wpot.retrieval import rank_classes
+    from wpot.maps.retrieval import rank_classes
 
     labels = [class_label(n) for n in wholes]
     r = rank_classes(costs, labels, options=options)
@@ -130,7 +130,7 @@ def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab
 
 
 def main(argv=None) -> int:
-    from wpot.retrieval import RetrievalOptions
+    from wpot.maps.retrieval import RetrievalOptions
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", type=Path, required=True, help="a partial_poses.py --out folder (its parts)")

@@ -10,7 +10,7 @@ pose of a class (and david/michael) through a 5,000-point template.
 each S, with `wpot.cut` (which gives the part's index map into S):
 
 * ``head``: the geodesic ball (heat method) around the head landmark holding 25 % (``L``) or 10 % (``S``) of
-  S's area, made one piece without holes (the HEAD builder's rule, `wpot.datasets.build_head_dataset`);
+  S's area, made one piece without holes (the HEAD builder's rule, `wpot.paper.head.build_head_dataset`);
 * ``limb``: the same around a hand / foot / paw landmark (one drawn per part), 22 % or 8 %;
 * ``cut``: S cut by a random plane (seeded normal; the offset chosen so that the kept side's largest
   connected piece holds a drawn fraction: 30-70 % for ``L``, 10-18 % for ``S``), that piece kept;
@@ -36,9 +36,9 @@ Peers, computed in the same run on the same signatures (`Comparer.signatures`), 
   cell-pooled when ``--pooling cell``), extended to every vertex through the cells as wpot's map is;
   distance = the mass-weighted mean nearest cost.
 
-Also, on the same signatures: ``locate`` (`Comparer.locate`, `wpot.locate`: the signatures propose
+Also, on the same signatures: ``locate`` (`Comparer.locate`, `wpot.maps.locate`: the signatures propose
 candidate matches, geodesic consistency picks a consistent set and fills in the map; default
-`wpot.locate.LocateOptions`); its distance for retrieval is the map's mean signature cost, its mass on the true
+`wpot.maps.locate.LocateOptions`); its distance for retrieval is the map's mean signature cost, its mass on the true
 region the share of the part's area whose image lands there.
 
 **Ground truth** for P -> T: P's vertex v is S's vertex ``idx[v]``; template point i lies in P when
@@ -254,8 +254,8 @@ class Part:
 
 def geodesic_ball(mesh, centre: int, fraction: float) -> tuple[np.ndarray, float]:
     """The HEAD builder's region: the geodesic ball around ``centre`` holding ``fraction`` of the area, made one
-    piece without holes (`wpot.datasets.clean_region`). Returns the mask and the radius."""
-    from wpot.datasets import clean_region, geodesic_from, region_fraction_radius
+    piece without holes (`wpot.paper.head.clean_region`). Returns the mask and the radius."""
+    from wpot.paper.head import clean_region, geodesic_from, region_fraction_radius
 
     d = geodesic_from(mesh, centre)
     r = region_fraction_radius(mesh, d, fraction)
@@ -279,7 +279,7 @@ def plane_cut(mesh, rng: np.random.Generator, lo: float, hi: float) -> tuple[np.
             best = (mask, f, q)
     mask, _, q = best
     seed = int(np.nonzero(mask)[0][0])
-    from wpot.datasets import clean_region
+    from wpot.paper.head import clean_region
 
     return clean_region(mesh, mask, seed), {"normal": n.round(6).tolist(), "quantile": float(q),
                                               "target_fraction": target}
@@ -288,7 +288,7 @@ def plane_cut(mesh, rng: np.random.Generator, lo: float, hi: float) -> tuple[np.
 def punch_holes(mesh, rng: np.random.Generator, n_lo: int, n_hi: int, f_lo: float, f_hi: float) -> tuple[np.ndarray, dict]:
     """The largest piece of the shape with ``n`` (drawn in [n_lo, n_hi]) geodesic balls removed, each holding a
     fraction drawn in [f_lo, f_hi] of the area, at random centres."""
-    from wpot.datasets import geodesic_from, region_fraction_radius
+    from wpot.paper.head import geodesic_from, region_fraction_radius
 
     k = int(rng.integers(n_lo, n_hi + 1))
     centres = rng.choice(mesh.n_vertices, size=k, replace=False)
@@ -874,7 +874,7 @@ def main(argv=None) -> int:
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
     ap.add_argument("--locate-options", default="{}",
-                    help="`wpot.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' "
+                    help="`wpot.maps.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' "
                          "(default: its defaults)")
     ap.add_argument("--no-retrieval", action="store_true",
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
@@ -886,7 +886,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     a.vertices_per_sample = a.vertices_per_sample or None
     try:
-        from wpot.locate import LocateOptions
+        from wpot.maps.locate import LocateOptions
 
         opts = json.loads(a.locate_options)
         if not isinstance(opts, dict):

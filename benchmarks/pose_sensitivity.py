@@ -33,7 +33,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 import wpot
-from wpot.pipeline import RunStore
+from wpot.runs.store import RunStore
 
 BINS = np.linspace(0.0, 1.6, 65)  # distances in units of sqrt(area); TOSCA shapes stay below 1.4
 

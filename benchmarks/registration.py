@@ -42,7 +42,7 @@ def fits(c, mesh_a, mesh_b):
     """The plain least-squares fit of the comparison's matched pairs, and the registration the Comparer stored
     (the size ratio of the two shapes as scale, rotation and translation by the robust fit), refitted here
     to time it."""
-    from wpot.registration import fit_similarity, fit_similarity_robust
+    from wpot.maps.registration import fit_similarity, fit_similarity_robust
 
     p, q, w = mesh_a.vertices[c.matched[:, 0]], mesh_b.vertices[c.matched[:, 1]], c.matched_weight
     plain = fit_similarity(p, q, w)
@@ -92,7 +92,7 @@ def tosca_pairs(limit: int) -> list[tuple[str, str]]:
 def tosca_rows(limit: int, max_vertices: int):
     from wpot.comparison import Comparer
     from wpot.io import load_mesh
-    from wpot.registration import fit_similarity_robust
+    from wpot.maps.registration import fit_similarity_robust
 
     vtx = TOSCA / "vtx_5k"
     comparer = Comparer(max_vertices=max_vertices)

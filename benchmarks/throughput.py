@@ -67,8 +67,8 @@ def run_wpot(data: str, out: Path, device: str, jobs: int, seconds: float, extra
 
 def read_store(out: Path) -> dict:
     """The run's settings and its committed pairs (i, j, energy, seconds, finished_at, converged, n_newton,
-    n_linear), oldest first, from its `wpot.pipeline.RunStore`."""
-    from wpot.pipeline import RunStore
+    n_linear), oldest first, from its `wpot.runs.store.RunStore`."""
+    from wpot.runs.store import RunStore
 
     with RunStore(out) as store:
         rows = store.con.execute("SELECT i, j, energy, seconds, finished_at, converged, n_newton, n_linear FROM pairs "

@@ -177,7 +177,7 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     text = (run / "report.md").read_text()
     assert "- not converged (1; their distances may be wrong): " in text  # the pair classify warned about
     # export: CSV with names, NPZ without pickles; both warn about the pair that did not converge
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     with RunStore(run) as store:
         d_run, names_run = store.distance_matrix(), store.names

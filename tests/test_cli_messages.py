@@ -56,7 +56,7 @@ def dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def run(dataset, tmp_path_factory) -> Path:
     """An all-vs-all run over `dataset` (balanced WKS, FAST)."""
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
 
     folder = tmp_path_factory.mktemp("msg-run") / "run"
     run_all_vs_all(dataset, folder, progress=False, n_eigen=30, n_energies=30).close()
@@ -204,7 +204,7 @@ def test_compare_progress_flags(pair, capsys):
 
 
 def test_every_phase_of_an_all_vs_all_has_a_bar(dataset, tmp_path):
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
     from wpot.progress import Progress
 
     buf = io.StringIO()
@@ -217,7 +217,7 @@ def test_every_phase_of_an_all_vs_all_has_a_bar(dataset, tmp_path):
 
 # ------------------------------------------------------------------------------------- 2. the energy grid
 def test_compare_says_which_grid_and_a_run_s_grid_gives_the_run_s_distance(run, dataset, capsys, tmp_path):
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     with RunStore(run) as store:
         d_run, names, grid = store.distance_matrix(), store.names, store.signature_state()["energies"]
@@ -288,7 +288,7 @@ def test_a_defective_mesh_is_refused_with_advice_to_repair_and_repaired_with_rep
 def test_all_vs_all_repair(dataset, capsys, tmp_path):
     import shutil
 
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     data = tmp_path / "data"
     shutil.copytree(dataset, data)
@@ -312,7 +312,7 @@ def test_largest_component_drops_stray_pieces(dataset, capsys, tmp_path):
     import shutil
 
     import wpot
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     data = tmp_path / "data"
     shutil.copytree(dataset, data)
@@ -335,7 +335,7 @@ def test_largest_component_drops_stray_pieces(dataset, capsys, tmp_path):
 
 def test_repair_mesh_says_what_it_removed(pair):
     import wpot
-    from wpot.pipeline import repair_mesh
+    from wpot.mesh import repair_mesh
 
     m = wpot.load_mesh(pair[0])
     same, index_map, removed = repair_mesh(m)
@@ -515,7 +515,8 @@ def test_a_line_written_during_a_stage_breaks_it():
 
 
 def test_a_resume_mismatch_lists_only_what_differs_by_flag(run, dataset, capsys):
-    from wpot.pipeline import RunMismatchError, param_differences, run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
+    from wpot.runs.store import RunMismatchError, param_differences
 
     line = one_line_error(*cli(capsys, "all-vs-all", dataset, "--out", run, *FAST, "--max-vertices", "50")[::2])
     assert line.endswith(f"{run} holds a run with other settings: --max-vertices: stored none, requested 50. "

@@ -10,8 +10,8 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from wpot.comparison import ProblemTooLargeError, choose_cost_mode
-from wpot.history import debias_history, history_at
-from wpot.registration import Registration, fit_similarity
+from wpot.runs.history import debias_history, history_at
+from wpot.maps.registration import Registration, fit_similarity
 from wpot.sampling import farthest_point_sampling
 from wpot.mesh import Mesh
 

@@ -138,7 +138,7 @@ def test_a_registered_signature_works_everywhere_without_editing_them(coords, tm
 def test_a_run_stored_with_the_earlier_key_layout_resumes(tmp_path):
     import wpot
     from wpot.examples import example_mesh
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
 
     meshes = [example_mesh(60, seed=s) for s in range(3)]
     for i, m in enumerate(meshes):
@@ -146,7 +146,7 @@ def test_a_run_stored_with_the_earlier_key_layout_resumes(tmp_path):
     folder = tmp_path / "run"
     kw = dict(signature="ldsift", max_vertices=400, solver_options={"method": "ipm"}, match_ratio=0.8)
     # a store as the earlier code left it: its key (STORED_RUN_KEYS[3]) and its shapes, no pair done yet
-    specs = wpot.pipeline.discover_shapes(tmp_path)
+    specs = wpot.runs.shapes.discover_shapes(tmp_path)
     with RunStore(folder, create=True) as s:
         s.initialize(json.loads(STORED_RUN_KEYS[3]), [(sp.name, sp.path, m.fingerprint, m.n_vertices)
                                                      for sp, m in zip(specs, (sp.load() for sp in specs))], {})

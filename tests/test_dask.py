@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 from test_pipeline import FAST, FAST_CLI, make_dataset
-from wpot.pipeline import RunStore, _pair_task, choose_worker_device, run_all_vs_all
+from wpot.runs.loop import run_all_vs_all
+from wpot.runs.store import RunStore
+from wpot.runs.workers import choose_worker_device, pair_task
 
 distributed = pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'wpot[cluster]')")
 
@@ -99,7 +101,7 @@ class KillingExecutor(cf.Executor):
         self.inner, self.folder, self.kill_once, self.poison = inner, folder, kill_once, poison
 
     def submit(self, fn, *args, **kwargs):
-        if fn is _pair_task and tuple(args[:2]) in (self.kill_once, self.poison):
+        if fn is pair_task and tuple(args[:2]) in (self.kill_once, self.poison):
             once = tuple(args[:2]) == self.kill_once
             marker = str(self.folder / f"pair-{args[0]}-{args[1]}")
             return self.inner.submit(_killer, marker, once, fn, *args, **kwargs)
@@ -134,7 +136,7 @@ def test_killed_worker_loses_only_its_pair_and_the_cli_runs_on_the_cluster(clust
     """One test for everything that needs the cluster, so that pytest-xdist starts it once."""
     import cloudpickle
 
-    from wpot.pipeline import DaskExecutor
+    from wpot.runs.workers import DaskExecutor
 
     lc, client = cluster
     marks = tmp_path / "marks"
@@ -193,7 +195,7 @@ def test_killed_worker_loses_only_its_pair_and_the_cli_runs_on_the_cluster(clust
 
 
 def test_embedded_local_cluster_workers_choose_their_device():
-    from wpot.pipeline import _task_device, dask_executor
+    from wpot.runs.workers import _task_device, dask_executor
 
     assert _task_device({"device": None}) is None  # not on Dask: Warp's default, as before
     with dask_executor("local", n_workers=1) as ex:

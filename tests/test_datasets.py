@@ -6,23 +6,19 @@ import pytest
 import trimesh
 
 from wpot.datasets import (
-    TOSCA8_CLASSES,
-    build_head_dataset,
     class_label,
     correspondence_group,
-    head_ground_truth,
     list_shapes,
-    load_head_dataset,
     read_label_csv,
     read_test_pairs,
-    tosca8,
-    tosca8_draws,
     tosca_ground_truth,
     tosca_vts,
     write_shape_list,
 )
 from wpot.io import save_mesh
 from wpot.mesh import Mesh
+from wpot.paper.head import build_head_dataset, head_ground_truth, load_head_dataset
+from wpot.paper.tosca8 import TOSCA8_CLASSES, tosca8, tosca8_draws
 
 
 @pytest.mark.parametrize(
@@ -138,7 +134,7 @@ def test_tosca8_takes_the_lowest_numbers_per_class(tmp_path):
 
 
 def test_write_shape_list_is_read_by_all_vs_all(tiny_folder, tmp_path):
-    from wpot.pipeline import discover_shapes
+    from wpot.runs.shapes import discover_shapes
 
     s = list_shapes(tiny_folder)
     lst, lab = write_shape_list(s, tmp_path / "lists", "tiny")
@@ -160,7 +156,7 @@ def tosca_lowres(shared_data):
 @pytest.mark.filterwarnings("ignore:.*mesh defects:UserWarning")  # seahorses: 3 components, known (data README)
 def test_tosca8_on_the_real_data(tosca_lowres, tmp_path):
     from wpot.io import load_mesh
-    from wpot.pipeline import discover_shapes
+    from wpot.runs.shapes import discover_shapes
 
     t = tosca8(tosca_lowres)
     sub = {c: [n for n, lab in zip(t.subset.names, t.subset.classes) if lab == c] for c in TOSCA8_CLASSES}

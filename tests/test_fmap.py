@@ -1,4 +1,4 @@
-"""wpot.fmap: the operators' closed forms (a function against itself, mirror images, similarity invariance) and
+"""wpot.maps.fmap: the operators' closed forms (a function against itself, mirror images, similarity invariance) and
 the functional map of an exact isometry."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import wpot
-from wpot.fmap import SpectralOperators, functional_map, point_map
+from wpot.maps.fmap import SpectralOperators, functional_map, point_map
 from wpot.mesh import Mesh
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies

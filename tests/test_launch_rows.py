@@ -10,7 +10,7 @@ import warp as wp
 
 from wpot._warp import MIN_ENTRIES_PER_THREAD, cpu_threads, launch_rows
 from wpot.cost import _cost, cost_matrix
-from wpot.ot.exact import _PRICE, _pass_outputs, cost_source
+from wpot.ot.exact.balanced import _PRICE, pass_outputs, cost_source
 from wpot.ot.problem import prepare_cost
 
 
@@ -65,7 +65,7 @@ def test_split_pricing_pass_equals_one_launch():
     v = wp.array(rng.random(n2) * 0.2, dtype=wp.float64, device="cpu")
     outs = []
     for threads in (1, 3):
-        o = _pass_outputs(n1, m, "cpu")
+        o = pass_outputs(n1, m, "cpu")
         launch_rows(lambda lo, hi: wp.launch(_PRICE[src._cls], dim=hi - lo, device="cpu", inputs=[
             src, lo, n2, u, v, wp.float64(0.05), m, *o]), n1, "cpu", cols=n2, threads=threads)
         outs.append([x.numpy() for x in o])

@@ -1,11 +1,11 @@
-"""wpot.locate: a part located in a whole by geodesic consistency."""
+"""wpot.maps.locate: a part located in a whole by geodesic consistency."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from wpot.examples import example_partial
-from wpot.locate import LocateOptions, PartMap, consistent_matches, locate_part
+from wpot.maps.locate import LocateOptions, PartMap, consistent_matches, locate_part
 from wpot.mesh import Mesh, MeshWarning
 
 
@@ -105,7 +105,8 @@ def test_cat_head_found_in_another_pose(tosca5k):
     import warnings
 
     from wpot.comparison import Comparer
-    from wpot.datasets import clean_region, geodesic_from, region_fraction_radius, tosca_ground_truth
+    from wpot.paper.head import clean_region, geodesic_from, region_fraction_radius
+    from wpot.datasets import tosca_ground_truth
     from wpot.evaluate import GeodesicDistances
     from wpot.io import load_mesh
     from wpot.mesh import cut
@@ -178,9 +179,9 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
     its neighbours (candidate (b)); a map sent whole onto the mirror side comes back."""
     from test_orientation import mirror_symmetric
 
-    from wpot.locate import _orient, _Redraw
+    from wpot.maps.locate import _orient, _Redraw
     from wpot.mesh import cut
-    from wpot.orientation import keep_orientation, orientation_score, reflection_symmetry
+    from wpot.maps.orientation import keep_orientation, orientation_score, reflection_symmetry
     from wpot.sampling import farthest_point_sampling
 
     whole = mirror_symmetric(1500, seed=1)
@@ -211,7 +212,7 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
 
 
 def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
-    from wpot.locate import ORIENT_MARGIN, _pick
+    from wpot.maps.locate import ORIENT_MARGIN, _pick
 
     assert ORIENT_MARGIN == 0.5
     assert _pick([0.9, 0.5, -0.2], [3.0, 1.0, 0.0]) == 1  # -0.2 is more than 0.5 below the best

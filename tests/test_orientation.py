@@ -1,4 +1,4 @@
-"""wpot.orientation: the orientation score's closed cases, symmetry detection on a mirror-symmetric shape, and
+"""wpot.maps.orientation: the orientation score's closed cases, symmetry detection on a mirror-symmetric shape, and
 ZoomOut keeping left from right."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 
 import wpot
 from wpot.mesh import Mesh
-from wpot.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
+from wpot.maps.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
                               winding)
-from wpot.refine import ZOOMOUT_K_SELECT, zoomout
+from wpot.maps.zoomout import ZOOMOUT_K_SELECT, zoomout
 
 #: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
 _BUMPS = (((0.7, 0.5, 0.3), 0.8, 0.35), ((0.0, -0.6, 0.8), 0.5, 0.4), ((0.4, -0.3, -0.85), 0.45, 0.3),
@@ -70,7 +70,8 @@ def test_winding_reads_outward_inward_and_open():
 def test_winding_of_a_cut_limb_is_its_whole_shapes(tosca5k):
     """A wolf's paw cut off at 8 % of the area (as a scan of a limb would be): its boundary loop capped on
     its own centroid reads the side the whole shape reads; the cone from the part's centroid read it inside out."""
-    from wpot.datasets import clean_region, geodesic_from, region_fraction_radius, tosca_vts
+    from wpot.paper.head import clean_region, geodesic_from, region_fraction_radius
+    from wpot.datasets import tosca_vts
     from wpot.io import load_mesh
     from wpot.mesh import cut
 
@@ -209,7 +210,7 @@ def test_orient_argument_is_checked():
 
 
 def test_symmetry_is_cached_by_content():
-    from wpot.orientation import symmetry_cache
+    from wpot.maps.orientation import symmetry_cache
 
     m = mirror_symmetric()
     first = reflection_symmetry(m)

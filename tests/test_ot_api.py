@@ -186,7 +186,7 @@ def test_memory_bytes_counts_the_quadratic_arrays():
     assert anneal.memory_bytes(10 * n1, 10 * n2, matrix_free=True, dim=100) < 0.5 * 100 * nn  # below the dense
     # each Newton loop counts its own preconditioner; the device's choice (None) counts both
     host, device = (wo.make_solver("anneal", newton_loop=x).memory_bytes(n1, n2) for x in ("host", "device"))
-    from wpot.ot.resident import FSAI_ROW, device_loop_bytes
+    from wpot.ot.anneal.resident import FSAI_ROW, device_loop_bytes
     dl = device_loop_bytes(n1, n2, 4, 4)
     assert dl > 2 * 12 * n2 * FSAI_ROW  # FSAI's factor and its transpose at least
     assert anneal.memory_bytes(n1, n2) == host + dl

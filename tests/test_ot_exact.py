@@ -13,7 +13,7 @@ from scipy.optimize import linear_sum_assignment
 import wpot
 import wpot.ot as wo
 from wpot.cost import cost_matrix
-from wpot.ot.exact import ColumnGeneration, northwest_corner
+from wpot.ot.exact.balanced import ColumnGeneration, northwest_corner
 from wpot.ot.problem import prepare_cost
 
 
@@ -163,7 +163,7 @@ def test_exact_says_when_max_iter_stops_it_before_the_optimum():
 def _rounds(C, a, b, check=None):
     """An `ExactRun` driven round by round to its end as `solve_exact_problem` drives it; ``check(run, u, v,
     rows, cols)`` sees each round's duals and candidates."""
-    from wpot.ot.exact import PRICE_K, ExactRun
+    from wpot.ot.exact.balanced import PRICE_K, ExactRun
 
     run = ExactRun(wo.TransportProblem(C, a, b, device="cpu"), wo.SolverOptions(), "test")
     cg = run.cg
@@ -202,7 +202,7 @@ def test_the_certificate_decides_when_rounding_stops_the_rounds():
 
 def test_the_threshold_keeps_support_entries_out_of_the_candidates():
     """The pricing threshold sits below the duals' rounding on the support, so a pass lists new entries only."""
-    from wpot.ot.exact import PRICE_TOL
+    from wpot.ot.exact.balanced import PRICE_TOL
 
     def check(run, u, v, rows, cols):
         cg = run.cg

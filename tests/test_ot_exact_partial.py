@@ -1,5 +1,5 @@
 """Exact partial transport (method="exact", the default: the chi^2 QP at beta = infinity by column generation,
-`wpot.ot.exact_partial`) against an independent dense QP, the annealing's limit, closed forms and its own
+`wpot.ot.exact.partial`) against an independent dense QP, the annealing's limit, closed forms and its own
 certificate."""
 from __future__ import annotations
 
@@ -105,7 +105,7 @@ def test_pruned_support_stays_near_the_optimal_face_and_rows_with_no_mass_name_t
     # random points in R^20: each row's few cheapest entries form a graph whose factorization fills; the rounds
     # keep the support near the optimal plan's (a forest: at most N1 + N2 - 1 entries) and the result exact
     from wpot.ot.exact import solve_exact_problem
-    from wpot.ot.exact_partial import least_of_each
+    from wpot.ot.exact.partial import least_of_each
 
     rng = np.random.default_rng(4)
     C = cost_matrix(rng.random((300, 20)), rng.random((240, 20)), metric="l2")

@@ -11,7 +11,8 @@ import warp as wp
 
 import wpot.ot as wo
 from wpot.ot import kernels as K
-from wpot.ot.exact import ColumnGeneration, solve_exact_problem
+from wpot.ot.exact import solve_exact_problem
+from wpot.ot.exact.balanced import ColumnGeneration
 from wpot.ot.gram import GramBlocks, gram_applies
 from wpot.ot.options import SolverOptions
 from wpot.ot.problem import TransportProblem, _prepare_features, prepare_cost

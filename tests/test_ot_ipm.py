@@ -9,7 +9,7 @@ import pytest
 import wpot.ot as wo
 from test_ot_solver import _masses, _points_cost
 from wpot.cost import cost_matrix
-from wpot.ot.ipm import HANDOFF, handoff_beta
+from wpot.ot.anneal.ipm import HANDOFF, handoff_beta
 
 
 def _points(n, d=8, seed=0):

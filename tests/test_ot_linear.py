@@ -1,10 +1,10 @@
-"""The sparse Schur preconditioner and PCG of `wpot.ot.linear`."""
+"""The sparse Schur preconditioner and PCG of `wpot.ot.anneal.linear`."""
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
 
-from wpot.ot import linear
+from wpot.ot.anneal import linear
 
 
 def _laplacian(n: int, edges: list[tuple[int, int, float]]) -> np.ndarray:

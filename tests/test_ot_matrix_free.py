@@ -10,7 +10,7 @@ import warp as wp
 
 import wpot.ot as wo
 from wpot.cost import cost_matrix
-from wpot.ot.newton import Engine
+from wpot.ot.anneal.newton import Engine
 from wpot.ot.problem import orient, prepare_cost
 
 

@@ -1,4 +1,4 @@
-"""The device loop's multilevel preconditioner (`wpot.ot.multilevel`): its aggregation, its Galerkin levels
+"""The device loop's multilevel preconditioner (`wpot.ot.anneal.multilevel`): its aggregation, its Galerkin levels
 (built and refitted on the device) against scipy, its dense level against numpy, and the V-cycle's symmetry,
 definiteness and effect on CG against FSAI alone."""
 import numpy as np
@@ -8,9 +8,9 @@ import warp as wp
 import warp.sparse as wsp
 from warp.optim.linear import FSAI
 
-from wpot.ot import multilevel as ml
-from wpot.ot.linear import pcg
-from wpot.ot.resident import FSAI_ROW
+from wpot.ot.anneal import multilevel as ml
+from wpot.ot.anneal.linear import pcg
+from wpot.ot.anneal.resident import FSAI_ROW
 
 
 def _bsr(A: sp.csr_matrix) -> wsp.BsrMatrix:

@@ -1,4 +1,4 @@
-"""The device-resident Newton loop (`wpot.ot.resident`, ``newton_loop="device"``): the same saddle points as
+"""The device-resident Newton loop (`wpot.ot.anneal.resident`, ``newton_loop="device"``): the same saddle points as
 the host loop, its pieces against independent references (the sparse Schur approximation against the host
 assembly, the CG direction against a dense solve), and its host reads (at most 2 per Newton step, none
 per CG iteration)."""
@@ -11,8 +11,9 @@ import scipy.sparse as sp
 import warp as wp
 
 import wpot.ot as wo
-from wpot.ot import linear, newton, resident
-from wpot.ot.newton import Engine, Point
+from wpot.ot.anneal import linear, newton, resident
+from wpot.ot.anneal.newton import Engine
+from wpot.ot.anneal.state import Point
 from wpot.ot.problem import orient, prepare_cost
 
 
@@ -31,7 +32,7 @@ def _masses(n, seed):
 @pytest.mark.parametrize("pc", ["multilevel", "fsai"])
 @pytest.mark.parametrize("method", ["anneal", "ipm"])
 def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, method, pc):
-    C = _cost(70, 85, seed=1)  # 70 columns: P has a coarse level below it (wpot.ot.multilevel.COARSE_SIZE)
+    C = _cost(70, 85, seed=1)  # 70 columns: P has a coarse level below it (wpot.ot.anneal.multilevel.COARSE_SIZE)
     a, b = _masses(70, 2), _masses(85, 3)
     host = wo.solve_balanced(C, a, b, method=method, device="cpu", newton_loop="host")
     dev = wo.solve_balanced(C, a, b, method=method, device=device, newton_loop="device", device_preconditioner=pc)

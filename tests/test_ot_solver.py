@@ -12,7 +12,7 @@ import warp as wp
 import wpot.ot as wo
 from conftest import partial_qp
 from wpot.ot import kernels as K
-from wpot.ot.schedule import beta_schedule, relative_change
+from wpot.ot.anneal.schedule import beta_schedule, relative_change
 
 
 def _points_cost(n1, n2, d=8, seed=0):
@@ -257,7 +257,7 @@ def test_a_newton_failure_after_a_solved_beta_returns_that_beta_s_solution(monke
     # from feasible iterate as the result (U 12 % below ot.emd's optimum), although the beta before was
     # within 1e-7 of it. Now the result is the last solved beta's, flagged not converged, with a warning.
     ot = pytest.importorskip("ot")
-    from wpot.ot import newton
+    from wpot.ot.anneal import newton
 
     C, a, b = _uneven_problem(30, 1.0, 0)
     exact = ot.emd2(a, b, C)
@@ -385,7 +385,7 @@ def test_strided_gpu_kernels_give_the_row_kernels_solution(mode):
 def test_strided_evaluation_pass_matches_the_row_pass_entry_for_entry(lanes):
     # eval_rows in 5 or 64 lanes (GPUs) against one lane (the CPU's row scan), each + eval_combine, at one
     # point, with tied weights in some rows: the same sums, and the same pivot (the largest weight, the first column on ties), tail and s there.
-    from wpot.ot import newton
+    from wpot.ot.anneal import newton
     from wpot.ot.problem import orient, prepare_cost
 
     rng = np.random.default_rng(4)

@@ -13,7 +13,8 @@ import pytest
 import warp as wp
 
 import wpot.ot as wo
-from wpot.ot import newton
+from wpot.ot.anneal import newton
+from wpot.ot.anneal.state import Timers
 
 
 class Spy:
@@ -53,7 +54,7 @@ class Spy:
         monkeypatch.setattr(wp.array, "numpy", numpy)
         monkeypatch.setattr(wp.array, "assign", assign)
 
-    def stop(self) -> newton.Timers:
+    def stop(self) -> Timers:
         self.on = False
         assert len(self.engines) == 1
         return self.engines[0].t

@@ -18,7 +18,7 @@ def pr():
 def test_both_scorings_of_one_part(pr):
     """Nearest whole against `retrieve` on costs built so that they disagree: cat2 explains nine of the part's
     ten vertices best but the tenth (a vertex the pose moved) badly, so its mean loses to dog3's."""
-    from wpot.retrieval import RetrievalOptions
+    from wpot.maps.retrieval import RetrievalOptions
 
     costs = np.column_stack([np.r_[np.full(9, 1.1), 1.0],   # dog3
                              np.r_[np.full(9, 0.9), 5.0],   # cat2
@@ -39,7 +39,7 @@ def test_both_scorings_of_one_part(pr):
 def test_stored_costs_are_scored_and_reported(pr, tmp_path):
     """Costs stored by the run (npz beside pairs.jsonl) give the same scores as `score_part`; a part without
     stored costs is left out; the report names every failure with what the part was taken for."""
-    from wpot.retrieval import RetrievalOptions
+    from wpot.maps.retrieval import RetrievalOptions
 
     from jsonl_store import JsonlStore
 

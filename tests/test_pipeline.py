@@ -1,4 +1,4 @@
-"""wpot.pipeline: the resumable SQLite store, parameter checks, D(β) read-back, and interrupted real runs."""
+"""wpot.runs.loop: the resumable SQLite store, parameter checks, D(β) read-back, and interrupted real runs."""
 from __future__ import annotations
 
 import json
@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wpot.pipeline import RunMismatchError, RunStore, discover_shapes
+from wpot.runs.shapes import discover_shapes
+from wpot.runs.store import RunMismatchError, RunStore
 
 SHAPES = [("a1", None, "f0", 10), ("a2", None, "f1", 10), ("b1", None, "f2", 12)]
 LABELS = {0: {"class": "a"}, 1: {"class": "a"}, 2: {"class": "b"}}
@@ -110,7 +111,7 @@ def test_distance_matrices_follow_each_pair_history_in_beta(tmp_path):
 
 
 def test_distance_matrices_on_the_decade_grid_read_each_history_at_powers_of_ten(tmp_path):
-    from wpot.pipeline import decade_grid
+    from wpot.runs.store import decade_grid
 
     s = _store(tmp_path)
     s.commit(_rec(0, 0, 1.0, [[2e3, 3.0], [2e4, 1.0]]))
@@ -175,7 +176,7 @@ def dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def clean_run(dataset, tmp_path_factory):
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
 
     return run_all_vs_all(dataset, tmp_path_factory.mktemp("clean") / "run", progress=False, **FAST)
 
@@ -201,14 +202,14 @@ def test_run_matches_pairwise_compare_with_the_shared_grid(clean_run, dataset):
 
 
 def test_rerun_of_a_finished_run_computes_nothing(clean_run, dataset):
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
 
     again = run_all_vs_all(dataset, clean_run.folder, progress=False, **FAST)
     assert again.n_computations == 15
 
 
 def test_mismatched_parameters_are_refused(clean_run, dataset):
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
 
     with pytest.raises(RunMismatchError, match="n_eigen: stored 30, requested 31"):
         run_all_vs_all(dataset, clean_run.folder, progress=False, n_eigen=31, n_energies=30)
@@ -287,7 +288,7 @@ def test_shape_warnings_from_workers_are_said_once_with_the_shape_name(tmp_path)
     from wpot.examples import example_mesh
     from wpot.io import save_mesh
     from wpot.mesh import Mesh
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
     from wpot.spectral import SpectralWarning
 
     folder = tmp_path / "data"
@@ -311,7 +312,8 @@ def test_a_shape_that_repeats_another_is_named(tmp_path):
     import shutil
     import warnings
 
-    from wpot.pipeline import repeated_shapes, run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
+    from wpot.runs.shapes import repeated_shapes
 
     data = make_dataset(tmp_path / "data", n_per_class=2, n=60)
     shutil.copy(data / "blob1.off", data / "blob9.off")

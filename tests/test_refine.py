@@ -1,4 +1,4 @@
-"""wpot.refine.zoomout: fixed point, vertex relabelling, a different triangulation with known truth, bad input."""
+"""wpot.maps.zoomout.zoomout: fixed point, vertex relabelling, a different triangulation with known truth, bad input."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 import wpot
 from wpot.mesh import Mesh
-from wpot.refine import zoomout
+from wpot.maps.zoomout import zoomout
 
 
 def _noisy(truth: np.ndarray, n_b: int, fraction: float, seed: int) -> np.ndarray:
@@ -187,7 +187,7 @@ def test_two_components_map_onto_a_relabelled_copy():
 def test_components_read_their_own_spectrum_size():
     # 1,500 + 120 vertices: the whole mesh's spectrum_size (162) exceeds the body's own (150), which is what
     # each component's ZoomOut reads; the default k_end must follow the component's
-    from wpot.refine import spectrum_size
+    from wpot.maps.zoomout import spectrum_size
 
     a = _disjoint([wpot.example_mesh(1500, seed=6), wpot.example_mesh(120, seed=7)])
     assert spectrum_size(a.n_vertices) > spectrum_size(1500)
@@ -197,7 +197,7 @@ def test_components_read_their_own_spectrum_size():
 
 
 def test_stretch_of_a_map():
-    from wpot.refine import _stretch
+    from wpot.maps.zoomout import _stretch
 
     a = wpot.example_mesh(500, seed=3)
     ident = np.arange(a.n_vertices)

@@ -1,4 +1,4 @@
-"""wpot.registration.fit_similarity_robust: closed form with gross outliers, invariances, bad input, units."""
+"""wpot.maps.registration.fit_similarity_robust: closed form with gross outliers, invariances, bad input, units."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import wpot
-from wpot.registration import fit_similarity, fit_similarity_robust
+from wpot.maps.registration import fit_similarity, fit_similarity_robust
 
 
 def _angle(r: np.ndarray) -> float:
@@ -147,7 +147,7 @@ def test_a_given_scale_fits_only_the_rotation_and_translation():
 
 def test_area_scale_is_the_size_ratio():
     from wpot.examples import example_pair
-    from wpot.registration import area_scale
+    from wpot.maps.registration import area_scale
 
     mesh = example_pair(300, seed=0).source
     rot = Rotation.from_euler("xyz", [20, -40, 75], degrees=True).as_matrix()

@@ -20,9 +20,9 @@ import pytest
 
 from test_pipeline import make_dataset
 from wpot.cache import Cache, CacheWarning
-from wpot.pipeline import (
-    CorruptRunError, RunLockedError, RunMismatchError, RunStore, _pair_task, _worker_mesh, run_all_vs_all, run_lock,
-)
+from wpot.runs.loop import run_all_vs_all
+from wpot.runs.store import CorruptRunError, RunLockedError, RunMismatchError, RunStore, run_lock
+from wpot.runs.workers import _worker_mesh, pair_task
 
 TINY = {"n_eigen": 30, "n_energies": 30, "max_vertices": 50, "device": "cpu"}
 TINY_CLI = ["--n-eigen", "30", "--n-energies", "30", "--max-vertices", "50", "--device", "cpu", "--no-progress"]
@@ -176,7 +176,7 @@ def test_a_mesh_edited_between_run_and_resume_is_refused_by_name(data, tmp_path)
 
 def test_a_worker_refuses_a_file_edited_during_the_run(data, tmp_path):
     from wpot.io import load_mesh
-    from wpot.pipeline import _mesh_at
+    from wpot.runs.workers import _mesh_at
 
     p = tmp_path / "m.off"
     shutil.copy(sorted(data.glob("*.off"))[0], p)
@@ -201,7 +201,7 @@ class FailingExecutor(cf.ThreadPoolExecutor):
         self.bad = bad
 
     def submit(self, fn, *args, **kwargs):
-        if fn is _pair_task and tuple(args[:2]) == self.bad:
+        if fn is pair_task and tuple(args[:2]) == self.bad:
             fut: cf.Future = cf.Future()
             fut.set_exception(ValueError("cost matrix has 3 non-finite entries"))
             return fut

@@ -1,10 +1,10 @@
-"""Class retrieval of a part from a labelled library (`wpot.retrieval.rank_classes`, `Comparer.retrieve`)."""
+"""Class retrieval of a part from a labelled library (`wpot.maps.retrieval.rank_classes`, `Comparer.retrieve`)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from wpot.retrieval import ClassRanking, RetrievalOptions, rank_classes
+from wpot.maps.retrieval import ClassRanking, RetrievalOptions, rank_classes
 
 
 def _costs(seed: int = 0, n: int = 40, m: int = 7) -> tuple[np.ndarray, list[str]]:

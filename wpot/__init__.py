@@ -64,14 +64,14 @@ _EXPORTS: dict[str, str] = {
     "summarize_correspondence": "wpot.evaluate",
     "GeodesicDistances": "wpot.evaluate",
     # a part located in a whole by geodesic consistency
-    "locate_part": "wpot.locate",
-    "LocateOptions": "wpot.locate",
-    "PartMap": "wpot.locate",
-    "LocateWarning": "wpot.locate",
+    "locate_part": "wpot.maps.locate",
+    "LocateOptions": "wpot.maps.locate",
+    "PartMap": "wpot.maps.locate",
+    "LocateWarning": "wpot.maps.locate",
     # a part's class looked up in a labelled library of whole shapes
-    "rank_classes": "wpot.retrieval",
-    "RetrievalOptions": "wpot.retrieval",
-    "ClassRanking": "wpot.retrieval",
+    "rank_classes": "wpot.maps.retrieval",
+    "RetrievalOptions": "wpot.maps.retrieval",
+    "ClassRanking": "wpot.maps.retrieval",
     "cumulative_curve": "wpot.evaluate",
     "curve_auc": "wpot.evaluate",
     "list_shapes": "wpot.datasets",
@@ -79,9 +79,9 @@ _EXPORTS: dict[str, str] = {
     "read_label_csv": "wpot.datasets",
     "read_test_pairs": "wpot.datasets",
     "tosca_ground_truth": "wpot.datasets",
-    "build_head_dataset": "wpot.datasets",
-    "load_head_dataset": "wpot.datasets",
-    "head_ground_truth": "wpot.datasets",
+    "build_head_dataset": "wpot.paper.head",
+    "load_head_dataset": "wpot.paper.head",
+    "head_ground_truth": "wpot.paper.head",
     # optimal transport (also reachable as wpot.ot.*)
     "solve_balanced": "wpot.ot",
     "solve_partial": "wpot.ot",
@@ -97,8 +97,8 @@ _EXPORTS: dict[str, str] = {
     "Comparison": "wpot.comparison",
     "Comparer": "wpot.comparison",
     "ComparisonConfig": "wpot.config",
-    "Registration": "wpot.registration",
-    "fit_similarity": "wpot.registration",
+    "Registration": "wpot.maps.registration",
+    "fit_similarity": "wpot.maps.registration",
     "Subsample": "wpot.sampling",
     "Points": "wpot.sampling",
     "SamplerOptions": "wpot.sampling",
@@ -110,22 +110,26 @@ _EXPORTS: dict[str, str] = {
     "DEFAULT_MASS_PENALTY": "wpot.comparison",
     "PENALTY_SCALES": "wpot.comparison",
     # refining a correspondence
-    "zoomout": "wpot.refine",
-    "orientation_score": "wpot.orientation",
-    "reflection_symmetry": "wpot.orientation",
+    "zoomout": "wpot.maps.zoomout",
+    "orientation_score": "wpot.maps.orientation",
+    "reflection_symmetry": "wpot.maps.orientation",
     # dataset runs
-    "run_all_vs_all": "wpot.pipeline",
-    "RunStore": "wpot.pipeline",
-    "RunMismatchError": "wpot.pipeline",
-    "DaskExecutor": "wpot.pipeline",
-    "dask_executor": "wpot.pipeline",
-    "choose_worker_device": "wpot.pipeline",
-    "classify_run": "wpot.report",
-    "build_report": "wpot.report",
+    "run_all_vs_all": "wpot.runs.loop",
+    "RunStore": "wpot.runs.store",
+    "RunMismatchError": "wpot.runs.store",
+    "DaskExecutor": "wpot.runs.workers",
+    "dask_executor": "wpot.runs.workers",
+    "choose_worker_device": "wpot.runs.workers",
+    "classify_run": "wpot.runs.report",
+    "build_report": "wpot.runs.report",
 }
-_SUBMODULES = ("ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling",
-               "registration", "retrieval", "history", "report", "evaluate", "datasets", "examples", "pipeline",
-               "plot", "refine", "cli")
+#: submodules reachable as attributes (``wpot.ot``, ``wpot.maps.locate`` after ``wpot.maps``), name -> module
+_SUBMODULES: dict[str, str] = {name: f"wpot.{name}" for name in (
+    "ot", "mesh", "io", "spectral", "signatures", "cost", "comparison", "config", "sampling", "maps", "runs",
+    "paper", "evaluate", "datasets", "examples", "plot", "progress", "cli")}
+# modules that moved into the maps and runs packages keep their old attribute names
+_SUBMODULES.update({"registration": "wpot.maps.registration", "retrieval": "wpot.maps.retrieval",
+                    "refine": "wpot.maps.zoomout", "history": "wpot.runs.history", "report": "wpot.runs.report"})
 
 __all__ = sorted(_EXPORTS) + ["ot", "__version__"]
 
@@ -136,7 +140,7 @@ def __getattr__(name: str) -> Any:
         globals()[name] = value
         return value
     if name in _SUBMODULES:
-        module = importlib.import_module(f"wpot.{name}")
+        module = importlib.import_module(_SUBMODULES[name])
         globals()[name] = module
         return module
     raise AttributeError(f"module 'wpot' has no attribute {name!r}")

@@ -30,7 +30,7 @@ from typing import Any, Mapping, Sequence, TextIO
 
 import numpy as np
 
-from wpot.report import signature_title
+from wpot.runs.report import signature_title
 
 __all__ = ["main", "build_parser", "config_from_args", "cli_words", "flag_table", "progress_enabled"]
 #: small settings for `wpot demo`: a few hundred vertices and a short spectrum (runs in seconds on a CPU)
@@ -108,7 +108,7 @@ def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> np.ndarray | None:
     """The ZoomOut refinement of ``c.correspondence`` when ``--zoomout`` was given (printing how much moved)."""
     if not a.zoomout:
         return None
-    from wpot.refine import zoomout
+    from wpot.maps.zoomout import zoomout
 
     refined = zoomout(ma, mb, c.correspondence)
     print(f"ZoomOut: {np.mean(refined != c.correspondence):.1%} of A's vertices changed their match")
@@ -117,7 +117,7 @@ def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> np.ndarray | None:
 
 def _add_locate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--locate", action="store_true",
-                   help="also locate A in B by geodesic consistency (wpot.locate: A a part of a shape like B, in any "
+                   help="also locate A in B by geodesic consistency (wpot.maps.locate: A a part of a shape like B, in any "
                    "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
                    "saved as correspondence_locate, confidence_locate and region_locate, and drawn in the picture")
 
@@ -247,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("retrieve", help="rank the classes of a labelled library of whole shapes for a part",
                        description="Look a part up in a library of whole shapes: each vertex's cost to the nearest "
                        "signature of each whole, standardised over the library, a class scored as the union of its "
-                       "--k-nearest nearest members (wpot.retrieval). Prints the classes, best first. Set "
+                       "--k-nearest nearest members (wpot.maps.retrieval). Prints the classes, best first. Set "
                        "WPOT_CACHE_DIR to keep the library's signatures between calls.")
     p.add_argument("part", help=f"the part: a mesh file ({formats})")
     p.add_argument("library", help="the whole shapes: a folder of mesh files, or a text file listing one mesh path "
@@ -472,7 +472,7 @@ class _Loaded:
 
 
 def _repair(a: argparse.Namespace) -> str:
-    """The repair the flags ask for (`wpot.pipeline.REPAIR_MODES`)."""
+    """The repair the flags ask for (`wpot.mesh.REPAIR_MODES`)."""
     return "largest" if a.largest_component else ("defects" if a.repair else "none")
 
 
@@ -484,7 +484,7 @@ def _repaired(mesh: Any, path: str, label: str, repair: str) -> _Loaded:
     """The mesh, repaired as ``repair`` (`_repair`) asks (printing what was removed from it)."""
     if repair == "none":
         return _Loaded(mesh, path)
-    from wpot.pipeline import repair_mesh
+    from wpot.mesh import repair_mesh
 
     fixed, index_map, removed = repair_mesh(mesh, repair)
     print(f"{_repair_flag(repair)} {label}: " + (f"removed {removed}" if removed else "nothing to repair"))
@@ -564,7 +564,7 @@ def _run_state(run: str, config: Any) -> tuple[dict[str, Any], int, list[str]]:
     which must match: the grid was fitted for them."""
     import dataclasses
 
-    from wpot.pipeline import RunStore, param_differences
+    from wpot.runs.store import RunStore, param_differences
     from wpot.signatures import get_signature
 
     sig = get_signature(config.signature)
@@ -610,7 +610,7 @@ def _json_beta(beta: float) -> float | None:
 def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
                      refined: np.ndarray | None = None, located: Any = None) -> list[Path]:
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given, and
-    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located``, a `wpot.locate.PartMap`,
+    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located``, a `wpot.maps.locate.PartMap`,
     is) and correspondence.png (of the refined or located map when there is one, else of the plan's).
 
     Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
@@ -707,7 +707,7 @@ def _check_size(m: _Loaded, config: Any, label: str) -> None:
 def cmd_demo(a: argparse.Namespace) -> None:
     from wpot.comparison import Comparer
     from wpot.examples import example_pair
-    from wpot.pipeline import repair_setting
+    from wpot.mesh import repair_setting
 
     t0 = time.perf_counter()
     config = config_from_args(a)
@@ -760,7 +760,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
 
 def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.comparison import Comparer
-    from wpot.pipeline import repair_setting
+    from wpot.mesh import repair_setting
 
     config = config_from_args(a)  # option errors before any file is read
     _check_zoomout(a)
@@ -809,7 +809,7 @@ def _check_dataset(source: str, labels: str | None) -> None:
 
 
 def cmd_all_vs_all(a: argparse.Namespace) -> None:
-    from wpot.pipeline import run_all_vs_all
+    from wpot.runs.loop import run_all_vs_all
 
     if a.jobs is not None and a.jobs < 0:
         raise CliError(f"--jobs must be >= 0, got {a.jobs}")
@@ -851,8 +851,8 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     from wpot.config import ComparisonConfig
     from wpot.datasets import MESH_EXTENSIONS, list_shapes
     from wpot.io import load_mesh
-    from wpot.pipeline import read_mesh_list
-    from wpot.retrieval import RetrievalOptions
+    from wpot.runs.shapes import read_mesh_list
+    from wpot.maps.retrieval import RetrievalOptions
     from wpot.signatures import signature_options_from_args
 
     if a.k_nearest < 1:
@@ -891,8 +891,10 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
 
 def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.evaluate import format_percent
-    from wpot.pipeline import RunStore, warn_repeated_shapes
-    from wpot.report import PAPER_TABLE1, classify_run, confusions, misses_text
+    from wpot.runs.shapes import warn_repeated_shapes
+    from wpot.runs.store import RunStore
+    from wpot.paper.table1 import PAPER_TABLE1
+    from wpot.runs.report import classify_run, confusions, misses_text
 
     _check_trials(a)
     with RunStore(a.run) as store:
@@ -951,8 +953,8 @@ def cmd_classify(a: argparse.Namespace) -> None:
 
 
 def cmd_export(a: argparse.Namespace) -> None:
-    from wpot.pipeline import RunStore
-    from wpot.report import pair_counts
+    from wpot.runs.store import RunStore
+    from wpot.runs.report import pair_counts
 
     with RunStore(a.run) as store:
         out = store.export(Path(a.out) if a.out else Path(a.run) / "distances.csv")
@@ -968,7 +970,7 @@ def cmd_export(a: argparse.Namespace) -> None:
 
 
 def cmd_report(a: argparse.Namespace) -> None:
-    from wpot.report import build_report
+    from wpot.runs.report import build_report
 
     _check_trials(a)
     out = build_report(a.runs, a.out, trials=a.trials, seed=a.seed)

@@ -15,7 +15,7 @@ solver's kernels when the dense problem does not fit the device's memory), the r
 partial transport (`solver_mass_penalty`), the distance (U for balanced transport; SU of Eq. 27 for partial,
 from the self-comparisons, cached per shape), the correspondence (the argmax of each plan row, §4.1.3), the
 matched pairs ``G(i, j) > 0.9·m1(i)`` and the similarity registration fitted to them (§5.1,
-`wpot.registration`).
+`wpot.maps.registration`).
 
 `compare` is the one-shot function; for many pairs, build one `Comparer`.
 """
@@ -33,7 +33,7 @@ from wpot import _validate
 from wpot.config import DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS, ComparisonConfig
 from wpot.mesh import Mesh
 from wpot.progress import as_progress
-from wpot.registration import Registration, fit_similarity
+from wpot.maps.registration import Registration, fit_similarity
 from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_point_sampling
 
 __all__ = [
@@ -238,9 +238,9 @@ class Comparison:
     mass1 : (n_A,) float64, the mass each (sampled) vertex of A sends, ``Σ_l G(k, l)`` (uniform for balanced)
     mass2 : (n_B,) float64, the mass each (sampled) vertex of B receives
     registration : similarity transform taking A onto B fitted to the matched pairs (§5.1) by
-        `wpot.registration.fit_similarity_robust` (wrong matches are left out as outliers: its ``inliers``
+        `wpot.maps.registration.fit_similarity_robust` (wrong matches are left out as outliers: its ``inliers``
         mask and ``rms`` over them), or None when fewer than 3 non-collinear pairs matched. With balanced
-        transport its scale is the two shapes' size ratio (`wpot.registration.area_scale`, sqrt of the area
+        transport its scale is the two shapes' size ratio (`wpot.maps.registration.area_scale`, sqrt of the area
         ratio) and only the rotation and translation are fitted: a scale fitted to the pairs follows the pose
         (0.73-1.02 between same-size TOSCA poses even with the true correspondence). With partial transport the
         scale is fitted too (``scale_from`` says which)
@@ -618,7 +618,7 @@ class Comparer:
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
         """Compare A with B; see `Comparison`. A signature that needs fitting and is not fitted yet is fitted
         to A and B."""
-        from wpot.history import debias_history
+        from wpot.runs.history import debias_history
         from wpot.ot import debiased
 
         for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
@@ -677,13 +677,13 @@ class Comparer:
                                               device=self.device)[1] for w in wholes])
 
     def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
-        """Rank the classes of a library of whole shapes for ``part`` (`wpot.retrieval.rank_classes`): from each
+        """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`): from each
         vertex's cost to the nearest signature of each whole (`nearest_costs`), standardised per vertex, a
         class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
-        a `wpot.retrieval.RetrievalOptions`. Returns a `wpot.retrieval.ClassRanking`, whose ``whole_costs``
+        a `wpot.maps.retrieval.RetrievalOptions`. Returns a `wpot.maps.retrieval.ClassRanking`, whose ``whole_costs``
         are `nearest_signature_distance` for each whole. On TOSCA it ranks first the part's class where the
         nearest whole fails on a pose that two classes share (README, "Parts looked up in a library")."""
-        from wpot.retrieval import rank_classes
+        from wpot.maps.retrieval import rank_classes
 
         wholes = list(wholes)
         if len(wholes) != len(labels):
@@ -692,11 +692,11 @@ class Comparer:
         return rank_classes(self.nearest_costs(part, wholes), labels, options=options)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
-        """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.locate.locate_part`): this comparer's
+        """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's
         signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
-        vertices; ``options`` is a `wpot.locate.LocateOptions`. Returns a `wpot.locate.PartMap`."""
-        from wpot.locate import locate_part
+        vertices; ``options`` is a `wpot.maps.locate.LocateOptions`. Returns a `wpot.maps.locate.PartMap`."""
+        from wpot.maps.locate import locate_part
 
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
@@ -742,7 +742,7 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
     matched = np.stack([ia[ii], jb[jj]], axis=1).astype(np.int64)
     registration = None
     if len(matched) >= 3:
-        from wpot.registration import area_scale, fit_similarity_robust
+        from wpot.maps.registration import area_scale, fit_similarity_robust
 
         # balanced transport matches the whole shapes: their size ratio is the scale. With partial transport the
         # matched regions come from the received masses, too loosely for a size ratio (the quickstart's part,

@@ -7,7 +7,7 @@ stages), the all-vs-all run key and the workers all build or read this one objec
 * ``ComparisonConfig.from_keywords(**kw)`` takes the flat keywords of `wpot.compare` / `wpot.Comparer`
   (``signature="wks", n_eigen=300, max_vertices=500, transport="partial", ...``);
 * ``to_dict()`` / ``from_dict()`` round-trip it through plain JSON types (what workers receive);
-* ``run_key()`` is the dictionary an all-vs-all run is keyed by (`wpot.pipeline.RunStore`): every setting
+* ``run_key()`` is the dictionary an all-vs-all run is keyed by (`wpot.runs.store.RunStore`): every setting
   that changes a distance, and only those, so that two runs with the same key can share their results.
 
 Stages (see `wpot.signatures`, `wpot.sampling`, `wpot.ot`) each carry their options in a frozen, validated

@@ -258,11 +258,11 @@ def nearest_costs(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device:
     """For each row of S1, the row of S2 with the smallest cost and that cost: ((N1,) int64, (N1,) float64),
     the row minima of `cost_matrix` ``(S1, S2)`` computed ``block`` rows at a time (memory O(block · N2)).
 
-    ``metric="l2"`` goes through BLAS in float64 (`wpot.fmap.nearest_rows`; several times faster than the
+    ``metric="l2"`` goes through BLAS in float64 (`wpot.maps.fmap.nearest_rows`; several times faster than the
     kernel for long signatures such as LD-SIFT's, the cost equal to `cost_matrix`'s to about 1e-7 of the
     signatures' norms, so an exact tie may pick another row); the other metrics through `cost_matrix`. Same
     validation as `cost_matrix`."""
-    from wpot.fmap import nearest_rows
+    from wpot.maps.fmap import nearest_rows
 
     dev = resolve_device(device)
     a, b = prepare_signatures(S1, S2, metric, dev)

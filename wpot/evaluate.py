@@ -33,7 +33,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .mesh import Mesh
+from wpot.mesh import Mesh
 
 __all__ = [
     "OneShotClassification",

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 
-from .mesh import Mesh, cut
+from wpot.mesh import Mesh, cut
 
 __all__ = ["ExamplePair", "ExamplePartial", "example_mesh", "example_pair", "example_partial"]
 

@@ -64,7 +64,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .mesh import Mesh, MeshWarning, _listed
+from wpot.mesh import Mesh, MeshWarning, _listed
 
 __all__ = [
     "MESH_FORMATS",

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-__all__ = ["Mesh", "MeshWarning", "cut", "validate"]
+__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "validate"]
 
 #: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
 DEGENERATE_AREA_RTOL = 1e-12
@@ -455,3 +455,56 @@ def cut(mesh: Mesh, vertex_mask: ArrayLike) -> tuple[Mesh, np.ndarray]:
     used = np.zeros(mesh.n_vertices, dtype=bool)
     used[faces.ravel()] = True
     return _reindex(mesh.vertices, faces, used)
+
+
+REPAIR_MODES = ("none", "defects", "largest")
+
+
+def repair_mode(repair: bool | str | None) -> str:
+    """``repair`` as one of `REPAIR_MODES`: False or None is "none", True is "defects"."""
+    if repair is None or repair is False:
+        return "none"
+    if repair is True:
+        return "defects"
+    if isinstance(repair, str) and repair in REPAIR_MODES:
+        return repair
+    raise ValueError(f"repair must be True, False or one of {', '.join(map(repr, REPAIR_MODES))}, got {repair!r}")
+
+
+def repair_setting(repair: bool | str | None) -> bool | str:
+    """``repair`` as a run stores it and a saved comparison records it: False, True or "largest" (booleans for
+    the first two, so that every stored run reads the same way)."""
+    mode = repair_mode(repair)
+    return {"none": False, "defects": True}.get(mode, mode)
+
+
+def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndarray, str]:
+    """`Mesh.cleaned` with an account of what it removed (``mode``: `repair_mode`; "none" returns the mesh).
+
+    Returns
+    -------
+    mesh, index_map : as `Mesh.cleaned` (``index_map[i]`` is the input index of the repaired mesh's vertex i)
+    removed : what was removed, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"`` or ``"2 smaller
+        components (58 vertices)"``; "" when nothing was
+    """
+    mode = repair_mode(mode)
+    if mode == "none":
+        return mesh, np.arange(mesh.n_vertices, dtype=np.int64), ""
+    with warnings.catch_warnings():
+        if mode == "largest":  # its components are about to go: no MeshWarning about them
+            warnings.simplefilter("ignore", MeshWarning)
+        fixed, index_map = mesh.cleaned()
+    n_degenerate = int(mesh.degenerate_faces.size)
+    counts = [
+        (n_degenerate, "zero-area triangle", "zero-area triangles"),
+        (mesh.n_faces - fixed.n_faces - n_degenerate, "duplicate triangle", "duplicate triangles"),
+        (mesh.n_vertices - fixed.n_vertices, "unreferenced vertex", "unreferenced vertices"),
+    ]
+    removed = [f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0]
+    if mode == "largest" and fixed.n_components > 1:
+        n_pieces, n_before = fixed.n_components - 1, fixed.n_vertices
+        fixed, inner = fixed.cleaned(keep_largest_component=True)
+        index_map = index_map[inner]
+        removed.append(f"{n_pieces} smaller component{'s' if n_pieces > 1 else ''} "
+                       f"({n_before - fixed.n_vertices} vertices)")
+    return fixed, index_map, ", ".join(removed)

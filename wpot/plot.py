@@ -29,8 +29,8 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
-from .evaluate import format_percent
-from .mesh import Mesh
+from wpot.evaluate import format_percent
+from wpot.mesh import Mesh
 
 __all__ = [
     "class_order",

@@ -48,8 +48,8 @@ import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .cache import Cache
-from .mesh import Mesh
+from wpot.cache import Cache
+from wpot.mesh import Mesh
 
 __all__ = [
     "laplace_beltrami",

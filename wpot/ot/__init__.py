@@ -4,7 +4,7 @@
 inverse temperature beta (Algorithm 1) and solve each saddle point by Newton's method, the linear
 systems by CG on a Schur complement with a sparse factorized preconditioner (or a dense direct solve).
 Balanced transport is by default solved at its limit beta -> infinity, the transport LP, exactly, by column
-generation (`wpot.ot.exact`). The same solvers as objects: a `TransportProblem` solved by a
+generation (`wpot.ot.exact.balanced`). The same solvers as objects: a `TransportProblem` solved by a
 `TransportSolver` of `make_solver` ("auto", "exact", "anneal", "ipm": an interior-point start),
 configured by `SolverOptions`.
 Pass a `FeatureCost` (two signature arrays and a metric) instead of C for the matrix-free mode: C is
@@ -15,7 +15,7 @@ from __future__ import annotations
 from wpot.ot.options import SolverOptions
 from wpot.ot.problem import FeatureCost, TransportProblem
 from wpot.ot.result import BetaStep, OTResult, debiased
-from wpot.ot.schedule import beta_schedule
+from wpot.ot.anneal.schedule import beta_schedule
 from wpot.ot.solvers import SOLVERS, TransportSolver, make_solver, solve_balanced, solve_batch, solve_partial
 
 __all__ = ["BetaStep", "FeatureCost", "OTResult", "SOLVERS", "SolverOptions", "TransportProblem",

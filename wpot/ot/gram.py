@@ -11,7 +11,7 @@ P(i, l) = A(k0 + i) . B(l) at a time; a Warp kernel then reads
 the norms, with a margin of 2), which bounds each entry from below and above. A kernel recomputes exactly,
 with the per-pair function every other pass uses (`wpot.ot.kernels.cost_at`), only the few entries whose
 bound cannot settle its answer, so its outputs are those of the plain kernel, bit for bit
-(`feature_cost_max_gram` here; `wpot.ot.exact.price_rows_gram`). Memory: one block (64 MiB by default).
+(`feature_cost_max_gram` here; `wpot.ot.exact.balanced.price_rows_gram`). Memory: one block (64 MiB by default).
 """
 from __future__ import annotations
 

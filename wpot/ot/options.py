@@ -13,7 +13,7 @@ import numpy as np
 from wpot._warp import available_memory
 from wpot._validate import boolean, integer_at_least, nonnegative_finite, one_of, positive_finite
 from wpot.ot.problem import FeatureCost
-from wpot.ot.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2, DEFAULT_STEP
+from wpot.ot.anneal.schedule import DEFAULT_BETA0_PER_N1N2, DEFAULT_BETA_MAX_PER_N1N2, DEFAULT_STEP
 
 __all__ = ["SolverOptions", "EngineOptions", "DEVICE_PRECONDITIONERS", "LINEAR_SOLVERS", "NEWTON_LOOPS"]
 
@@ -54,7 +54,7 @@ class SolverOptions:
         scale and of the problem's size; the plan at beta0 is nearly uniform.
     step : beta multiplier between annealing steps, a finite number > 1 (default 10: with the 1/beta
         extrapolation of the duals it needs the fewest Newton steps in all; see
-        `wpot.ot.schedule.DEFAULT_STEP`). A step whose Newton solve fails is split in log beta.
+        `wpot.ot.anneal.schedule.DEFAULT_STEP`). A step whose Newton solve fails is split in log beta.
     tol, atol : stop when |dU| <= tol |U_prev| or |dU| <= atol s (``atol`` serves U* = 0, e.g. a shape
         against itself). Default tol = 1e-6 leaves a gap to the exact optimum of ~1e-7 relative.
     max_iter : maximum number of betas (default 100).
@@ -74,7 +74,7 @@ class SolverOptions:
     cg_rtol, cg_max_iter : CG relative tolerance and iteration cap per Newton step (defaults 1e-3, 1000).
     topk : weights per row and column of W in the preconditioner (default 4: as few CG iterations as 8
         with half the factorization's fill).
-    newton_loop : where the Newton steps run (`wpot.ot.resident`). "device": every vector stays on the
+    newton_loop : where the Newton steps run (`wpot.ot.anneal.resident`). "device": every vector stays on the
         device, CG and its preconditioner (of the same sparse Schur approximation, built on the device; see
         ``device_preconditioner``) are kernels, and the host reads one small array per trial point (about one
         synchronisation per Newton step). "host": CG's vectors and the SuperLU preconditioner on the host (a
@@ -82,7 +82,7 @@ class SolverOptions:
         (default): "device" on a GPU, "host" on the CPU. "device" needs ``linear_solver="cg"``.
     device_preconditioner : the device loop's preconditioner of the sparse Schur approximation P. None
         (default) or "multilevel": a V-cycle over aggregates of P's unknowns with FSAI smoothing on P
-        (`wpot.ot.multilevel`; a full build reads P once). "fsai": FSAI alone (local, so CG needs more
+        (`wpot.ot.anneal.multilevel`; a full build reads P once). "fsai": FSAI alone (local, so CG needs more
         iterations at high beta, where P's inverse couples far-apart unknowns). Only the device loop has
         one: setting it with ``newton_loop="host"`` or ``linear_solver="direct"`` is an error.
     matvec_lanes : threads per row of the strided kernels that run the passes over W (the Schur matvec,
@@ -223,8 +223,8 @@ def _number(value: Any) -> float | None:
 
 @dataclass(frozen=True, kw_only=True)
 class EngineOptions:
-    """`SolverOptions` for one problem, as the engine (`wpot.ot.newton.Engine`) and the annealing loop
-    (`wpot.ot.anneal`) read them: betas in normalized units (the cost divided by its max), checked.
+    """`SolverOptions` for one problem, as the engine (`wpot.ot.anneal.newton.Engine`) and the annealing loop
+    (`wpot.ot.anneal.loop`) read them: betas in normalized units (the cost divided by its max), checked.
     Built by `SolverOptions.normalized`; ``atol`` is a fraction of the cost scale in both."""
 
     beta0: float

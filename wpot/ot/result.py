@@ -1,5 +1,5 @@
 """Result types of the OT solvers (frozen dataclasses; the return type never depends on a flag) and their
-assembly from a solved `wpot.ot.newton.Engine`."""
+assembly from a solved `wpot.ot.anneal.newton.Engine`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from wpot.ot.anneal import AnnealOutcome, warn_not_converged
-from wpot.ot.newton import Engine
+from wpot.ot.anneal.loop import AnnealOutcome, warn_not_converged
+from wpot.ot.anneal.newton import Engine
 
 
 @dataclass(frozen=True)
@@ -96,8 +96,8 @@ class OTResult:
 def debiased(u12, u11, u22, *, strict: bool = True):
     """Debiased transport cost SU (paper Eq. 27): ``u12 - 0.5 (u11 + u22)``.
 
-    The one implementation of Eq. 27: `wpot.Comparer` (a pair's distance), `wpot.history.debias_history`
-    (SU at every β) and the run store's SQL (`wpot.pipeline.RunStore`) all call it. Works the same for U and
+    The one implementation of Eq. 27: `wpot.Comparer` (a pair's distance), `wpot.runs.history.debias_history`
+    (SU at every β) and the run store's SQL (`wpot.runs.store.RunStore`) all call it. Works the same for U and
     for the free energy F.
 
     Scalars give a float and, with ``strict`` (default), non-finite input raises ValueError. Arrays (with
@@ -113,7 +113,7 @@ def debiased(u12, u11, u22, *, strict: bool = True):
 
 
 def beta_step(r: dict, scale: float, total: float) -> BetaStep:
-    """One annealing record (normalized units, `wpot.ot.anneal.AnnealOutcome.records`) in the user's units."""
+    """One annealing record (normalized units, `wpot.ot.anneal.loop.AnnealOutcome.records`) in the user's units."""
     return BetaStep(beta=r["beta"] / scale, cost=r["u"] * scale * total, free_energy=r["f"] * scale * total,
                     n_newton=r["nn"], n_linear=r["nl"], residual=r["res"], gap_bound=r["gap"] * scale * total,
                     objective=r["obj"] * scale * total)
@@ -123,7 +123,7 @@ def build_result(eng: Engine, out: AnnealOutcome, total: float, kind: str, *, pa
                  plan_topk: int) -> OTResult:
     """The `OTResult` of a finished annealing (``out``) on ``eng``, in the user's units and orientation:
     costs x scale x ``total`` (the mass the problem was normalized by), betas / scale, the duals x scale.
-    ``dense``: also form the (N1, N2) plan. Warns (RuntimeWarning, `wpot.ot.anneal.warn_not_converged`)
+    ``dense``: also form the (N1, N2) plan. Warns (RuntimeWarning, `wpot.ot.anneal.loop.warn_not_converged`)
     when the annealing did not converge."""
     p = eng.p
     s = p.scale

@@ -3,9 +3,9 @@ the function forms `solve_balanced` / `solve_partial`.
 
 - "anneal": Algorithm 1 from beta0 (balanced or partial, stored or matrix-free cost).
 - "ipm": a primal-dual interior-point start up to the first grid beta whose gap bound is <= 1e-3 U, then
-  Algorithm 1 (balanced transport with a stored cost only; `wpot.ot.ipm`).
-- "exact": the limit beta = infinity itself by column generation: the transport LP (balanced; `wpot.ot.exact`)
-  or the chi^2 QP (partial; `wpot.ot.exact_partial`), certified over every entry.
+  Algorithm 1 (balanced transport with a stored cost only; `wpot.ot.anneal.ipm`).
+- "exact": the limit beta = infinity itself by column generation: the transport LP (balanced; `wpot.ot.exact.balanced`)
+  or the chi^2 QP (partial; `wpot.ot.exact.partial`), certified over every entry.
 - "auto": "exact", balanced or partial.
 
 The annealing solvers record D(beta), the paper's distance along beta (every recorded beta is that beta's saddle
@@ -19,12 +19,12 @@ from typing import Any, Callable, ClassVar, Mapping, Protocol, runtime_checkable
 
 from wpot._validate import integer_at_least, positive_finite
 from wpot.ot import kernels as K
-from wpot.ot.balanced import solve_balanced_problem
-from wpot.ot.exact import solve_exact_batch, solve_exact_problem
+from wpot.ot.anneal.balanced import solve_balanced_problem
+from wpot.ot.exact import qp_bytes, solve_exact_batch, solve_exact_problem, support_bytes
 from wpot.ot.options import SolverOptions
-from wpot.ot.partial import solve_partial_problem
+from wpot.ot.anneal.partial import solve_partial_problem
 from wpot.ot.problem import TransportProblem
-from wpot.ot.resident import device_loop_bytes
+from wpot.ot.anneal.resident import device_loop_bytes
 from wpot.ot.result import BetaStep, OTResult
 
 __all__ = ["SOLVERS", "AnnealSolver", "AutoSolver", "ExactSolver", "InteriorPointSolver", "TransportSolver",
@@ -38,7 +38,7 @@ _HOST_BYTES_PER_POINT_TOPK = 128
 #: host bytes per point of the problem's own vectors and the Newton and CG work vectors (masses, oriented
 #: copies, residuals, the Schur data, the CG recurrences: about 40 float64 vectors)
 _HOST_BYTES_PER_POINT = 64 * _F64
-#: the preconditioner's LU factor (SuperLU, `wpot.ot.linear`) is the one term whose size depends on the
+#: the preconditioner's LU factor (SuperLU, `wpot.ot.anneal.linear`) is the one term whose size depends on the
 #: cost's structure: its fill grows with the intrinsic dimension of the points. Measured nonzeros per column
 #: (the largest over a solve, topk = 4): 30-40 for points on a 2-D manifold (a sphere: surfaces' signatures
 #: are such) at N = 500-2000; 206, 365, 679 at N = 1000, 2000, 4000 for points filling a 6-D cube; 297 at
@@ -81,10 +81,10 @@ def _lanes(options: SolverOptions) -> int:
 
 
 def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, dim: int) -> int:
-    """Bytes of the arrays of an annealing solve other than the (N1, N2) ones: `wpot.ot.newton.Engine`'s
+    """Bytes of the arrays of an annealing solve other than the (N1, N2) ones: `wpot.ot.anneal.newton.Engine`'s
     device vectors (counted one by one), host allowances per point, the preconditioner's LU factor (~N^1.85,
     see `_FACTOR_EXPONENT`) or, with ``newton_loop="device"``, the device loop's arrays
-    (`wpot.ot.resident.device_loop_bytes`), and, matrix-free, the (N, dim) features. ``newton_loop=None``
+    (`wpot.ot.anneal.resident.device_loop_bytes`), and, matrix-free, the (N, dim) features. ``newton_loop=None``
     (the device's choice) counts both, a bound for either device."""
     n_r, n_c = max(n1, n2), min(n1, n2)
     kk = max(2, min(options.topk, n_c))
@@ -105,7 +105,7 @@ def _linear_bytes(n1: int, n2: int, options: SolverOptions, matrix_free: bool, d
 
 
 def _direct_bytes(n1: int, n2: int) -> int:
-    """Host bytes of one dense direct solve of the Schur complement (`wpot.ot.linear.direct_solve`) on top of
+    """Host bytes of one dense direct solve of the Schur complement (`wpot.ot.anneal.linear.direct_solve`) on top of
     the stored W: the scaled copy of W and two (n_c, n_c) products, or S with the partial terms (four
     (n_c, n_c) arrays); then S and its Cholesky factor."""
     n_r, n_c = max(n1, n2), min(n1, n2)
@@ -184,7 +184,7 @@ class InteriorPointSolver(_Solver):
     gap bound N1 N2 / beta is <= 1e-3 U; Algorithm 1 goes on from there (``history`` starts at that beta;
     ``n_newton`` / ``n_linear`` include the interior-point iterations). The same result at convergence, and
     faster at N >= ~1000 (`benchmarks/ot_speed.py`). Balanced transport with a stored cost only: it keeps
-    the primal plan and the reduced costs, two more (N1, N2) arrays (`wpot.ot.ipm`)."""
+    the primal plan and the reduced costs, two more (N1, N2) arrays (`wpot.ot.anneal.ipm`)."""
 
     name: ClassVar[str] = "ipm"
 
@@ -217,7 +217,7 @@ class InteriorPointSolver(_Solver):
 @dataclass(frozen=True)
 class ExactSolver(_Solver):
     """The limit beta = infinity itself by column generation: the transport LP (balanced, POT's network
-    simplex; `wpot.ot.exact`) or the chi^2 QP (partial, Clarabel's interior point; `wpot.ot.exact_partial`)
+    simplex; `wpot.ot.exact.balanced`) or the chi^2 QP (partial, Clarabel's interior point; `wpot.ot.exact.partial`)
     on a sparse support that Warp pricing passes over all N1 N2 entries grow until none has a negative
     reduced cost; the last pass certifies the optimum. Stored cost or `FeatureCost`.
     ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
@@ -236,10 +236,8 @@ class ExactSolver(_Solver):
         """Peak bytes of a solve: the device copy of C (stored mode; counted always, although the CPU reads a
         C-contiguous float64 array in place) or the features, the dense plan when it
         is formed, the pricing pass's per-row lists and the sparse support with the network simplex's graph
-        of it (`wpot.ot.exact.support_bytes`), or for a partial problem the interior-point method's (the
+        of it (`wpot.ot.exact.balanced.support_bytes`), or for a partial problem the interior-point method's (the
         larger, counted always)."""
-        from wpot.ot.exact import support_bytes
-        from wpot.ot.exact_partial import qp_bytes
 
         n1, n2, dim = _check_size(n1, n2, dim)
         nn = _F64 * n1 * n2
@@ -301,8 +299,8 @@ def make_solver(method: str = "anneal", options: SolverOptions | None = None, **
 def solve_balanced(C, a=None, b=None, *, method: str = "auto", device: str | None = None,
                    options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
     """Balanced optimal transport min_G sum C G, G >= 0, G 1 = a, G^T 1 = b (Eq. 6-7): by default the exact
-    optimum (the annealing's limit beta -> infinity, by column generation; `wpot.ot.exact`), or by annealing
-    (Algorithm 1; `wpot.ot.balanced`), which also gives U(beta) along the way.
+    optimum (the annealing's limit beta -> infinity, by column generation; `wpot.ot.exact.balanced`), or by annealing
+    (Algorithm 1; `wpot.ot.anneal.balanced`), which also gives U(beta) along the way.
 
     Parameters
     ----------
@@ -332,8 +330,8 @@ def solve_balanced(C, a=None, b=None, *, method: str = "auto", device: str | Non
 def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, method: str = "auto",
                   device: str | None = None, options: SolverOptions | None = None, **option_keywords: Any) -> OTResult:
     """Partial OT with a Pearson chi^2 mass penalty (Eq. 17-18): by default its exact optimum (the
-    annealing's limit beta -> infinity, a convex QP, by column generation; `wpot.ot.exact_partial`), or by
-    annealing (Algorithm 1; `wpot.ot.partial`), which also gives U(beta) and F(beta) along the way:
+    annealing's limit beta -> infinity, a convex QP, by column generation; `wpot.ot.exact.partial`), or by
+    annealing (Algorithm 1; `wpot.ot.anneal.partial`), which also gives U(beta) and F(beta) along the way:
 
         min_{G >= 0, m1, m2}  sum C G + sum_k alpha1(k) m1(k)^2 + sum_l alpha2(l) m2(l)^2
         s.t. G 1 = m1, G^T 1 = m2, sum G = 1,       alpha_i = mass_penalty / rho_i^2.

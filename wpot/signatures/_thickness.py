@@ -85,7 +85,7 @@ def thickness(
     Parameters
     ----------
     mesh : `wpot.Mesh`; it must enclose a volume (a closed surface, or an open one whose holes are small:
-        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.orientation.winding`).
+        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.maps.orientation.winding`).
     n_rays, cone_angle : rays per vertex and their cone's half-angle in degrees (`N_RAYS`, `CONE_ANGLE`).
     frames : the mesh's `wpot.signatures.LocalFrames` when already computed (default: `local_frames` at K = 3).
     device : Warp device for the ray casting; None is Warp's default device.
@@ -94,7 +94,7 @@ def thickness(
     See the module docstring for the definition and for the vertices whose value is filled in.
     """
     from render.raycast import DepthRenderer, inward_cone
-    from wpot.orientation import winding
+    from wpot.maps.orientation import winding
     from wpot.signatures._ldsift import local_frames
 
     if not isinstance(mesh, Mesh):

@@ -45,12 +45,12 @@ from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..mesh import Mesh
-from ..cache import Cache
-from ..spectral import Spectrum
-from .._validate import integer_at_least
-from .base import option, register_signature
-from ._spectral import SpectralOptions, SpectralSignature, check_eigenpairs, mesh_spectrum, positive_evals, spectrum_summary
+from wpot.mesh import Mesh
+from wpot.cache import Cache
+from wpot.spectral import Spectrum
+from wpot._validate import integer_at_least
+from wpot.signatures.base import option, register_signature
+from wpot.signatures._spectral import SpectralOptions, SpectralSignature, check_eigenpairs, mesh_spectrum, positive_evals, spectrum_summary
 
 __all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA",
            "WKSWarning", "WKS", "WKSOptions", "spectrum_summary"]

@@ -24,9 +24,9 @@ geodesic distances to choose among them and to fill in the map:
    left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
    (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
    sides of the part apart. Three candidates: (a) the stretches that reverse orientation sent through the
-   whole's left/right symmetry (`wpot.orientation.keep_orientation` with ``symmetry_of="b"``); (b) the map
+   whole's left/right symmetry (`wpot.maps.orientation.keep_orientation` with ``symmetry_of="b"``); (b) the map
    *unfolded*: redrawn (``n_rounds`` times) from the anchors where it keeps orientation
-   (`wpot.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
+   (`wpot.maps.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
    through the whole's symmetry, unfolded the same way. Orientation alone does not choose the side: a limb
    mapped onto the other limb and unfolded keeps orientation too. LD-SIFT does, as it is not mirror-invariant:
    on the ground truth of the development benchmark (`benchmarks/partial_poses.py`, 224 part-to-pose pairs)
@@ -44,7 +44,7 @@ geodesics inside the part are those of the whole, which holes or a cut across a 
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
 per anchor and per distinct candidate (about 2 ms each at 5,000 vertices), and a nearest-neighbour search in
 ``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole, plus, the first time a whole is met, its
-symmetry for step 4 (`wpot.orientation.reflection_symmetry`: about 3 s, then cached). The README's
+symmetry for step 4 (`wpot.maps.orientation.reflection_symmetry`: about 3 s, then cached). The README's
 partial-correspondence row has the measured effect.
 """
 from __future__ import annotations
@@ -116,7 +116,7 @@ class PartMap:
         match agrees with the anchors; large: the map strays from them there, or the anchors themselves are
         wrong, which raises it everywhere)
     confidence : (N_P,) float64 in [0, 1], ``exp(−residual / tol) · (1 + o) / 2`` with o the map's orientation
-        score around the vertex (`wpot.orientation.local_orientation`: 1 where the map keeps orientation, −1
+        score around the vertex (`wpot.maps.orientation.local_orientation`: 1 where the map keeps orientation, −1
         where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust. On the
         development pairs (`benchmarks/partial_poses.py`) the more confident half of each pair's points was
         0.080 √area off and the other 0.117; over all pairs' points pooled, 0.031 and 0.142
@@ -129,7 +129,7 @@ class PartMap:
         mean distance from each vertex's signature to the nearest signature of the whole (no map at all;
         `Comparer.nearest_signature_distance`)
     anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
-    orientation : the final map's `wpot.orientation.orientation_score` (NaN when it cannot be read)
+    orientation : the final map's `wpot.maps.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`
     """
 
@@ -228,14 +228,14 @@ class _Redraw:
     def dense(self, from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``: (N_P,) int64."""
-        from wpot.fmap import nearest_rows
+        from wpot.maps.fmap import nearest_rows
 
         return nearest_rows(_distances(self.g_part, from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
         current images."""
-        from wpot.fmap import nearest_rows
+        from wpot.maps.fmap import nearest_rows
 
         k = np.ones(len(self.src), dtype=bool) if keep is None else keep
         for _ in range(n):
@@ -245,7 +245,7 @@ class _Redraw:
     def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
         """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation, then once from
         all of them."""
-        from wpot.orientation import local_orientation
+        from wpot.maps.orientation import local_orientation
 
         for _ in range(n):
             keep = np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0
@@ -258,7 +258,7 @@ class _Redraw:
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarray, float, float]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
     score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
-    from wpot.orientation import keep_orientation, orientation_score, reflection_symmetry
+    from wpot.maps.orientation import keep_orientation, orientation_score, reflection_symmetry
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -298,7 +298,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     unreliable, as its residuals say.
     """
     from wpot.cost import paired_costs
-    from wpot.orientation import local_orientation, orientation_score
+    from wpot.maps.orientation import local_orientation, orientation_score
     from wpot.sampling import farthest_point_sampling
 
     for name, m in (("part", part), ("whole", whole)):
@@ -306,7 +306,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
             raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
     opt = LocateOptions() if options is None else options
     if not isinstance(opt, LocateOptions):
-        raise TypeError(f"options must be a wpot.locate.LocateOptions, got {type(opt).__name__}")
+        raise TypeError(f"options must be a wpot.maps.locate.LocateOptions, got {type(opt).__name__}")
     sp_ = np.asarray(part_signatures, dtype=np.float64)
     sw = np.asarray(whole_signatures, dtype=np.float64)
     for name, s, m in (("part_signatures", sp_, part), ("whole_signatures", sw, whole)):

@@ -13,8 +13,8 @@ from typing import Callable
 
 import numpy as np
 
-from wpot.ot.anneal import anneal
-from wpot.ot.newton import Engine
+from wpot.ot.anneal.loop import anneal
+from wpot.ot.anneal.newton import Engine
 from wpot.ot.options import SolverOptions, check_mode
 from wpot.ot.problem import TransportProblem, orient, prepare_cost, prepare_masses, resolve_device
 from wpot.ot.result import BetaStep, OTResult, beta_step, build_result

@@ -3,7 +3,7 @@
 State lives in preallocated Warp arrays on the solve device; the O(N1 N2) work (phi, phi', row and
 column sums, U, F, Schur matvecs) runs in `wpot.ot.kernels`. The Newton steps run in one of two loops
 (`EngineOptions.newton_loop`): the host loop handles the length-N vectors on the host (zero-copy views on
-"cpu"), where the CG recurrences and the SuperLU preconditioner run; the device loop (`wpot.ot.resident`,
+"cpu"), where the CG recurrences and the SuperLU preconditioner run; the device loop (`wpot.ot.anneal.resident`,
 the default on a GPU) keeps them on the device and reads one small array per trial point. Every read of
 a device array goes through `Engine.to_host` and every write of host data through `Engine.to_device`, which
 count them (`Timers.n_d2h`, `Timers.n_h2d`): on a GPU each is a transfer, and each read waits for the
@@ -21,14 +21,13 @@ one (`REFRESH_EXTRA_CG`).
 
 The `Engine`'s public step API (`evaluate`, `direction`, `direction_later`, `trial`, `trial_from`,
 `accept`, `newton`, `free_pass`, `dual_sums`, `snapshot`/`restore`, `invalidate_preconditioner`, `plan`,
-`plan_top`, `to_host`/`to_device`, `read_scalars`) is what the annealing loop (`wpot.ot.anneal`) and the
-interior-point start (`wpot.ot.ipm`) drive.
+`plan_top`, `to_host`/`to_device`, `read_scalars`) is what the annealing loop (`wpot.ot.anneal.loop`) and the
+interior-point start (`wpot.ot.anneal.ipm`) drive.
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -36,11 +35,12 @@ import warp as wp
 
 from wpot.cost import METRIC_CODES
 from wpot.ot import kernels as K
-from wpot.ot import linear
-from wpot.ot import resident
+from wpot.ot.anneal import linear
+from wpot.ot.anneal import resident
 from wpot.ot.options import EngineOptions
 from wpot.ot.problem import Internal
-from wpot.ot.resident import DeviceLoop
+from wpot.ot.anneal.resident import DeviceLoop
+from wpot.ot.anneal.state import DualSnapshot, DualSums, Point, Timers
 
 #: a preconditioner is reused (across Newton steps and betas) until a CG solve with it takes more than
 #: this many iterations beyond the count of its first solve (or a full Newton step with it gains less than
@@ -65,78 +65,6 @@ CG_LOOSE = 0.1
 STEP_GROWTH = 1.5
 #: the fraction-to-zero step rule applies to pivots with beta s above this (see `Engine.newton`)
 FTB_MIN_X = 1.0
-
-
-@dataclass
-class Timers:
-    """Seconds spent per phase of one `Engine`'s solve and its work counts (``as_dict`` is what benchmarks print).
-
-    n_factor counts preconditioner builds (SuperLU factorizations; in the device loop, full FSAI builds),
-    n_refit the device loop's refits on the last pattern and n_build_sync the synchronisations inside Warp's
-    set-up of its full builds (`wpot.ot.resident.BUILD_SYNCS` each);
-    n_newton counts Newton steps (`Engine.newton`'s and the interior-point iterations: `OTResult.n_newton`);
-    n_d2h / n_h2d count the device-to-host reads (`Engine.to_host`) and host-to-device writes
-    (`Engine.to_device`) of device arrays, the transfers (and, for reads, synchronisations) a GPU makes.
-    """
-
-    eval: float = 0.0
-    prep: float = 0.0
-    precond: float = 0.0
-    cg: float = 0.0
-    direct: float = 0.0
-    other: float = 0.0
-    n_eval: int = 0
-    n_matvec: int = 0
-    n_factor: int = 0
-    n_refit: int = 0
-    n_build_sync: int = 0
-    n_free: int = 0
-    n_newton: int = 0
-    n_d2h: int = 0
-    n_h2d: int = 0
-
-    def as_dict(self) -> dict:
-        return dict(self.__dict__)
-
-
-@dataclass
-class Point:
-    """Values at one (lam, y): the marginal residuals g1 (n_r,), g2 (n_c,) and the scalar sums.
-
-    From `Engine.evaluate`, g1 and g2 are host copies in the host loop and None in the device loop (they
-    stay on the device). As the right-hand side of `Engine.direction` they may be numpy arrays, Warp arrays
-    on the solve device, or None for those of the last evaluation."""
-
-    g1: np.ndarray | wp.array | None
-    g2: np.ndarray | wp.array | None
-    merit: float
-    residual: float
-    u: float = math.nan
-    f_sum: float = math.nan
-    xphi: float = math.nan
-    x: float = 0.0
-    sums: DualSums | None = None  # set by `Engine.free_pass` (host loop) or `Engine.free_values` (device loop)
-
-
-@dataclass(frozen=True)
-class DualSums:
-    """Sums over the duals and marginals at a solved point (normalized units), for the free energy (Eq. 12 /
-    23) and the partial penalty: lam . m_r, y . m_c, sum b lam^2, sum a mu^2 with mu = y - x, and
-    penalty = sum m1^2 / (2 b) + sum m2^2 / (2 a) with m the marginals (0 for balanced transport)."""
-
-    lam_m: float
-    y_m: float
-    b_lam2: float
-    a_mu2: float
-    penalty: float
-
-
-@dataclass(frozen=True)
-class DualSnapshot:
-    """A copy of the duals (lam, y), each a (hi, lo) pair of float64 device arrays (see `Engine.snapshot`)."""
-
-    lam: tuple[wp.array, wp.array]
-    y: tuple[wp.array, wp.array]
 
 
 class Engine:
@@ -217,7 +145,7 @@ class Engine:
         loop = opts.newton_loop
         if loop is None:
             loop = "host" if self._host or opts.linear_solver != "cg" else "device"
-        #: the device-resident Newton loop (`wpot.ot.resident`), or None for the host loop
+        #: the device-resident Newton loop (`wpot.ot.anneal.resident`), or None for the host loop
         self.dev = DeviceLoop(self) if loop == "device" else None
 
     # ------------------------------------------------------------------ evaluation

@@ -1,8 +1,8 @@
-"""A multilevel V-cycle around the device loop's FSAI preconditioner (`wpot.ot.resident`).
+"""A multilevel V-cycle around the device loop's FSAI preconditioner (`wpot.ot.anneal.resident`).
 
 Why: at high beta the sparse Schur approximation P is nearly the weighted Laplacian of one connected graph
 (its off-diagonal row sums 0.97 of the diagonal, the graph 50-80 edges deep at N = 600), so its inverse couples
-unknowns far apart, and FSAI's factor (`wpot.ot.resident.FSAI_ROW` entries a row) is local. On the same Schur
+unknowns far apart, and FSAI's factor (`wpot.ot.anneal.resident.FSAI_ROW` entries a row) is local. On the same Schur
 systems, taken from annealing runs (random R^8 points), CG needed 15-16 iterations with FSAI where it needed 4-6
 with P's exact factors at N = 600, and 24 against 6-7 at N = 1,500; reordering P first changed nothing. The
 V-cycle below needed 7-8 and 10-11.

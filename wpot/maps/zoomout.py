@@ -30,14 +30,14 @@ Laplace–Beltrami spectra match. Nor is it meant for a part against a whole, wh
 Left and right: ZoomOut alone cannot tell them apart. WKS maps mix the two sides of a symmetric body, and
 ZoomOut makes them consistent with one side, sometimes the mirror one, or the mirror one on a symmetric part
 only (both legs). So by default (``orient=True``) two candidates are refined, and of those oriented about as
-well as the better one (`wpot.orientation.orientation_score`, read extrinsically, within `ORIENTATION_TIE`)
+well as the better one (`wpot.maps.orientation.orientation_score`, read extrinsically, within `ORIENTATION_TIE`)
 the one that stretches the surface least is returned (a limb sent onto the other one with a half turn keeps
 orientation, but tears the map at its root):
 
 1. the given map, refined; the parts found mirrored are sent through the shape's left/right symmetry and
-   refined again (`wpot.orientation.keep_orientation`);
+   refined again (`wpot.maps.orientation.keep_orientation`);
 2. the point map of a functional map fitted from WKS descriptors with an orientation-aware term
-   (`wpot.fmap`, k = 30), refined from k = 30. It does not use the given map, so it also rescues a map that
+   (`wpot.maps.fmap`, k = 30), refined from k = 30. It does not use the given map, so it also rescues a map that
    is wrong beyond mirroring; the given map wins where the descriptors alone mislead.
 
 Both are refined to k = `ZOOMOUT_K_SELECT` and compared there; the chosen one goes on to k_end.
@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot._validate import boolean, vertex_map
-from wpot.fmap import point_map
+from wpot.maps.fmap import point_map
 from wpot.mesh import Mesh
 
 __all__ = ["zoomout", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_K_SELECT", "ZOOMOUT_SAMPLES",
@@ -87,7 +87,7 @@ ZOOMOUT_SAMPLES = 2000
 
 
 def spectrum_size(n_vertices: int) -> int:
-    """Eigenpairs that `zoomout` and `wpot.orientation.reflection_symmetry` read for a mesh of ``n_vertices``:
+    """Eigenpairs that `zoomout` and `wpot.maps.orientation.reflection_symmetry` read for a mesh of ``n_vertices``:
     a tenth of the vertices, at least `ZOOMOUT_MIN_EIGEN` and at most `ZOOMOUT_N_EIGEN` (never more than the
     vertices). An eigenfunction beyond about N/10 has a wavelength of a few edges, which the mesh resolves
     poorly: on meshes of about 800 vertices, WKS descriptors from 500 eigenpairs lose the left/right symmetry
@@ -130,9 +130,9 @@ def zoomout(
     orient : keep left and right apart (default): refine two candidates to k = min(k_end, `ZOOMOUT_K_SELECT`)
         and go on to k_end with the one that, of those oriented about as well as the better one, stretches the
         surface least (the module docstring). The candidates: the given map, with the parts
-        where it reverses orientation (`wpot.orientation.local_orientation`) sent through A's left/right
-        symmetry (or B's; `wpot.orientation.keep_orientation`), and the map of an orientation-aware functional
-        map fitted from WKS descriptors (`wpot.fmap`; only for two connected surfaces with a readable outside).
+        where it reverses orientation (`wpot.maps.orientation.local_orientation`) sent through A's left/right
+        symmetry (or B's; `wpot.maps.orientation.keep_orientation`), and the map of an orientation-aware functional
+        map fitted from WKS descriptors (`wpot.maps.fmap`; only for two connected surfaces with a readable outside).
         False: the plain ZoomOut of the given map, which settles on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
@@ -182,7 +182,7 @@ def zoomout(
 
     if not orient:
         return refine(t, k_start, k_end, step)
-    from wpot.orientation import keep_orientation, orientation_score
+    from wpot.maps.orientation import keep_orientation, orientation_score
 
     k_sel = min(k_end, max(k_start, ZOOMOUT_K_SELECT))
     out = refine(t, k_start, k_sel, step)
@@ -215,10 +215,10 @@ def _stretch(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> float:
 
 def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> tuple[np.ndarray, int] | None:
     """The point map (N_A,) of the functional map fitted from WKS descriptors with the orientation term
-    (`wpot.fmap`, at k = min(`wpot.fmap.FMAP_K`, k_end)), and that k; None when it cannot be fitted: a mesh of
+    (`wpot.maps.fmap`, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)), and that k; None when it cannot be fitted: a mesh of
     several components, or one whose outside cannot be read (an open or flat surface)."""
-    from wpot.fmap import FMAP_DESCRIPTORS, FMAP_K, SpectralOperators, functional_map
-    from wpot.orientation import winding
+    from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, SpectralOperators, functional_map
+    from wpot.maps.orientation import winding
     from wpot.signatures import wks
     from wpot.signatures._wks import wks_energies
 
@@ -258,7 +258,7 @@ def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, s
     ``sample``: a mesh's sampled vertices (or None: every vertex); with both meshes sampled, the rounds before
     the last map only the samples onto each other, and fit the functional map to them by least squares; the
     last round maps every vertex with that fit, and once more with the fit to every vertex."""
-    from wpot.fmap import SpectralOperators
+    from wpot.maps.fmap import SpectralOperators
 
     ops_a, ops_b = (SpectralOperators(m, _spectrum(m, n_eigen), k_end) for m in (mesh_a, mesh_b))
     phi_a, phi_b = ops_a.phi, ops_b.phi

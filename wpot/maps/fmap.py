@@ -3,7 +3,7 @@
 
 A functional map C (k × k) carries a function on B, given by its coefficients b in B's first k Laplace–Beltrami
 eigenfunctions (g ≈ Φ_B b), to its pull-back on A: g ∘ T ≈ Φ_A (C b), for a vertex map T: A → B. It is the
-same (k, k) matrix ZoomOut computes from a point map (`wpot.refine`). Here it is fitted without any point map,
+same (k, k) matrix ZoomOut computes from a point map (`wpot.maps.zoomout`). Here it is fitted without any point map,
 from functions that a near-isometry carries over (descriptors f_A ≈ f_B ∘ T, WKS on a shared energy grid), by
 linear least squares in its k² entries over four terms, each zero for an exact isometry's map:
 
@@ -15,7 +15,7 @@ linear least squares in its k² entries over four terms, each zero for an exact 
   This is the term that tells left from right: WKS and the other three terms are intrinsic, so they are
   satisfied as well by the map composed with a left/right symmetry, whereas a mirror map turns the
   orientation operator around (``C O_B^f = −O_A^f C``). It needs both surfaces consistently wound with
-  a readable outside (`wpot.orientation.winding`); the normals are taken outward on both.
+  a readable outside (`wpot.maps.orientation.winding`); the normals are taken outward on both.
 
 Each operator pair (and the descriptor coefficients) is scaled to a unit mean Frobenius norm, so the weights
 are relative and independent of the meshes' size and sampling; the defaults (k = 30, 50 WKS descriptors,
@@ -92,7 +92,7 @@ class SpectralOperators:
 
     Parameters
     ----------
-    mesh : the shape: one connected surface, consistently wound (`wpot.orientation.winding` ≠ 0) when the
+    mesh : the shape: one connected surface, consistently wound (`wpot.maps.orientation.winding` ≠ 0) when the
         orientation operators are asked for
     spectrum : its `wpot.Spectrum` (area-normalized eigenpairs, at least k)
     k : spectral resolution
@@ -130,7 +130,7 @@ class SpectralOperators:
         """(m, k, k): for each function f of ``values`` (N, m), the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis,
         with n the outward normal (per face, integrated over the faces: each face gives a third of its area to
         each corner). Raises ValueError on a mesh whose outside cannot be read."""
-        from wpot.orientation import winding
+        from wpot.maps.orientation import winding
 
         mesh = self.mesh
         if self._grad_phi is None:

@@ -5,7 +5,7 @@ min_G sum C G, G >= 0, G 1 = a, G^T 1 = b (Eq. 6-7). At each beta the saddle poi
 phi(x) = 1/x - 1/(e^x - 1)), warm-started (and extrapolated linearly in 1/beta) from the previous beta;
 beta is multiplied by ``step`` until the relative change of U falls below ``tol`` (Algorithm 1). The
 annealing starts at beta0 from a nearly uniform plan, or at a later beta from the interior-point start
-(`wpot.ot.ipm`). Callers use `wpot.ot.solve_balanced` or a solver of `wpot.ot.make_solver`.
+(`wpot.ot.anneal.ipm`). Callers use `wpot.ot.solve_balanced` or a solver of `wpot.ot.make_solver`.
 """
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from typing import Callable
 
 import numpy as np
 
-from wpot.ot.anneal import anneal
-from wpot.ot.ipm import ipm_start
-from wpot.ot.newton import Engine
+from wpot.ot.anneal.loop import anneal
+from wpot.ot.anneal.ipm import ipm_start
+from wpot.ot.anneal.newton import Engine
 from wpot.ot.options import SolverOptions, check_mode
 from wpot.ot.problem import TransportProblem, check_balanced, orient, prepare_cost, prepare_masses, resolve_device
 from wpot.ot.result import BetaStep, OTResult, beta_step, build_result

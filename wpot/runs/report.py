@@ -13,17 +13,10 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["PAPER_TABLE1", "RunNotReadyError", "build_report", "classify_run", "confusions", "loo_misses",
+from wpot.paper.table1 import PAPER_TABLE1
+
+__all__ = ["RunNotReadyError", "build_report", "classify_run", "confusions", "loo_misses",
            "misses_text", "pair_counts", "signature_title"]
-
-#: paper Table 1: 1-NN success rates (%) on TOSCA8, one random training shape per class, 10,000 trials
-PAPER_TABLE1 = {
-    ("wks", "balanced"): 100.0,
-    ("wks", "partial"): 98.6,
-    ("ldsift", "balanced"): 83.3,
-    ("ldsift", "partial"): 97.3,
-}
-
 
 class RunNotReadyError(ValueError):
     """A run cannot be classified yet: pairs are missing, or its shapes have no class labels."""
@@ -112,7 +105,7 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
 def build_report(runs: Sequence[str | Path], out: str | Path | None = None, *, trials: int = 10_000, seed: int = 0) -> Path:
     """Write a Markdown report of one or more runs beside the paper's Table 1, with a distance-matrix and a
     confusion figure per run; returns the path written (default: ``report.md`` in the first run's folder)."""
-    from wpot.pipeline import RunStore
+    from wpot.runs.store import RunStore
     from wpot.evaluate import format_percent
     from wpot.plot import plot_confusion, plot_distance_matrix
 

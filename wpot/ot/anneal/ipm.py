@@ -4,7 +4,7 @@ For the balanced problem with N1, N2 >= ~50, every entry of the mean-field plan 
 (G <= max mass <= 1/50 means x = beta s >= 50, where phi(x) = 1/x to rounding), so the saddle point at
 beta is the point of the transport LP's central path with G(k, l) s(k, l) = 1/beta, s = C + lam + mu:
 annealing beta is path following with the barrier parameter 1/beta. Newton's method on the duals alone
-(`wpot.ot.newton.Engine.newton`) needs many damped steps at the one or two betas where the plan goes
+(`wpot.ot.anneal.newton.Engine.newton`) needs many damped steps at the one or two betas where the plan goes
 from spread out to a near-permutation (50 + 21 at N = 3,400). Mehrotra's predictor-corrector method,
 which keeps G as a variable of its own, crosses that region in a few iterations.
 
@@ -29,7 +29,8 @@ import numpy as np
 import warp as wp
 
 from wpot.ot import kernels as K
-from wpot.ot.newton import Engine, Point
+from wpot.ot.anneal.newton import Engine
+from wpot.ot.anneal.state import Point
 
 # no fused multiply-add: the same rounding on every device as wpot.ot.kernels (see there)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -402,7 +403,7 @@ def handoff_beta(beta0: float, step: float, n_r: int, n_c: int, u: float, handof
 
 def ipm_start(eng: Engine) -> tuple[float, int, int, float]:
     """Run the interior-point iteration on a fresh balanced `Engine` and leave its duals at the barrier of
-    the hand-off beta, where the annealing goes on (`wpot.ot.anneal.anneal` with ``beta0=beta_h``).
+    the hand-off beta, where the annealing goes on (`wpot.ot.anneal.loop.anneal` with ``beta0=beta_h``).
     Returns (beta_h (normalized), iterations, linear iterations, seconds)."""
     t0 = time.perf_counter()
     o, p = eng.o, eng.p

@@ -1,6 +1,6 @@
 """The Newton step on the device: no host round trip per CG iteration (issue 19).
 
-`wpot.ot.newton.Engine` runs its Newton steps in one of two loops (``SolverOptions.newton_loop``):
+`wpot.ot.anneal.newton.Engine` runs its Newton steps in one of two loops (``SolverOptions.newton_loop``):
 
 * "host": the length-N vectors go to the host, where the CG recurrences and the SuperLU preconditioner
   run; every CG iteration writes and reads a vector (24-29 transfers per Newton step).
@@ -17,11 +17,11 @@ one captured graph that stops itself on the device; on the CPU the condition is 
 (`DeviceLoop.captured` says which; Warp captures on the CPU too, where the tests run the captured loop.)
 
 The preconditioner is the sparse approximation P of the Schur complement that the host loop factorizes
-(`wpot.ot.linear.assemble_sparse_schur`: the top-k weights per row and column of W, the exact diagonal),
+(`wpot.ot.anneal.linear.assemble_sparse_schur`: the top-k weights per row and column of W, the exact diagonal),
 assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp BSR matrix and
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
 row on the device; applying it is two sparse products, no triangular solve), by default inside a multilevel
-V-cycle over aggregates of P's unknowns (`wpot.ot.multilevel`, ``SolverOptions.device_preconditioner``):
+V-cycle over aggregates of P's unknowns (`wpot.ot.anneal.multilevel`, ``SolverOptions.device_preconditioner``):
 FSAI is local, and at high beta P's inverse couples far-apart unknowns. Over whole solves with both loops'
 reuse rules (`benchmarks/ot_speed.py`, N = 1,000 / 3,400, annealing) CG needs 1.3 / 1.5x the iterations of the
 host loop's SuperLU factors of P with the V-cycle, 2.3 / 2.7x with FSAI alone (the README has the figures).
@@ -32,7 +32,7 @@ V-cycle's coarse levels recomputed from P: kernels only, no host read (`Timers.n
 selects them), which synchronises 3 times inside Warp (`BUILD_SYNCS`: P's entry count and the selection's
 ready flag, 2 reads counted on the CPU build, and a stream synchronisation on CUDA, where FSAI's eager set-up
 would read 5 times), and the V-cycle's aggregation reads P once (through `Engine.to_host`, so counted in
-``Timers.n_d2h``). It runs first, again when a refit does not serve (`wpot.ot.newton.REFIT_SLOWDOWN`), and at
+``Timers.n_d2h``). It runs first, again when a refit does not serve (`wpot.ot.anneal.newton.REFIT_SLOWDOWN`), and at
 least every `FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
@@ -47,11 +47,12 @@ import warp as wp
 import warp.sparse as wsp
 from warp.optim.linear import FSAI
 
-from wpot.ot.linear import SINGULAR_SHIFT
-from wpot.ot.multilevel import Multilevel, multilevel_bytes
+from wpot.ot.anneal.linear import SINGULAR_SHIFT
+from wpot.ot.anneal.multilevel import Multilevel, multilevel_bytes
+from wpot.ot.anneal.state import DualSums, Point
 
 if TYPE_CHECKING:  # pragma: no cover
-    from wpot.ot.newton import Engine, Point
+    from wpot.ot.anneal.newton import Engine
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
@@ -137,7 +138,7 @@ def free_sums_rows(row_f: wp.array(dtype=wp.float64), lam_hi: wp.array(dtype=wp.
                    lam_lo: wp.array(dtype=wp.float64), m_r: wp.array(dtype=wp.float64),
                    b_r: wp.array(dtype=wp.float64), row_g: wp.array(dtype=wp.float64), partial: int,
                    scal: wp.array(dtype=wp.float64)):
-    """Row terms of `wpot.ot.newton.DualSums` and sum g."""
+    """Row terms of `wpot.ot.anneal.state.DualSums` and sum g."""
     k = wp.tid()
     lam = lam_hi[k] + lam_lo[k]
     wp.atomic_add(scal, _F, row_f[k])
@@ -151,7 +152,7 @@ def free_sums_rows(row_f: wp.array(dtype=wp.float64), lam_hi: wp.array(dtype=wp.
 def free_sums_cols(y_hi: wp.array(dtype=wp.float64), y_lo: wp.array(dtype=wp.float64), x: wp.float64,
                    m_c: wp.array(dtype=wp.float64), a_c: wp.array(dtype=wp.float64),
                    col_g: wp.array(dtype=wp.float64), partial: int, scal: wp.array(dtype=wp.float64)):
-    """Column terms of `wpot.ot.newton.DualSums`."""
+    """Column terms of `wpot.ot.anneal.state.DualSums`."""
     l = wp.tid()
     y = y_hi[l] + y_lo[l]
     mu = y - x
@@ -211,7 +212,7 @@ def sparse_schur_rows(top_val: wp.array2d(dtype=wp.float64), top_idx: wp.array2d
                       piv: wp.array(dtype=wp.int32), e1: wp.array(dtype=wp.float64), skip: int,
                       rows: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32),
                       vals: wp.array(dtype=wp.float64)):
-    """Row k's edges of P (`wpot.ot.linear.assemble_sparse_schur`): pivot <-> each other entry of its
+    """Row k's edges of P (`wpot.ot.anneal.linear.assemble_sparse_schur`): pivot <-> each other entry of its
     top-k, W(k,l) W(k,p) / E1(k), and pairs of its non-pivot top entries, W(k,l1) W(k,l2) / E1(k), where
     that is above 1e-3 of the first pivot edge. Slots: 2 per pair (l1 < l2 of the top-k list)."""
     k = wp.tid()
@@ -424,7 +425,7 @@ def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int, multilevel: bool = T
     """Device bytes a `DeviceLoop` adds to its engine (n_r rows, n_c columns, ``kk`` / ``kc`` top weights per
     row / column): its vectors, the triplets of P and P itself (an upper bound: duplicates are summed),
     FSAI's factor, transpose and set-up work (`FSAI_ROW` entries a row), and with ``multilevel`` the V-cycle's
-    levels (`wpot.ot.multilevel.multilevel_bytes`)."""
+    levels (`wpot.ot.anneal.multilevel.multilevel_bytes`)."""
     f64, i32 = 8, 4
     vectors = f64 * (2 * n_r + 5 * n_c + N_SCAL + N_CG)
     n_trip = n_r * kk * (kk - 1) + n_c * (2 * kc + 1)
@@ -485,7 +486,6 @@ class DeviceLoop:
     def point(self, lam, y) -> Point:
         """The residuals g1, g2 (left in ``self.g1``, ``self.g2``) and the sums at the point the engine's
         evaluation pass just saw; reads ``scal`` (one synchronisation) into a `Point` without host vectors."""
-        from wpot.ot.newton import Point
 
         e, p, d = self.e, self.e.p, self.e.p.device
         self.scal[:N_EVAL].zero_()
@@ -518,7 +518,7 @@ class DeviceLoop:
         return both[N_SCAL:]
 
     def free_sums(self, lam, y, x: float) -> None:
-        """Sum g and the `wpot.ot.newton.DualSums` at the duals ``lam``, ``y``, the partial scalar ``x`` and
+        """Sum g and the `wpot.ot.anneal.state.DualSums` at the duals ``lam``, ``y``, the partial scalar ``x`` and
         the last evaluation, after `kernels.free_rows`, into ``scal`` (`free_values` reads them)."""
         e, p, d = self.e, self.e.p, self.e.p.device
         self.scal[_F:_PEN + 1].zero_()
@@ -528,8 +528,7 @@ class DeviceLoop:
                                                     self.scal], device=d)
 
     def free_values(self):
-        """(sum g, `wpot.ot.newton.DualSums`) of the last `free_sums`, from the last read of ``scal``."""
-        from wpot.ot.newton import DualSums
+        """(sum g, `wpot.ot.anneal.state.DualSums`) of the last `free_sums`, from the last read of ``scal``."""
 
         s = self.last
         return float(s[_F]), DualSums(float(s[_LM]), float(s[_YM]), float(s[_BL2]), float(s[_AM2]), self.penalty())

@@ -3,9 +3,9 @@
     min_{G >= 0, m1, m2}  sum C G + sum_k alpha1(k) m1(k)^2 + sum_l alpha2(l) m2(l)^2
     s.t. G 1 = m1, G^T 1 = m2, sum G = 1,       alpha_i = mass_penalty / rho_i^2,
 
-the limit of the annealing of `wpot.ot.partial` (its D(infinity)). The plan of this convex QP is sparse (for
+the limit of the annealing of `wpot.ot.anneal.partial` (its D(infinity)). The plan of this convex QP is sparse (for
 its own marginals it is a transport LP's vertex: at most N1 + N2 - 1 nonzeros), so, as for balanced transport
-(`wpot.ot.exact`), the problem is solved on a support S that Warp pricing passes over all N1 N2 entries grow:
+(`wpot.ot.exact.balanced`), the problem is solved on a support S that Warp pricing passes over all N1 N2 entries grow:
 
 1. S0 is each row's and each column's `INIT_K` cheapest entries (any nonempty S is feasible: the masses
    are free).
@@ -46,7 +46,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from wpot.ot.exact import ExactRun, Round, sparse_plan, threshold
+from wpot.ot.exact.balanced import ExactRun, Round, sparse_plan, threshold
 from wpot.ot.gram import GramBlocks
 from wpot.ot.options import SolverOptions
 from wpot.ot.problem import TransportProblem, prepare_masses
@@ -59,7 +59,7 @@ __all__ = ["INIT_K", "PRICE_K", "PRUNE_R", "PartialRun", "restricted_qp"]
 #: 8), and the rounds bring in what the first support lacks
 INIT_K = 1
 #: most negative entries a row that join the support in each pricing round (the balanced solver's network
-#: simplex takes 8, `wpot.ot.exact.PRICE_K`; here each one may close a cycle of the factorized graph)
+#: simplex takes 8, `wpot.ot.exact.balanced.PRICE_K`; here each one may close a cycle of the factorized graph)
 PRICE_K = 2
 #: support entries whose reduced cost (normalized units: costs over max C) is above this leave the support
 #: after each solve; far above the pricing threshold (~1e-11), so that an entry pruned comes back only when

@@ -1,6 +1,6 @@
 """The annealing loop of Algorithm 1 over an `Engine`'s public step API (shared by balanced and partial).
 
-beta goes up the geometric grid `wpot.ot.schedule.beta_schedule` (from ``beta0``, or from the hand-off
+beta goes up the geometric grid `wpot.ot.anneal.schedule.beta_schedule` (from ``beta0``, or from the hand-off
 beta of the interior-point start); at each beta the saddle point is found by `Engine.newton`, warm-started
 by a tangent predictor (the duals extrapolated linearly in 1/beta). The loop stops when the relative
 change of U falls below ``tol`` (or |dU| below ``atol``). Per beta: one pass for the predictor (two or
@@ -16,8 +16,9 @@ import warnings
 from dataclasses import dataclass
 from typing import Callable
 
-from wpot.ot.newton import DualSnapshot, Engine, Point
-from wpot.ot.schedule import beta_schedule, relative_change
+from wpot.ot.anneal.newton import Engine
+from wpot.ot.anneal.state import DualSnapshot, Point
+from wpot.ot.anneal.schedule import beta_schedule, relative_change
 
 __all__ = ["AnnealOutcome", "anneal", "warn_not_converged", "MIN_SPLIT_STEP"]
 

@@ -246,7 +246,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     ----------
     mesh : the shape (one connected, consistently wound surface)
     n_eigen : eigenpairs for the WKS and ZoomOut (the vertex count when fewer); default
-        `wpot.refine.spectrum_size` (500, WKS's, from 5,000 vertices up, so that a WKS comparison's cached
+        `wpot.maps.zoomout.spectrum_size` (500, WKS's, from 5,000 vertices up, so that a WKS comparison's cached
         spectrum serves). Whatever else is cached, the result depends on the mesh and these options alone
     min_score : the map must score below ``-min_score`` (`orientation_score` of the mesh against itself)
     exclusion : a vertex's mirror candidate lies at least this far from it, times sqrt(area)
@@ -261,7 +261,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     self-map that is far from an isometry: its ``residual`` says so (`keep_orientation` only uses a flip that
     scores better than the map it replaces).
     """
-    from wpot.refine import spectrum_size, zoomout
+    from wpot.maps.zoomout import spectrum_size, zoomout
     from wpot.spectral import eigenpairs
 
     if not isinstance(mesh, Mesh):
