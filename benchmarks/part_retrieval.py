@@ -43,9 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling modules
-from jsonl_store import JsonlStore, results_folder  # noqa: E402
-from partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
+from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
+from benchmarks.partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts  # noqa: E402
 
 
 def method(w: float, slab: float | None = None) -> str:

@@ -91,8 +91,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling jsonl_store module
-from jsonl_store import JsonlStore, results_folder  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
+from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
 import scipy.sparse as sp
 
 KINDS = ("head", "limb", "cut", "holes")

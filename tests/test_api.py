@@ -84,6 +84,7 @@ TEST_ONLY_MODULES = ("pytest", "xdist", "hypothesis", "cvxpy", "dask", "distribu
                      "nbformat", "ipykernel")
 
 
+@pytest.mark.slow
 def test_demo_imports_no_test_tool_and_prints_no_cuda_warning(tmp_path):
     """The demo, run as the README's first command runs it, in a fresh interpreter: nothing from the dev
     extras is imported, and on a machine without a GPU Warp's "no CUDA driver" warning is not printed."""
@@ -116,6 +117,7 @@ def _run(code: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_warp_start_up_prints_no_cuda_line():
     r = _run("from wpot._warp import resolve_device; print(resolve_device(None))")
     assert r.returncode == 0, r.stderr
@@ -123,6 +125,7 @@ def test_warp_start_up_prints_no_cuda_line():
     assert "CUDA" not in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_warp_start_up_drops_only_the_driver_warning():
     """`init` captures descriptor 2 while Warp starts: the "no driver" line is dropped, any other line is
     written back, and an exception from Warp's start-up propagates with descriptor 2 restored."""
@@ -144,6 +147,7 @@ def test_warp_start_up_drops_only_the_driver_warning():
     assert r.stderr == "Warp warning: something the user must see\nraised: broken install\nstill writable\n"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif("cuda" in DEVICES, reason="this machine has a CUDA device")
 @pytest.mark.parametrize("name", ["cuda", "cuda:0"])
 def test_cuda_without_gpu_is_one_clean_error(name):

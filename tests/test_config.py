@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 
-from test_signature_registry import coords  # noqa: F401  (the fixture: a signature defined outside the package)
 from wpot.config import ComparisonConfig
 from wpot.sampling import SamplerOptions
 

@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+#: real notebooks and Dask clusters: slow (deselect with -m "not slow")
+pytestmark = pytest.mark.slow
+
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")

@@ -8,7 +8,7 @@ import trimesh
 
 import render
 from wpot.mesh import Mesh
-from conftest import random_rotation
+from helpers import random_rotation
 
 
 def _frame_with_normal(n: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from conftest import deform_sphere
+from helpers import deform_sphere
 from wpot.cost import cost_matrix
 from wpot.mesh import Mesh, MeshWarning
 from wpot.cache import Cache

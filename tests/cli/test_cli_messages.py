@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_pipeline import make_dataset
+from helpers import make_dataset
 
 FAST = ["--n-eigen", "30", "--n-energies", "30"]
 

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from wpot.mesh import Mesh
-from conftest import random_rotation
+from helpers import random_rotation
 
 from wpot.signatures import _ldsift as L  # the module, for its internals
 

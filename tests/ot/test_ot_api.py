@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import wpot.ot as wo
-from test_ot_solver import _masses, _points_cost
+from helpers import masses, points_cost
 
 
 # --------------------------------------------------------------------------- SolverOptions
@@ -109,7 +109,7 @@ def test_registry_and_make_solver():
 
 
 def test_function_forms_refuse_unknown_keywords():
-    C = _points_cost(6, 7)
+    C = points_cost(6, 7)
     with pytest.raises(TypeError, match=r"solve_balanced\(\) got an unexpected keyword argument 'tolerance'"):
         wo.solve_balanced(C, device="cpu", tolerance=1e-3, method="anneal")
     with pytest.raises(TypeError, match=r"solve_partial\(\) got an unexpected keyword argument 'tolerance'"):
@@ -126,8 +126,8 @@ def _same(r1: wo.OTResult, r2: wo.OTResult):
 
 
 def test_solvers_give_the_function_forms_results_bit_for_bit():
-    C = _points_cost(30, 45, seed=3)
-    a, b = _masses(30, 1), _masses(45, 2)
+    C = points_cost(30, 45, seed=3)
+    a, b = masses(30, 1), masses(45, 2)
     opts = wo.SolverOptions(tol=1e-7, topk=3)
     rb = wo.solve_balanced(C, a, b, device="cpu", tol=1e-7, topk=3, method="anneal")
     _same(wo.make_solver("anneal", opts).solve(wo.TransportProblem(C, a, b, device="cpu")), rb)
@@ -145,7 +145,7 @@ def test_solvers_give_the_function_forms_results_bit_for_bit():
 
 
 def test_ipm_refuses_partial_and_matrix_free_problems():
-    C = _points_cost(8, 9)
+    C = points_cost(8, 9)
     with pytest.raises(ValueError, match="ipm.*balanced"):
         wo.make_solver("ipm").solve(wo.TransportProblem(C, mass_penalty=1.0, device="cpu"))
     fc = wo.FeatureCost(np.random.default_rng(0).random((8, 3)), np.random.default_rng(1).random((9, 3)), "l2",
@@ -201,7 +201,7 @@ def test_memory_bytes_counts_the_quadratic_arrays():
 
 # --------------------------------------------------------------------------- results
 def test_energy_history_is_beta_and_objective_per_step():
-    C = _points_cost(20, 25, seed=2)
+    C = points_cost(20, 25, seed=2)
     r = wo.solve_balanced(C, device="cpu", method="anneal")
     e = r.energy_history
     assert e.shape == (len(r.history), 2) and e.dtype == np.float64

@@ -32,6 +32,7 @@ from wpot.signatures._ldsift import LDSIFTOptions
 from wpot.signatures._wks import WKSOptions
 from wpot.signatures.base import METRICS, option
 from wpot.signatures.hks import HKS
+from helpers import CoordOptions, Coordinates
 
 
 # ------------------------------------------------------------------------------ contents
@@ -186,30 +187,10 @@ def test_state_round_trip_and_validation():
 
 
 # ------------------------------------------------------------------------------ a signature from outside
-@dataclasses.dataclass(frozen=True)
-class _CoordOptions(SignatureOptions):
-    scale: float = option(1.0, keyword="coord_scale", flag="--coord-scale", help="factor (default {default})")
-    n_eigen: int = option(500, keyword="n_eigen", flag="--n-eigen", help="unused here")
 
 
-class _Coordinates(Signature):
-    """Vertex coordinates times a factor: a signature defined outside the package."""
-
-    name = "coords"
-    title = "Coordinates"
-    metric = "l2"
-    version = 1
-    Options = _CoordOptions
-
-    def __call__(self, mesh):
-        return np.asarray(mesh.vertices, dtype=np.float64) * self.options.scale
 
 
-@pytest.fixture
-def coords():
-    register_signature(_Coordinates)
-    yield _Coordinates
-    unregister_signature("coords")
 
 
 def test_a_new_signature_registers_and_is_found(coords):
@@ -217,7 +198,7 @@ def test_a_new_signature_registers_and_is_found(coords):
 
     assert signature_names()[-1] == "coords" and get_signature("coords") is coords
     o = signature_options("coords", coord_scale=2.0, n_eigen=30, n_energies=50, ldsift_slab=0.5)
-    assert o == _CoordOptions(scale=2.0, n_eigen=30)
+    assert o == CoordOptions(scale=2.0, n_eigen=30)
     p = argparse.ArgumentParser()
     add_signature_arguments(p)
     assert "WKS, HKS, Coordinates: Laplace-Beltrami eigenpairs" in " ".join(p.format_help().split())
@@ -233,8 +214,8 @@ def test_a_new_signature_registers_and_is_found(coords):
 
 
 def test_unregistered_signature_is_gone():
-    register_signature(_Coordinates)
-    assert unregister_signature("coords") is _Coordinates
+    register_signature(Coordinates)
+    assert unregister_signature("coords") is Coordinates
     assert "coords" not in SIGNATURES
     with pytest.raises(ValueError, match=r"unknown signature options \['coord_scale'\]"):
         signature_options("wks", coord_scale=2.0)
@@ -245,7 +226,7 @@ def test_unregistered_signature_is_gone():
 def test_registration_checks(coords):
     def make(**attrs):
         return type("Bad", (Signature,), {"name": "bad", "title": "Bad", "metric": "l2", "version": 1,
-                                          "Options": _CoordOptions, **attrs})
+                                          "Options": CoordOptions, **attrs})
 
     with pytest.raises(ValueError, match="metric must be one of"):
         register_signature(make(metric="cosine"))

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_pipeline import FAST_CLI, make_dataset
+from helpers import FAST_CLI, make_dataset
 
 
 def wpot(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
@@ -34,6 +34,7 @@ def _one_line_error(r: subprocess.CompletedProcess, *fragments: str) -> None:
         assert f in lines[0], lines[0]
 
 
+@pytest.mark.slow
 def test_demo_prints_a_distance_and_saves_a_picture(tmp_path):
     r = wpot("demo", "--out", str(tmp_path / "demo"), "--n", "200")  # the default is 400 vertices
     assert r.returncode == 0, r.stderr
@@ -54,6 +55,7 @@ def test_demo_prints_a_distance_and_saves_a_picture(tmp_path):
     assert np.load(tmp_path / "dz" / "correspondence.npz")["correspondence_zoomout"].shape == (200,)
 
 
+@pytest.mark.slow
 def test_compare_partial_is_exact_and_certified_against_its_objective(dataset, tmp_path):
     r = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--transport", "partial",
              "--out", str(tmp_path / "p"))
@@ -65,6 +67,7 @@ def test_compare_partial_is_exact_and_certified_against_its_objective(dataset, t
     assert info["beta"] is None and len(info["history"]) == 1
 
 
+@pytest.mark.slow
 def test_compare_two_files(dataset, tmp_path):
     r = wpot("compare", str(dataset / "blob1.off"), str(dataset / "flat2.off"), *FAST_CLI, "--out", str(tmp_path / "c"))
     assert r.returncode == 0, r.stderr
@@ -101,6 +104,7 @@ def test_compare_two_files(dataset, tmp_path):
                     "--match-ratio must be in (0, 1], got 1.5")
 
 
+@pytest.mark.slow
 def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path):
     import wpot as w
 
@@ -116,6 +120,7 @@ def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path
     assert json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout"] is True
 
 
+@pytest.mark.slow
 def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     import wpot as w
 
@@ -136,6 +141,7 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
 
 
+@pytest.mark.slow
 def test_all_vs_all_classify_report(dataset, tmp_path):
     run = tmp_path / "run"
     r = wpot("all-vs-all", str(dataset), "--signature", "wks", "--transport", "balanced", "--out", str(run), "--no-progress",
@@ -234,6 +240,7 @@ def test_all_vs_all_classify_report(dataset, tmp_path):
     assert rows[1][2] == "" and rows[2][1] == "" and "5 of 6 pairs" in r.stdout
 
 
+@pytest.mark.slow
 def test_partial_all_vs_all_with_labels(dataset, tmp_path):
     csv = tmp_path / "labels.csv"
     names = sorted(p.stem for p in dataset.glob("*.off"))
@@ -247,6 +254,7 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
     assert "level 'kind'" in r.stdout and "level 'shape'" in r.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args, fragments",
     [
@@ -262,6 +270,7 @@ def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
     _one_line_error(wpot(*args, cwd=tmp_path), *fragments)
 
 
+@pytest.mark.slow
 def test_labels_csv_missing_and_unparsable_mesh(dataset, tmp_path):
     _one_line_error(wpot("all-vs-all", str(dataset), "--out", str(tmp_path / "r"), "--labels", "nope.csv", cwd=tmp_path), "label CSV not found")
     bad = tmp_path / "bad.off"
@@ -332,6 +341,7 @@ def test_summary_says_why_balanced_transport_matched_nothing():
     assert "only when" not in "\n".join(_summary_lines(c, 0.8))  # 120 <= 125: the sizes are not the reason
 
 
+@pytest.mark.slow
 def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     """`wpot retrieve` ranks the classes as `Comparer.retrieve` does on the same meshes (LD-SIFT with its
     thickness column at 2, the command's default), prints them best first and saves the whole ranking."""

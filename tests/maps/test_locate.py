@@ -177,7 +177,7 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
     """Step 4 (`_orient`) on a part of a mirror-symmetric whole: a small stretch reflected in place, which the
     repair through the whole's symmetry (`keep_orientation`, candidate (a)) leaves as it is, is redrawn from
     its neighbours (candidate (b)); a map sent whole onto the mirror side comes back."""
-    from test_orientation import mirror_symmetric
+    from helpers import mirror_symmetric
 
     from wpot.maps.locate import _orient, _Redraw
     from wpot.mesh import cut

@@ -6,7 +6,6 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 import wpot
@@ -14,37 +13,15 @@ from wpot.mesh import Mesh
 from wpot.maps.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
                               winding)
 from wpot.maps.zoomout import ZOOMOUT_K_SELECT, zoomout
+from helpers import mirror_symmetric
 
 #: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
-_BUMPS = (((0.7, 0.5, 0.3), 0.8, 0.35), ((0.0, -0.6, 0.8), 0.5, 0.4), ((0.4, -0.3, -0.85), 0.45, 0.3),
-          ((0.0, 0.9, -0.4), 0.3, 0.45))
 
 
-def _sphere(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    u = rng.standard_normal((n, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    f = ConvexHull(u).simplices.astype(np.int64)
-    nrm = np.cross(u[f[:, 1]] - u[f[:, 0]], u[f[:, 2]] - u[f[:, 0]])
-    flip = np.einsum("ij,ij->i", nrm, u[f].sum(axis=1)) < 0
-    f[flip] = f[flip][:, [0, 2, 1]]
-    return u, f
 
 
-def _radius(u: np.ndarray) -> np.ndarray:
-    r = np.ones(len(u))
-    for c, a, w in _BUMPS:
-        for cx in {c[0], -c[0]}:
-            cc = np.array([cx, c[1], c[2]]) / np.linalg.norm(c)
-            r += a * np.exp((u @ cc - 1.0) / w ** 2)
-    return r
 
 
-def mirror_symmetric(n: int = 900, seed: int = 0) -> Mesh:
-    """A closed, outward-wound surface whose only symmetry is the reflection x -> -x (not mirror-symmetric
-    in its triangulation: the sphere points are random)."""
-    u, f = _sphere(n, seed)
-    return Mesh(u * _radius(u)[:, None] * np.array([1.0, 1.3, 0.8]), f)
 
 
 def _nearest(points: np.ndarray, queries: np.ndarray) -> np.ndarray:

@@ -231,6 +231,7 @@ def test_each_pricing_round_costs_a_few_transfers():
     assert [x.support for x in rounds] == sorted(x.support for x in rounds)  # the support only grows
 
 
+@pytest.mark.slow
 def test_exact_prints_nothing():
     """A library call is silent (the LP solver's own messages are turned into errors or results)."""
     import subprocess

@@ -12,7 +12,7 @@ from wpot.mesh import Mesh
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
-from test_orientation import mirror_symmetric
+from helpers import mirror_symmetric
 
 
 def _descriptors(spec_a, spec_b, p: int = 40) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,7 @@ import ot
 import pytest
 
 import wpot.ot as wo
-from test_ot_solver import _masses, _points_cost
+from helpers import masses, points_cost
 from wpot.cost import cost_matrix
 from wpot.ot.anneal.ipm import HANDOFF, handoff_beta
 
@@ -23,9 +23,9 @@ def _emd(C, a, b):
 
 @pytest.mark.parametrize("n1,n2,uniform", [(120, 120, True), (90, 140, False), (150, 70, True), (12, 9, False)])
 def test_ipm_matches_emd_and_marginals(n1, n2, uniform):
-    C = 3.7 * _points_cost(n1, n2, seed=n1)  # any cost scale
-    a = np.full(n1, 1 / n1) if uniform else _masses(n1, 1)
-    b = np.full(n2, 1 / n2) if uniform else _masses(n2, 2)
+    C = 3.7 * points_cost(n1, n2, seed=n1)  # any cost scale
+    a = np.full(n1, 1 / n1) if uniform else masses(n1, 1)
+    b = np.full(n2, 1 / n2) if uniform else masses(n2, 2)
     r = wo.solve_balanced(C, a, b, method="ipm", device="cpu")
     u = _emd(C, a, b)
     assert r.converged
@@ -45,7 +45,7 @@ def test_ipm_planted_permutation():
 
 
 def test_ipm_and_annealing_reach_the_same_solution():
-    C = _points_cost(160, 130, seed=7)
+    C = points_cost(160, 130, seed=7)
     ra = wo.solve_balanced(C, device="cpu", method="anneal")
     ri = wo.solve_balanced(C, method="ipm", device="cpu")
     assert ra.converged and ri.converged

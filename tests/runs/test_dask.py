@@ -15,10 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_pipeline import FAST, FAST_CLI, make_dataset
+from helpers import FAST, FAST_CLI, make_dataset
 from wpot.runs.loop import run_all_vs_all
 from wpot.runs.store import RunStore
 from wpot.runs.workers import choose_worker_device, pair_task
+
+#: a real local Dask cluster: slow (deselect with -m "not slow")
+pytestmark = pytest.mark.slow
 
 distributed = pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'wpot[cluster]')")
 

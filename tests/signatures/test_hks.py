@@ -11,7 +11,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from conftest import deform_sphere
+from helpers import deform_sphere
 from wpot.cache import Cache
 from wpot.mesh import Mesh
 from wpot.signatures import WKS, get_signature, signature_options

@@ -16,6 +16,7 @@ import pytest
 
 from wpot.runs.shapes import discover_shapes
 from wpot.runs.store import RunMismatchError, RunStore
+from helpers import FAST, FAST_CLI, make_dataset
 
 SHAPES = [("a1", None, "f0", 10), ("a2", None, "f1", 10), ("b1", None, "f2", 12)]
 LABELS = {0: {"class": "a"}, 1: {"class": "a"}, 2: {"class": "b"}}
@@ -150,23 +151,8 @@ def test_discover_shapes_reads_a_folder_and_a_list_file(tmp_path):
 
 
 # --------------------------------------------------------------------------- real runs (solver + WKS)
-FAST = {"n_eigen": 30, "n_energies": 30}
-FAST_CLI = ["--n-eigen", "30", "--n-energies", "30"]
 
 
-def make_dataset(folder: Path, n_per_class: int = 3, n: int = 100) -> Path:
-    """Two classes of small meshes: 'blob' (the example surface) and 'flat' (the same surface stretched), each
-    a different triangulation (seed)."""
-    from wpot.examples import example_mesh
-    from wpot.io import save_mesh
-    from wpot.mesh import Mesh
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for k in range(n_per_class):
-        m = example_mesh(n + 7 * k, seed=k)
-        save_mesh(m, folder / f"blob{k + 1}.off")
-        save_mesh(Mesh(m.vertices * np.array([1.8, 0.6, 1.0]), m.faces), folder / f"flat{k + 1}.off")
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -246,6 +232,7 @@ def _write_lock_after(db: Path, n: int) -> sqlite3.Connection | None:
     return None
 
 
+@pytest.mark.slow
 def test_killed_parallel_run_resumes_without_recomputing(clean_run, dataset, tmp_path):
     run = tmp_path / "run"
     db = run / "wpot.sqlite"

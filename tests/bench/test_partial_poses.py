@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from conftest import load_benchmark
+import importlib
 
 pytestmark = pytest.mark.data
 
 
 @pytest.fixture(scope="module")
 def pp():
-    return load_benchmark("partial_poses")
+    return importlib.import_module("benchmarks.partial_poses")
 
 
 @pytest.fixture(scope="module")

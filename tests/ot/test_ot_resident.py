@@ -55,7 +55,7 @@ def test_balanced_device_loop_reaches_the_host_loops_saddle_points(device, metho
 
 
 def test_partial_device_loop_agrees_with_the_host_loop_and_the_qp(device):
-    from conftest import partial_qp
+    from helpers import partial_qp
 
     C = _cost(70, 85, seed=4)  # 70 columns: the multilevel V-cycle has a coarse level
     C /= C.max()

@@ -10,21 +10,14 @@ import pytest
 import warp as wp
 
 import wpot.ot as wo
-from conftest import partial_qp
+from helpers import partial_qp
 from wpot.ot import kernels as K
 from wpot.ot.anneal.schedule import beta_schedule, relative_change
+from helpers import masses, points_cost
 
 
-def _points_cost(n1, n2, d=8, seed=0):
-    rng = np.random.default_rng(seed)
-    X, Y = rng.random((n1, d)), rng.random((n2, d))
-    C = np.linalg.norm(X[:, None] - Y[None], axis=-1)
-    return C / C.max()
 
 
-def _masses(n, seed):
-    m = np.random.default_rng(seed).random(n) + 0.2
-    return m / m.sum()
 
 
 # --------------------------------------------------------------------------- phi, phi', g
@@ -104,7 +97,7 @@ def _check_balanced(C, a, b, res, rtol=1e-6):
 
 
 def test_balanced_square_uniform_matches_emd(device):
-    C = _points_cost(40, 40)
+    C = points_cost(40, 40)
     n = 40
     a = np.full(n, 1 / n)
     res = wo.solve_balanced(C, device=device, method="anneal")
@@ -112,8 +105,8 @@ def test_balanced_square_uniform_matches_emd(device):
 
 
 def test_balanced_rectangular_nonuniform_matches_emd():
-    C = _points_cost(30, 45, seed=3) * 7.5  # arbitrary scale
-    a, b = _masses(30, 1), _masses(45, 2)
+    C = points_cost(30, 45, seed=3) * 7.5  # arbitrary scale
+    a, b = masses(30, 1), masses(45, 2)
     res = wo.solve_balanced(C, a, b, device="cpu", method="anneal")
     _check_balanced(C, a, b, res)
     # the same with the roles swapped (the solver eliminates the larger side either way)
@@ -135,8 +128,8 @@ def test_balanced_planted_permutation_closed_form():
 
 
 def test_balanced_invariances():
-    C = _points_cost(20, 20, seed=7)
-    a, b = _masses(20, 8), _masses(20, 9)
+    C = points_cost(20, 20, seed=7)
+    a, b = masses(20, 8), masses(20, 9)
     r = wo.solve_balanced(C, a, b, device="cpu", method="anneal")
     p1, p2 = np.random.default_rng(0).permutation(20), np.random.default_rng(1).permutation(20)
     rp = wo.solve_balanced(C[p1][:, p2], a[p1], b[p2], device="cpu", method="anneal")
@@ -150,7 +143,7 @@ def test_balanced_invariances():
 
 
 def test_direct_and_cg_agree_and_warp_input_is_used_in_place():
-    C = _points_cost(15, 22, seed=4)
+    C = points_cost(15, 22, seed=4)
     rc = wo.solve_balanced(C, device="cpu", method="anneal")
     rd = wo.solve_balanced(C, device="cpu", linear_solver="direct", method="anneal")
     assert abs(rc.cost - rd.cost) <= 1e-9 * rc.cost
@@ -176,7 +169,7 @@ def test_balanced_self_transport_has_zero_cost_and_stops():
 def test_cpu_and_cuda_agree(device):
     if device == "cpu":
         pytest.skip("needs a CUDA device to compare with")
-    C = _points_cost(30, 24, seed=11)
+    C = points_cost(30, 24, seed=11)
     rc = wo.solve_balanced(C, device="cpu", method="anneal")
     rg = wo.solve_balanced(C, device=device, method="anneal")
     assert abs(rc.cost - rg.cost) <= 1e-10 * rc.cost
@@ -203,7 +196,7 @@ def _partial_checked_by_qp(C, r1, r2, mp):
 def test_partial_matches_independent_qp(mp):
     rng = np.random.default_rng(1)
     C = rng.random((12, 9))
-    r1, r2 = _masses(12, 3), _masses(9, 4)
+    r1, r2 = masses(12, 3), masses(9, 4)
     res = _partial_checked_by_qp(C, r1, r2, mp)
     assert abs(res.mass1.sum() - 1) < 1e-9
     pen = mp * np.sum((res.mass1 / r1) ** 2) + mp * np.sum((res.mass2 / r2) ** 2)
@@ -214,14 +207,14 @@ def test_partial_matches_independent_qp(mp):
 
 
 def test_partial_huge_penalty_recovers_balanced():
-    C = _points_cost(16, 16, seed=5)
+    C = points_cost(16, 16, seed=5)
     rb = wo.solve_balanced(C, device="cpu", method="anneal")
     rp = wo.solve_partial(C, mass_penalty=1e6, device="cpu")
     # uniform rho: masses -> rho^2 / sum rho^2 = uniform, so the transport part -> balanced U*
     np.testing.assert_allclose(rp.mass1, 1 / 16, atol=1e-5)
     assert abs(rp.cost - rb.cost) <= 1e-4 * rb.cost
     # non-uniform rho: masses -> rho^2 / sum(rho^2), not rho
-    r1 = _masses(16, 6)
+    r1 = masses(16, 6)
     rq = wo.solve_partial(C, r1, None, mass_penalty=1e6, device="cpu")
     np.testing.assert_allclose(rq.mass1, r1**2 / np.sum(r1**2), atol=1e-4)
 
@@ -338,7 +331,7 @@ def test_bad_inputs_raise_value_errors_naming_the_problem():
 
 
 def test_non_convergence_is_reported():
-    C = _points_cost(10, 10)
+    C = points_cost(10, 10)
     with pytest.warns(RuntimeWarning, match="max_iter"):
         res = wo.solve_balanced(C, device="cpu", max_iter=1, method="anneal")
     assert not res.converged and len(res.history) == 1

@@ -11,7 +11,7 @@ import pytest
 
 import wpot
 import wpot.ot as wo
-from conftest import partial_qp
+from helpers import partial_qp
 from wpot.cost import cost_matrix
 
 

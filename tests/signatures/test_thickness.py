@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from conftest import random_rotation
+from helpers import random_rotation
 from render.raycast import DepthRenderer, inward_cone
 from wpot.mesh import Mesh
 from wpot.signatures import _ldsift as L

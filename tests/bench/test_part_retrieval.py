@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from conftest import load_benchmark
+import importlib
 
 
 @pytest.fixture(scope="module")
 def pr():
-    return load_benchmark("part_retrieval")
+    return importlib.import_module("benchmarks.part_retrieval")
 
 
 def test_both_scorings_of_one_part(pr):
@@ -41,7 +41,7 @@ def test_stored_costs_are_scored_and_reported(pr, tmp_path):
     stored costs is left out; the report names every failure with what the part was taken for."""
     from wpot.maps.retrieval import RetrievalOptions
 
-    from jsonl_store import JsonlStore
+    from benchmarks.jsonl_store import JsonlStore
 
     parts = {"cat0_limb-S": {"class": "cat", "kind": "limb", "fraction": 0.08},
              "dog2_head-L": {"class": "dog", "kind": "head", "fraction": 0.25}}

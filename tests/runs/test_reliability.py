@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_pipeline import make_dataset
+from helpers import make_dataset
 from wpot.cache import Cache, CacheWarning
 from wpot.runs.loop import run_all_vs_all
 from wpot.runs.store import CorruptRunError, RunLockedError, RunMismatchError, RunStore, run_lock
@@ -45,6 +45,7 @@ def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 # ------------------------------------------------------------------------------ one coordinator per folder
+@pytest.mark.slow
 def test_a_second_run_on_a_locked_folder_is_refused_naming_the_folder(data, tmp_path):
     run = tmp_path / "run"
     with run_lock(run):  # another coordinator holds the folder
@@ -58,6 +59,7 @@ def test_a_second_run_on_a_locked_folder_is_refused_naming_the_folder(data, tmp_
         assert len(s.done()) == 1
 
 
+@pytest.mark.slow
 def test_two_processes_started_at_once_cooperate_or_refuse(data, tmp_path, reference):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "wpot.cli", "all-vs-all", str(data), "--out", str(run), *TINY_CLI]
@@ -86,6 +88,7 @@ def _big_store(folder: Path) -> Path:
     return folder / "wpot.sqlite"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncated", "garbage", "zeroed pages", "empty", "other sqlite"])
 def test_a_damaged_store_is_refused_by_name_never_read(tmp_path, damage):
     db = _big_store(tmp_path / "run")
@@ -155,6 +158,7 @@ def test_a_flipped_data_byte_is_caught_by_the_checksum(tmp_path):
 
 
 # --------------------------------------------------------------------------------------- edited meshes
+@pytest.mark.slow
 def test_a_mesh_edited_between_run_and_resume_is_refused_by_name(data, tmp_path):
     d = tmp_path / "data"
     shutil.copytree(data, d)
@@ -220,6 +224,7 @@ def test_a_failing_pair_is_recorded_named_and_retried(data, tmp_path, reference)
         np.testing.assert_array_equal(s.distance_matrix(), reference)
 
 
+@pytest.mark.slow
 def test_non_converged_pairs_are_flagged_in_the_store_and_the_report(data, tmp_path):
     run = tmp_path / "run"
     with run_all_vs_all(data, run, progress=False, solver_options={"max_iter": 1, "method": "anneal"}, **TINY) as s:
@@ -232,11 +237,12 @@ def test_non_converged_pairs_are_flagged_in_the_store_and_the_report(data, tmp_p
 
 # ----------------------------------------------------------------------------------------- reader fuzzing
 def _fuzzer():
-    from conftest import load_benchmark
+    import importlib
 
-    return load_benchmark("fuzz_readers")
+    return importlib.import_module("benchmarks.fuzz_readers")
 
 
+@pytest.mark.slow
 def test_readers_raise_only_value_or_os_errors_on_generated_inputs(tmp_path):
     import signal
 
