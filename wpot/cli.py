@@ -187,15 +187,7 @@ GRID_EPILOG = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from wpot import __version__
-
-    parser = argparse.ArgumentParser(
-        prog="wpot", description="Compare 3D shapes by statistical-physics optimal transport.",
-        epilog=f"Mesh files: {_formats()} (by extension).")
-    parser.add_argument("--version", action="version", version=f"wpot {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _demo_parser(sub: Any) -> None:
     p = sub.add_parser("demo", help="compare the two generated example shapes and save a picture",
                        description="Compare two generated example shapes (one surface, triangulated twice, the second "
                                    "moved rigidly), score the correspondence against the known truth, save a picture.")
@@ -207,6 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_progress(p)
     p.set_defaults(func=cmd_demo)
 
+
+def _compare_parser(sub: Any) -> None:
     formats = _formats()
     p = sub.add_parser("compare", help="compare two mesh files", description="Compare two mesh files: distance, "
                        "correspondence, matched pairs and a fitted registration.", epilog=GRID_EPILOG)
@@ -227,10 +221,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_progress(p)
     p.set_defaults(func=cmd_compare)
 
+
+def _all_vs_all_parser(sub: Any) -> None:
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder",
                        description="Compare every pair of shapes of a dataset and store each pair as it finishes in a "
                                    "run folder (a SQLite store); rerunning the same command resumes.")
-    p.add_argument("source", help=f"a folder of mesh files ({formats}), or a text file listing one mesh path per line")
+    p.add_argument("source", help=f"a folder of mesh files ({_formats()}), or a text file listing one mesh path per line")
     p.add_argument_group("required").add_argument(
         "--out", required=True, help="run folder (required; resumed if it holds the same run)")
     p.add_argument("--jobs", type=int, default=None,
@@ -244,12 +240,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     p.set_defaults(func=cmd_all_vs_all)
 
+
+def _retrieve_parser(sub: Any) -> None:
+    from wpot.signatures import add_signature_arguments, signature_names
+
     p = sub.add_parser("retrieve", help="rank the classes of a labelled library of whole shapes for a part",
                        description="Look a part up in a library of whole shapes: each vertex's cost to the nearest "
                        "signature of each whole, standardised over the library, a class scored as the union of its "
                        "--k-nearest nearest members (wpot.maps.retrieval). Prints the classes, best first. Set "
                        "WPOT_CACHE_DIR to keep the library's signatures between calls.")
-    p.add_argument("part", help=f"the part: a mesh file ({formats})")
+    p.add_argument("part", help=f"the part: a mesh file ({_formats()})")
     p.add_argument("library", help="the whole shapes: a folder of mesh files, or a text file listing one mesh path "
                                    "per line")
     p.add_argument("--labels", default=None, help="label CSV: a 'name' column and one column per label level, the "
@@ -260,17 +260,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None,
                    help="JSON file for the whole ranking: classes, scores, the members that scored each class, "
                         "and every whole's mean cost (default: none)")
-    from wpot.signatures import add_signature_arguments, signature_names
-
     p.add_argument("--signature", choices=signature_names(), default="ldsift",
                    help="vertex signature (default: ldsift, with its thickness column at 2)")
     add_signature_arguments(p, defaults={"ldsift_thickness": 2.0})
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     p.set_defaults(func=cmd_retrieve)
 
-    run_help = "an all-vs-all run folder (the --out of `wpot all-vs-all`)"
+
+#: the positional argument of the commands that read a run
+RUN_HELP = "an all-vs-all run folder (the --out of `wpot all-vs-all`)"
+
+
+def _classify_parser(sub: Any) -> None:
     p = sub.add_parser("classify", help="1-NN classification from a run's distance matrix")
-    p.add_argument("run", help=run_help)
+    p.add_argument("run", help=RUN_HELP)
     p.add_argument("--trials", type=int, default=10_000, help="one-shot trials (default 10,000, as Table 1)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the one-shot trials' random training shapes (default 0; the same seed gives the "
@@ -282,11 +285,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shapes per class in each --draws subset (default 6, TOSCA8)")
     p.set_defaults(func=cmd_classify)
 
+
+def _export_parser(sub: Any) -> None:
     p = sub.add_parser("export", help="write a run's distance matrix as CSV (names as header) or NPZ (with D(beta))")
-    p.add_argument("run", help=run_help)
+    p.add_argument("run", help=RUN_HELP)
     p.add_argument("--out", default=None, help="a .csv or .npz file (default: RUN/distances.csv)")
     p.set_defaults(func=cmd_export)
 
+
+def _report_parser(sub: Any) -> None:
     p = sub.add_parser("report", help="Markdown summary of one or more runs beside the paper's tables")
     p.add_argument("runs", nargs="+", metavar="run", help="one or more all-vs-all run folders, summarized side by side")
     p.add_argument("--out", default=None, help="Markdown file (default: RUN/report.md of the first run)")
@@ -294,6 +301,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one-shot 1-NN trials per run, as `wpot classify --trials` (default 10,000, as Table 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the one-shot trials, as `wpot classify --seed` (default 0)")
     p.set_defaults(func=cmd_report)
+
+
+#: each command's parser builder, in the order `wpot --help` lists them
+COMMANDS = (_demo_parser, _compare_parser, _all_vs_all_parser, _retrieve_parser, _classify_parser, _export_parser,
+            _report_parser)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from wpot import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="wpot", description="Compare 3D shapes by statistical-physics optimal transport.",
+        epilog=f"Mesh files: {_formats()} (by extension).")
+    parser.add_argument("--version", action="version", version=f"wpot {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in COMMANDS:
+        add(sub)
     return parser
 
 
