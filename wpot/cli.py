@@ -86,7 +86,7 @@ def _add_method_options(p: argparse.ArgumentParser, *, defaults: Mapping[str, An
         "--ot-method", choices=tuple(SOLVERS), default=d.method,
         help=("'auto' (default) or 'exact': D(inf) alone, solved exactly (the transport LP for balanced transport, "
               "the chi^2 QP for partial) and certified over every pair of points; 'anneal': Algorithm 1 from the "
-              "first beta, D(beta) at every beta (50-180x slower at full resolution); 'ipm' (balanced transport "
+              "first beta, D(beta) at every beta (much slower at full resolution); 'ipm' (balanced transport "
               "only): an interior-point start, then Algorithm 1 from the first beta with gap <= 1e-3 U"),
     )
 
@@ -226,11 +226,13 @@ def _all_vs_all_parser(sub: Any) -> None:
     p = sub.add_parser("all-vs-all", help="compare every pair of a dataset into a resumable run folder",
                        description="Compare every pair of shapes of a dataset and store each pair as it finishes in a "
                                    "run folder (a SQLite store); rerunning the same command resumes.")
-    p.add_argument("source", help=f"a folder of mesh files ({_formats()}), or a text file listing one mesh path per line")
+    p.add_argument("source", help=f"a folder of mesh files ({_formats()}), or a text file listing one mesh path per line "
+                                  "(a relative path is relative to the list's folder; '#' starts a comment)")
     p.add_argument_group("required").add_argument(
         "--out", required=True, help="run folder (required; resumed if it holds the same run)")
     p.add_argument("--jobs", type=int, default=None,
-                   help="worker processes (default 1; 0 = all cores); with --scheduler local, Dask workers (default: all cores)")
+                   help="worker processes (default: one; 0 = all cores); with --scheduler local, Dask workers (default: all "
+                        "cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help='run the pairs on Dask: "local" (an embedded cluster of --jobs processes) or a running '
                    "scheduler tcp://HOST:PORT; each worker uses its own GPU when it has one "
@@ -251,7 +253,7 @@ def _retrieve_parser(sub: Any) -> None:
                        "WPOT_CACHE_DIR to keep the library's signatures between calls.")
     p.add_argument("part", help=f"the part: a mesh file ({_formats()})")
     p.add_argument("library", help="the whole shapes: a folder of mesh files, or a text file listing one mesh path "
-                                   "per line")
+                                   "per line (a relative path is relative to the list's folder; '#' starts a comment)")
     p.add_argument("--labels", default=None, help="label CSV: a 'name' column and one column per label level, the "
                    "first the class (default: each file name without its trailing digits, cat10 -> cat)")
     p.add_argument("--k-nearest", type=int, default=3,
@@ -280,7 +282,7 @@ def _classify_parser(sub: Any) -> None:
                         "same accuracy)")
     p.add_argument("--draws", type=int, default=0,
                    help="also score N random subsets of --per-class shapes per class (e.g. TOSCA8's 'six of each' "
-                        "drawn from the full set), so that the accuracy does not hinge on one choice (default 0: no)")
+                        "drawn from the full set), so that the accuracy does not hinge on one choice (default 0, none)")
     p.add_argument("--per-class", type=int, default=6,
                    help="shapes per class in each --draws subset (default 6, TOSCA8)")
     p.set_defaults(func=cmd_classify)

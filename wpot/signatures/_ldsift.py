@@ -361,16 +361,15 @@ class LDSIFTOptions(SignatureOptions):
     slab: float = option(
         SLAB, keyword="ldsift_slab", flag="--ldsift-slab", key_omit_default=True,
         help="half-thickness of the depth slab, in units of the image's half width S(v) (default {default:g}; 0.25 "
-             "classifies articulated shapes such as TOSCA better: one-shot 82.7 %% against 79.5 %% with partial "
-             "transport; 1 keeps the broad features of smooth shapes)",
+             "suits articulated shapes such as TOSCA's; 1 keeps the broad features of smooth shapes)",
     )
 
     thickness: float = option(
         0.0, keyword="ldsift_thickness", flag="--ldsift-thickness", key_omit_default=True,
         help="weight w of a size column appended to LD-SIFT: w * 512 * log(local thickness), in the meshes' own "
-             "units, so that shapes made from one template at two sizes differ (default {default:g}: the paper's "
-             "scale-free LD-SIFT; 2 on solid shapes whose size tells classes apart, such as TOSCA8: one-shot "
-             "95.0 %% against 83.0 %% balanced, 99.1 %% against 94.2 %% partial)",
+             "units, so that shapes made from one template at two sizes differ (default {default:g}; 0 leaves it "
+             "out, the paper's scale-free LD-SIFT; 2 suits solid shapes whose size tells classes apart, such as "
+             "TOSCA8's)",
     )
 
     def __post_init__(self) -> None:
