@@ -8,6 +8,8 @@ test or a notebook passes its own reporter (`as_progress` turns ``True``/``False
 * ``stage(what)``: a context manager around one step (a spectrum, the signatures, the transport): its
   name is written when it starts and its wall time when it ends, ``"spectrum of A (300 vertices) ... 1.2 s"``;
 * ``bar(total, desc, unit)``: a `tqdm.auto` bar for a loop (shapes, pairs), which Jupyter shows as a widget;
+  into a stream that is not a terminal (a log file), a line per step instead (``"pairs: 3/6 (50%), 1.2 s"``),
+  never a bar redrawn with carriage returns;
 * ``write(text)``: one line that does not break a running bar.
 
 A disabled reporter (``Progress(enabled=False)``, what ``progress=False`` gives) shows nothing and costs
@@ -20,7 +22,7 @@ import sys
 import time
 from typing import Any, Callable, Iterator, TextIO
 
-__all__ = ["Progress", "as_progress"]
+__all__ = ["LineBar", "Progress", "as_progress"]
 
 
 class Progress:
@@ -94,13 +96,72 @@ class Progress:
             out.flush()
             self._open = False
 
-    def bar(self, total: int, desc: str, unit: str = "it", *, initial: int = 0, leave: bool = False) -> Any:
-        """A `tqdm.auto.tqdm` bar (disabled when this reporter is; ``leave``: kept on screen when closed); close
-        it when done."""
+    def bar(self, total: int | None, desc: str, unit: str = "it", *, initial: int = 0, leave: bool = False) -> Any:
+        """A bar for a loop of ``total`` steps (None: unknown); close it when done. Where a bar can be redrawn in
+        place (`live`) a `tqdm.auto.tqdm` bar (``leave``: kept on screen when closed); into another stream (a
+        log file) a `LineBar`, a line per step; a disabled tqdm bar when this reporter is disabled."""
         from tqdm.auto import tqdm
 
+        if self.enabled and not self.live:
+            return LineBar(self, total, desc, unit, initial=initial)
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not self.enabled, leave=leave,
                     dynamic_ncols=True, file=self.stream)
+
+
+class LineBar:
+    """What `Progress.bar` gives for a stream that is not a terminal: a line when the loop starts and one per
+    step, ``"pairs: 3/6 (50%), 1.2 s"`` (the time since the start), with the last ``set_postfix_str`` text after
+    it. It takes the calls code makes on a tqdm bar (``update``, ``write``, ``set_postfix_str``, ``refresh``,
+    ``close``, and use as a context manager)."""
+
+    def __init__(self, reporter: Progress, total: int | None, desc: str, unit: str = "it", *,
+                 initial: int = 0) -> None:
+        self.reporter, self.total, self.desc, self.unit = reporter, total, desc, unit
+        self.n = int(initial)
+        self.postfix = ""
+        self.closed = False
+        self._t0 = reporter.clock()
+        self._line()
+
+    def _line(self) -> None:
+        if self.total:
+            count = f"{self.n}/{self.total} ({100 * self.n / self.total:.0f}%)"
+        else:
+            count = f"{self.n} {self.unit}" if self.total is None else f"{self.n}/{self.total}"
+        took = self.reporter.clock() - self._t0
+        self.reporter.break_line()
+        out = self.reporter.stream
+        out.write(f"{self.desc}: {count}, {took:.1f} s" + (f", {self.postfix}" if self.postfix else "") + "\n")
+        out.flush()
+
+    def update(self, n: int = 1) -> None:
+        """``n`` more steps done: a line."""
+        if not self.closed:
+            self.n += int(n)
+            self._line()
+
+    def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
+        """Text shown after the count from the next line on."""
+        self.postfix = str(s)
+
+    def set_description(self, desc: str | None = None, refresh: bool = True) -> None:
+        self.desc = "" if desc is None else str(desc)
+
+    def refresh(self) -> None:
+        """Nothing to redraw: every step has its line."""
+
+    def write(self, text: str) -> None:
+        """A line of its own."""
+        self.reporter.write(text)
+
+    def close(self) -> None:
+        self.closed = True
+
+    def __enter__(self) -> "LineBar":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
 def _in_jupyter() -> bool:

@@ -210,9 +210,10 @@ def test_every_phase_of_an_all_vs_all_has_a_bar(dataset, tmp_path):
     buf = io.StringIO()
     run_all_vs_all(dataset, tmp_path / "run", progress=Progress(buf), n_eigen=30, n_energies=30).close()
     text = buf.getvalue()
+    # into a stream that is not a terminal: a line per step, no bar redrawn with carriage returns
     for phase in ("reading meshes", "spectra", "signatures", "pairs"):
-        assert re.search(rf"{phase}: +\d+%", text), (phase, text)
-    assert re.search(r"pairs: 100%\|.*\| 6/6", text), text
+        assert re.search(rf"^{phase}: \d+/\d+ \(\d+%\), \d+\.\d s$", text, re.M), (phase, text)
+    assert re.search(r"^pairs: 6/6 \(100%\), ", text, re.M) and "\r" not in text, text
 
 
 # ------------------------------------------------------------------------------------- 2. the energy grid
