@@ -119,6 +119,36 @@ def test_several_components_warned_with_sizes():
     assert "2 connected components (vertex counts [4, 4])" in msg
 
 
+def test_warnings_about_several_components_name_the_mesh(tmp_path):
+    """The mesh's name (its file's path, from load_mesh) starts every warning about its components: the defect
+    warning, the repeated zero eigenvalue of its spectrum, a sample too few for its pieces; also after cleaned()."""
+    import trimesh
+
+    from wpot.io import load_mesh, save_mesh
+    from wpot.sampling import farthest_point_sampling
+    from wpot.spectral import SpectralWarning, eigenpairs
+
+    s = trimesh.creation.icosphere(1)
+    v, f = np.vstack([s.vertices, s.vertices + [3.0, 0, 0]]), np.vstack([s.faces, s.faces + len(s.vertices)])
+    with pytest.warns(MeshWarning, match=r"^pieces: mesh defects: 2 connected components"):
+        named = Mesh(v, f, name="pieces")
+    assert named.name == "pieces" and named == Mesh(v, f, warn=False) and Mesh(v, f, warn=False).name is None
+    assert named.fingerprint == Mesh(v, f, warn=False).fingerprint  # the name is not content
+    assert named.transformed(translation=[1.0, 0, 0]).name == "pieces"
+    save_mesh(named, tmp_path / "two.off")
+    with pytest.warns(MeshWarning, match=re.escape(f"{tmp_path / 'two.off'}: mesh defects: 2 connected")):
+        m = load_mesh(tmp_path / "two.off")
+    assert m.name == str(tmp_path / "two.off")
+    with pytest.warns(SpectralWarning, match=re.escape(f"{m.name}: the mesh has 2 connected components")):
+        eigenpairs(m, k=20, cache=False)
+    with pytest.warns(UserWarning, match=re.escape(f"{m.name}: ") + r"\d+ vertices lie in parts of the mesh"):
+        farthest_point_sampling(m, 1)
+    with pytest.warns(MeshWarning, match=re.escape(f"{m.name}: mesh defects: 2 connected")):
+        cleaned, _ = m.cleaned()
+    assert cleaned.name == m.name
+    assert m.cleaned(keep_largest_component=True)[0].name == m.name
+
+
 def test_warn_false_silences_but_still_raises():
     v = np.vstack([TET_V, [[9.0, 9, 9]]])
     _no_warnings(Mesh, v, TET_F, warn=False)

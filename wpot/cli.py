@@ -151,6 +151,10 @@ def config_from_args(a: argparse.Namespace) -> Any:
 
     if a.ot_method == "ipm" and a.transport != "balanced":
         raise CliError(f"--ot-method {a.ot_method} applies to balanced transport only (got --transport {a.transport})")
+    if a.pooling == "cell" and a.max_vertices is None and a.vertices_per_sample is None:
+        raise CliError("--pooling cell averages the signatures over each sample's cell, and without --max-vertices or "
+                       "--vertices-per-sample nothing is subsampled (every vertex is its own cell): give one of them, "
+                       "or drop --pooling cell")
     return ComparisonConfig(
         signature=a.signature,
         signature_options=signature_options_from_args(a.signature, a),
@@ -209,7 +213,9 @@ def _compare_parser(sub: Any) -> None:
                                   "vertices to B's")
     p.add_argument("--out", default=None,
                    help="folder for comparison.json, correspondence.npz and correspondence.png (default: none, "
-                        "nothing is saved)")
+                        "nothing is saved); a folder that holds a comparison already is refused, unless --force")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite the comparison the --out folder holds (default: refuse it)")
     p.add_argument("--energies-from", default=None, metavar="RUN",
                    help="compare on the WKS energy grid (HKS: times) stored in the all-vs-all run folder RUN instead "
                         "of one fitted to these two shapes; with the run's settings, the distance is the run's for "
@@ -519,9 +525,12 @@ def _repaired(mesh: Any, path: str, label: str, repair: str) -> _Loaded:
     return _Loaded(fixed, path, index_map, mesh.n_vertices)
 
 
-def _load(path: str, label: str, repair: str = "none") -> _Loaded:
+def _load(path: str, label: str, repair: str = "none", *, folder: str = "give a mesh file") -> _Loaded:
+    """The mesh file ``path`` read (and repaired); ``folder`` says what to do when ``path`` is a folder."""
     from wpot.io import load_mesh
 
+    if Path(path).is_dir():
+        raise CliError(f"{label}: {path} is a folder, not a mesh file; {folder}")
     if not Path(path).is_file():
         raise CliError(f"mesh file not found: {path}")
     return _repaired(load_mesh(path, warn=repair == "none"), path, label, repair)
@@ -713,6 +722,19 @@ def _check_out_folder(out: str | None) -> None:
         raise CliError(f"--out {out} is a file; give a folder")
 
 
+#: the files `wpot compare --out` writes
+COMPARISON_FILES = ("comparison.json", "correspondence.npz", "correspondence.png")
+
+
+def _check_comparison_out(out: str | None, force: bool) -> None:
+    """--out of `wpot compare`: a folder, and one that holds no earlier comparison unless --force; before any work."""
+    _check_out_folder(out)
+    held = [name for name in COMPARISON_FILES if out is not None and (Path(out) / name).exists()]
+    if held and not force:
+        raise CliError(f"--out {out} already holds a comparison ({', '.join(held)}); give another --out folder, or "
+                       "--force to overwrite it")
+
+
 def _check_trials(a: argparse.Namespace) -> None:
     if a.trials < 1:
         raise CliError(f"--trials must be >= 1, got {a.trials}")
@@ -790,12 +812,14 @@ def cmd_compare(a: argparse.Namespace) -> None:
 
     config = config_from_args(a)  # option errors before any file is read
     _check_zoomout(a)
-    _check_out_folder(a.out)
+    _check_comparison_out(a.out, a.force)
     state, n_run, other = None, None, []
     if a.energies_from is not None:
         state, n_run, other = _run_state(a.energies_from, config)
     repair = _repair(a)
-    ma, mb = _load(a.mesh_a, "A", repair), _load(a.mesh_b, "B", repair)
+    pair = ("compare takes two mesh files (`wpot all-vs-all FOLDER --out RUN` compares every pair of a folder's "
+            "shapes)")
+    ma, mb = _load(a.mesh_a, "A", repair, folder=pair), _load(a.mesh_b, "B", repair, folder=pair)
     for m, label in ((ma, "A"), (mb, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, signature_state=state, progress=_progress(a))
@@ -890,7 +914,7 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     if lib.suffix.lower() in MESH_EXTENSIONS:
         raise CliError(f"the library must be a folder of meshes or a list of them, got the single mesh {a.library}")
     shapes = list_shapes(lib if lib.is_dir() else read_mesh_list(lib), labels=a.labels)
-    part = _load(a.part, "part").mesh
+    part = _load(a.part, "part", folder="the part is one mesh file (the library, a folder, comes second)").mesh
     config = ComparisonConfig(signature=a.signature, signature_options=signature_options_from_args(a.signature, a))
     comparer = Comparer(config, device=a.device)
     wholes = [load_mesh(path) for path in shapes.paths]

@@ -172,18 +172,13 @@ def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: floa
 #: the fewest vertices of a mesh in a comparison: three points to sample (`SamplerOptions.max_vertices`) and
 #: three matched pairs to fit a registration
 MIN_VERTICES = 3
-#: the fewest Laplace-Beltrami eigenpairs a spectral signature (one with an ``n_eigen`` option: WKS, HKS) takes
-#: from a mesh with fewer vertices than ``n_eigen`` (it uses all of them). Below this, every vertex's signature
-#: is a mix of a handful of eigenfunctions, and the spectrum's top lies in another band than a full mesh's, so
-#: the shared grid fails with a message about units of length (or, worse, fits and gives a meaningless distance).
-MIN_EIGENPAIRS = 10
 
 
 def min_vertices(config: ComparisonConfig) -> tuple[int, str]:
     """The fewest vertices a mesh may have in a comparison with ``config``, and why (for the error message)."""
     from wpot.signatures import get_signature
 
-    from wpot.signatures._spectral import SpectralOptions
+    from wpot.signatures._spectral import MIN_EIGENPAIRS, SpectralOptions
 
     title = get_signature(config.signature).title
     if not isinstance(config.signature_options, SpectralOptions):

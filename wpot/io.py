@@ -640,6 +640,7 @@ def load_mesh(path: PathLike, *, warn: bool = True, variable: str | None = None)
             warnings.warn(f"{p}: {w.message}", MeshWarning, stacklevel=2)
         else:  # pragma: no cover - pass anything else through unchanged
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    mesh._name = str(p)  # later warnings about it (its spectrum, its sampling) name the file too
     return mesh
 
 

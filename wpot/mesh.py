@@ -67,7 +67,7 @@ def _as_faces(faces: ArrayLike) -> np.ndarray:
     return f.astype(np.int64)
 
 
-def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True) -> None:
+def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True, name: str | None = None) -> None:
     """Check a mesh; raise `ValueError` for fatal problems and warn (`MeshWarning`) for defects.
 
     Parameters
@@ -76,6 +76,7 @@ def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True) -> N
     faces : (F, 3) int64, 0-based
     warn : emit `MeshWarning` for degenerate triangles, isolated vertices, non-manifold edges and
         several connected components.
+    name : the mesh's name (`Mesh.name`), which starts the warning's message when given.
     """
     n = len(vertices)
     if n == 0:
@@ -125,7 +126,7 @@ def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True) -> N
         if len(nm):
             advice += " Non-manifold edges are not repaired by Mesh.cleaned()."
         warnings.warn(
-            "mesh defects: " + "; ".join(problems) + ". Results near these may be unreliable." + advice,
+            named(name, "mesh defects: " + "; ".join(problems) + ". Results near these may be unreliable." + advice),
             MeshWarning,
             stacklevel=3,
         )
@@ -140,6 +141,7 @@ class Mesh:
     faces : (F, 3) array-like of 0-based vertex indices, converted to int64
     validate : run `validate` (errors always; warnings when ``warn`` is true). Default True.
     warn : emit `MeshWarning` for defects (default True).
+    name : what the mesh is called in warnings about it (`name`), e.g. its file's path; None: nothing.
 
     Derived quantities (edges, edge lengths, areas, normals, one-ring adjacency, boundary edges,
     components) are computed on first use and cached. The arrays are read-only.
@@ -147,14 +149,16 @@ class Mesh:
 
     __slots__ = ("_vertices", "_faces", "__dict__")
 
-    def __init__(self, vertices: ArrayLike, faces: ArrayLike, *, warn: bool = True) -> None:
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike, *, warn: bool = True, name: str | None = None) -> None:
         v = _as_vertices(vertices).copy()
         f = _as_faces(faces).copy()
-        validate(v, f, warn=warn)
+        name = None if name is None else str(name)
+        validate(v, f, warn=warn, name=name)
         v.setflags(write=False)
         f.setflags(write=False)
         self._vertices = v
         self._faces = f
+        self._name = name
 
     @classmethod
     def _unchecked(cls, vertices: np.ndarray, faces: np.ndarray) -> "Mesh":
@@ -173,6 +177,12 @@ class Mesh:
     def faces(self) -> np.ndarray:
         """(F, 3) int64, 0-based, read-only."""
         return self._faces
+
+    @property
+    def name(self) -> str | None:
+        """What warnings about this mesh call it (`wpot.load_mesh` gives its file's path), or None. Not part of its
+        content: equality and `fingerprint` ignore it. `transformed` and `cleaned` keep it."""
+        return self.__dict__.get("_name")
 
     @property
     def n_vertices(self) -> int:
@@ -369,7 +379,7 @@ class Mesh:
             v = v @ r.T
         if translation is not None:
             v = v + np.asarray(translation, dtype=np.float64).reshape(1, 3)
-        return Mesh(v, self._faces, warn=False)
+        return Mesh(v, self._faces, warn=False, name=self.name)
 
     def relabelled(self, permutation: ArrayLike) -> "Mesh":
         """A new mesh whose vertex ``i`` is this mesh's vertex ``permutation[i]``."""
@@ -409,14 +419,20 @@ class Mesh:
             counts = np.bincount(labels[used])
             used &= labels == np.argmax(counts)
             f = f[used[f].all(axis=1)]
-        return _reindex(self._vertices, f, used)
+        return _reindex(self._vertices, f, used, self.name)
 
 
-def _reindex(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
+def named(name: str | None, message: str) -> str:
+    """``message`` about a mesh, started by its name when it has one (``"cat0.off: mesh defects: ..."``)."""
+    return message if not name else f"{name}: {message}"
+
+
+def _reindex(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray, name: str | None = None
+             ) -> tuple[Mesh, np.ndarray]:
     index_map = np.nonzero(keep)[0]
     new_of_old = np.full(len(vertices), -1, dtype=np.int64)
     new_of_old[index_map] = np.arange(index_map.size)
-    return Mesh(vertices[index_map], new_of_old[faces]), index_map
+    return Mesh(vertices[index_map], new_of_old[faces], name=name), index_map
 
 
 def cut(mesh: Mesh, vertex_mask: ArrayLike) -> tuple[Mesh, np.ndarray]:

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, named
 
 __all__ = ["FPS_METRICS", "POOLINGS", "SamplerOptions", "FarthestPointSampler", "Subsample", "Points",
            "farthest_point_sampling"]
@@ -31,6 +31,12 @@ FPS_METRICS = ("geodesic", "euclidean")
 POOLINGS = ("none", "cell")
 #: pooling="cell" warns when one mesh has more than this many times as many vertices per sample as the other
 MAX_CELL_RATIO = 2.0
+#: the warning of ``pooling="cell"`` without subsampling
+POOLING_WITHOUT_SAMPLES = (
+    "pooling='cell' averages each sample's cell, and nothing is subsampled without max_vertices or "
+    "vertices_per_sample: every vertex is used, as its own cell, so pooling changes nothing; give one of them "
+    "to subsample"
+)
 
 
 @dataclass(frozen=True)
@@ -162,9 +168,10 @@ def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", sta
         lost = np.nonzero(nearest < 0)[0]
         nearest[lost] = cKDTree(v[idx]).query(v[lost])[1]
         dist = np.where(np.isfinite(dist), dist, 0.0)
-        warnings.warn(
-            f"{lost.size} vertices lie in parts of the mesh that hold no sample (k={k} is smaller than the number "
-            f"of connected parts, {mesh.n_components}); they were assigned to the nearest sample in a straight line",
+        warnings.warn(named(
+            mesh.name, f"{lost.size} vertices lie in parts of the mesh that hold no sample (k={k} is smaller than "
+            f"the number of connected parts, {mesh.n_components}); they were assigned to the nearest sample in a "
+            "straight line"),
             stacklevel=2,
         )
     return Subsample(idx, nearest, float(dist.max()), metric)
@@ -190,7 +197,8 @@ class SamplerOptions:
         sample carries its cell's mean signature (`Subsample.pool`) and a mass proportional to the cell's
         size. It suits whole shapes meshed alike, whose signatures are noisy at the vertex scale
         (classification); for a part against a whole use it with ``vertices_per_sample``. The README's
-        tables give the measured effect.
+        tables give the measured effect. Without ``max_vertices`` or ``vertices_per_sample`` nothing is
+        subsampled, every vertex is its own cell and ``"cell"`` changes nothing: it warns.
     """
 
     max_vertices: int | None = None
@@ -206,6 +214,8 @@ class SamplerOptions:
                                _validate.number_at_least("vertices_per_sample", self.vertices_per_sample, 1))
         _validate.one_of("fps_metric", self.fps_metric, FPS_METRICS)
         _validate.one_of("pooling", self.pooling, POOLINGS)
+        if self.pooling == "cell" and not self.subsamples:
+            warnings.warn(POOLING_WITHOUT_SAMPLES, UserWarning, stacklevel=4)
 
     @property
     def subsamples(self) -> bool:

@@ -49,7 +49,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from wpot.cache import Cache
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, named
 
 __all__ = [
     "laplace_beltrami",
@@ -345,7 +345,7 @@ class LaplaceBeltrami:
             else:
                 evals, evecs = self._lanczos(k, shift=shift, tol=tol, ncv=ncv)
         seconds = time.perf_counter() - t0
-        n_zero = _check_zero_eigenvalues(evals, self.n_zero)
+        n_zero = _check_zero_eigenvalues(evals, self.n_zero, self.mesh.name)
         return Spectrum(
             evals=evals,
             evecs=evecs,
@@ -492,14 +492,15 @@ def _check_k(k: int, n: int) -> int:
     return k
 
 
-def _check_zero_eigenvalues(evals: np.ndarray, n_components: int) -> int:
-    """Number of zero eigenvalues: the number of components, checked against the computed values."""
+def _check_zero_eigenvalues(evals: np.ndarray, n_components: int, name: str | None = None) -> int:
+    """Number of zero eigenvalues: the number of components, checked against the computed values (warnings start
+    with the mesh's ``name`` when it has one)."""
     nz = min(n_components, evals.size)
     if n_components > 1:
-        warnings.warn(
-            f"the mesh has {n_components} connected components, so the eigenvalue 0 repeats {n_components} "
+        warnings.warn(named(
+            name, f"the mesh has {n_components} connected components, so the eigenvalue 0 repeats {n_components} "
             "times; those eigenpairs are excluded from WKS. Signatures of disconnected pieces are not "
-            "comparable with those of a connected shape; consider Mesh.cleaned(keep_largest_component=True).",
+            "comparable with those of a connected shape; consider Mesh.cleaned(keep_largest_component=True)."),
             SpectralWarning,
             stacklevel=4,
         )
@@ -507,10 +508,10 @@ def _check_zero_eigenvalues(evals: np.ndarray, n_components: int) -> int:
         scale = abs(evals[nz])
         small = np.abs(evals[:nz])
         if scale == 0 or np.any(small > ZERO_RTOL * scale) or abs(evals[nz]) <= ZERO_RTOL * max(abs(evals[-1]), 1.0):
-            warnings.warn(
-                f"expected {nz} zero eigenvalue(s) (one per component), but the computed spectrum starts "
+            warnings.warn(named(
+                name, f"expected {nz} zero eigenvalue(s) (one per component), but the computed spectrum starts "
                 f"{np.array2string(evals[: nz + 2], precision=3)}; the mesh may be badly conditioned "
-                "(near-degenerate triangles, nearly disconnected parts).",
+                "(near-degenerate triangles, nearly disconnected parts)."),
                 SpectralWarning,
                 stacklevel=4,
             )

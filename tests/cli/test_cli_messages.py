@@ -371,13 +371,15 @@ def test_a_mesh_too_small_is_refused_at_once(pair, capsys, tmp_path):
     line = one_line_error(code, err)
     assert f"A ({tri}) has only 3 vertices" in line and "needs at least 10" in line and "--n-eigen 500" in line
     assert "unit" not in line and "spectrum of" not in err  # refused before any spectrum
-    # in Python, by its keywords; with n_eigen=3 a triangle is all that is asked for
+    # in Python, by its keywords
     t, b = wpot.load_mesh(tri), wpot.load_mesh(pair[1])
     buf = io.StringIO()
     with pytest.raises(ValueError, match=r"mesh_a has only 3 vertices.*at least 10 of them \(n_eigen=500\)"):
         wpot.Comparer(device="cpu", cache_dir=False, progress=Progress(buf)).compare(t, b)
     assert buf.getvalue() == ""
-    assert wpot.comparison.min_vertices(wpot.ComparisonConfig.from_keywords(n_eigen=5))[0] == 5
+    assert wpot.comparison.min_vertices(wpot.ComparisonConfig.from_keywords(n_eigen=10))[0] == 10
+    with pytest.raises(ValueError, match="n_eigen must be an integer >= 10, got 5"):  # WKS needs 10 eigenpairs
+        wpot.ComparisonConfig.from_keywords(n_eigen=5)
     assert wpot.comparison.min_vertices(wpot.ComparisonConfig.from_keywords(signature="ldsift"))[0] == 3
     # in an all-vs-all, before the run folder is made
     data = tmp_path / "data"
@@ -396,7 +398,7 @@ BAD_VALUES = {
     "--max-vertices": (["--max-vertices", "1"], "--max-vertices must be an integer >= 3, got 1"),
     "--vertices-per-sample": (["--vertices-per-sample", "0.5"], "--vertices-per-sample must be a number >= 1, got 0.5"),
     "--mass-penalty": (["--mass-penalty", "-1"], "--mass-penalty must be a positive finite number, got -1.0"),
-    "--n-eigen": (["--n-eigen", "0"], "--n-eigen must be an integer >= 3, got 0"),
+    "--n-eigen": (["--n-eigen", "5"], "--n-eigen must be an integer >= 10, got 5"),
     "--n-energies": (["--n-energies", "3"], "--n-energies must be an integer > 28"),
     "--ldsift-slab": (["--signature", "ldsift", "--ldsift-slab", "-1"], "--ldsift-slab must be a positive finite number"),
     "--ldsift-thickness": (["--signature", "ldsift", "--ldsift-thickness", "-1"],

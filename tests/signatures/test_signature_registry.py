@@ -89,7 +89,7 @@ def test_options_are_frozen_and_validated():
         WKSOptions.from_dict({"K": 3})
     with pytest.raises(ValueError, match="n_energies must be an integer > 28"):
         WKSOptions(n_energies=28)
-    with pytest.raises(ValueError, match="n_eigen must be an integer >= 3, got 2.5"):
+    with pytest.raises(ValueError, match="n_eigen must be an integer >= 10, got 2.5"):
         WKSOptions(n_eigen=2.5)
     with pytest.raises(ValueError, match="scale_invariant must be True or False, got 'yes'"):
         WKSOptions(scale_invariant="yes")

@@ -95,14 +95,22 @@ def spectrum_summary(spectrum: Spectrum) -> Spectrum:
                     fingerprint=s.fingerprint, normalized=s.normalized)
 
 
+#: the fewest Laplace-Beltrami eigenpairs a spectral signature (WKS, HKS) takes: ``n_eigen`` below it is refused,
+#: and a mesh with fewer vertices than ``min(n_eigen, MIN_EIGENPAIRS)`` cannot be compared
+#: (`wpot.comparison.min_vertices`). Below this, every vertex's signature is a mix of a handful of eigenfunctions, and
+#: the spectrum's top lies in another band than a full mesh's, so the shared grid fails with a message about units of
+#: length (or, worse, fits and gives a meaningless distance).
+MIN_EIGENPAIRS = 10
+
+
 @dataclass(frozen=True)
 class SpectralOptions(SignatureOptions):
     """The options every spectral signature has (a subclass adds its grid's size).
 
     Attributes
     ----------
-    n_eigen : Laplace–Beltrami eigenpairs, the zero one(s) included (paper: 500); at least 3, since a grid needs
-        two nonzero eigenvalues. A mesh with fewer vertices uses all of them. One value serves every spectral
+    n_eigen : Laplace–Beltrami eigenpairs, the zero one(s) included (paper: 500); at least `MIN_EIGENPAIRS`. A mesh
+        with fewer vertices uses all of them. One value serves every spectral
         signature, so they share one cached spectrum.
     scale_invariant : False: the meshes at their own size (the paper; size counts); True: scaled to area 1.
     """
@@ -115,7 +123,7 @@ class SpectralOptions(SignatureOptions):
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "n_eigen", integer_at_least("n_eigen", self.n_eigen, 3))
+        object.__setattr__(self, "n_eigen", integer_at_least("n_eigen", self.n_eigen, MIN_EIGENPAIRS))
         object.__setattr__(self, "scale_invariant", boolean("scale_invariant", self.scale_invariant))
 
 
