@@ -272,6 +272,7 @@ def _retrieve_parser(sub: Any) -> None:
                    help="vertex signature (default: ldsift, with its thickness column at 2)")
     add_signature_arguments(p, defaults={"ldsift_thickness": 2.0})
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
+    _add_progress(p)
     p.set_defaults(func=cmd_retrieve)
 
 
@@ -916,8 +917,16 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     shapes = list_shapes(lib if lib.is_dir() else read_mesh_list(lib), labels=a.labels)
     part = _load(a.part, "part", folder="the part is one mesh file (the library, a folder, comes second)").mesh
     config = ComparisonConfig(signature=a.signature, signature_options=signature_options_from_args(a.signature, a))
-    comparer = Comparer(config, device=a.device)
-    wholes = [load_mesh(path) for path in shapes.paths]
+    reporter = _progress(a)
+    comparer = Comparer(config, device=a.device, progress=reporter)
+    bar = reporter.bar(len(shapes.paths), "reading meshes", "mesh")
+    wholes = []
+    try:
+        for path in shapes.paths:
+            wholes.append(load_mesh(path))
+            bar.update()
+    finally:
+        bar.close()
     if comparer.stage.needs_fit:
         comparer.fit(wholes)
     r = comparer.retrieve(part, wholes, list(shapes.labels["class"]),

@@ -667,9 +667,24 @@ class Comparer:
             raise ValueError("wholes must hold at least one mesh")
         if self.stage.needs_fit and not self.stage.fitted:
             raise ValueError(f"{self.signature} needs fitting: call fit(wholes) first")
-        sig = self.signatures(part)
-        return np.column_stack([nearest_costs(sig, self.signatures(w), metric=self.stage.metric,
-                                              device=self.device)[1] for w in wholes])
+        with self.progress.stage(f"{self.stage.title} signatures of the part ({part.n_vertices} vertices)"):
+            sig = self.signatures(part)
+
+        def costs(w: Mesh) -> np.ndarray:
+            return nearest_costs(sig, self.signatures(w), metric=self.stage.metric, device=self.device)[1]
+
+        if len(wholes) == 1:
+            return costs(wholes[0])[:, None]
+        # a library: a step per whole (its signatures, computed or read from the cache, and its costs)
+        bar = self.progress.bar(len(wholes), f"{self.stage.title} signatures of the library", "shape")
+        cols = []
+        try:
+            for w in wholes:
+                cols.append(costs(w))
+                bar.update()
+        finally:
+            bar.close()
+        return np.column_stack(cols)
 
     def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
         """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`): from each

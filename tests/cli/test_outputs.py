@@ -121,3 +121,27 @@ def test_the_components_warnings_name_their_mesh(pair, capsys, tmp_path):
     assert code == 0 and len(warned) == 2, err
     assert all(ln.startswith(f"wpot: warning: {tmp_path / 'two.off'}: ") for ln in warned), warned
     assert "2 connected components" in warned[0] and "eigenvalue 0 repeats 2 times" in warned[1]
+
+
+# ------------------------------------------------------------------------------------- retrieve --progress
+def test_retrieve_reports_the_library_s_set_up_with_progress(capsys, tmp_path):
+    from helpers import make_dataset
+    from wpot.io import load_mesh, save_mesh
+    from wpot.mesh import cut
+
+    library = make_dataset(tmp_path / "lib", n_per_class=2)
+    blob = load_mesh(library / "blob1.off")
+    save_mesh(cut(blob, np.arange(blob.n_vertices // 2))[0], tmp_path / "part.off")
+    args = ["retrieve", tmp_path / "part.off", library, "--signature", "wks", *FAST_CLI, "--device", "cpu"]
+    code, out, err = cli(capsys, *args, "--progress")
+    assert code == 0, err
+    lines = err.splitlines()
+    assert "\r" not in err  # stderr is not a terminal here: a line per step
+    for step in ("reading meshes: 4/4 (100%)", "spectra: 4/4 (100%)", "WKS signatures of the library: 4/4 (100%)"):
+        assert any(ln.startswith(step) for ln in lines), (step, err)
+    assert re.search(r"^WKS signatures of the part \(\d+ vertices\) \.\.\. \d+\.\d s$", err, re.M), err
+    ranked = re.findall(r"^\s+\d+\. (\S+)\s+score", out, re.M)
+    code, out2, err2 = cli(capsys, *args)  # not a terminal, no --progress: no report, the same ranking
+    assert code == 0 and "signatures of the library" not in err2 and re.findall(r"^\s+\d+\. (\S+)\s+score", out2, re.M) == ranked
+    code, _, err3 = cli(capsys, *args, "--no-progress")
+    assert code == 0 and "reading meshes" not in err3
