@@ -26,7 +26,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Mapping, Sequence, TextIO
+from typing import Any, Mapping, NamedTuple, Sequence, TextIO
 
 import numpy as np
 
@@ -122,15 +122,48 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    "saved as correspondence_locate, confidence_locate and region_locate, and drawn in the picture")
 
 
-def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> Any:
-    """`Comparer.locate` of A in B when ``--locate`` was given (printing what it found)."""
+class _Located(NamedTuple):
+    """What ``--locate`` found: the `wpot.maps.locate.PartMap` of A in B, and the rigid fit of A's vertices onto their
+    located images (`located_registration`; None when none could be fitted), which places B in the picture."""
+
+    map: Any
+    registration: Any
+
+
+def located_registration(part: Any, whole: Any, pm: Any) -> Any:
+    """The transform that takes the part's vertices onto their images in the whole under the located map ``pm``:
+    `fit_similarity_robust`, each vertex weighted by its confidence, at scale 1 (`locate_part` assumes the part
+    and the whole at one scale, and measures geodesic distances in both alike). None when the map's confident
+    vertices do not determine one (fewer than 3 with weight, or collinear)."""
+    from wpot.maps.registration import fit_similarity_robust
+
+    conf = np.asarray(pm.confidence, dtype=np.float64)
+    weights = conf if np.isfinite(conf).all() and conf.sum() > 0 else None
+    try:
+        reg = fit_similarity_robust(part.vertices, whole.vertices[pm.correspondence], weights, scale=1.0)
+    except ValueError:
+        return None
+    return reg.with_target(whole)
+
+
+def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
+    """`Comparer.locate` of A in B when ``--locate`` was given (printing what it found, its confidence and the
+    transform that places it)."""
     if not getattr(a, "locate", False):
         return None
     pm = comparer.locate(ma, mb)
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
-    return pm
+    reg = located_registration(ma, mb, pm)
+    conf = f"confidence median {np.median(pm.confidence):.2f} ({np.mean(pm.confidence > 0.5):.0%} of A's vertices above 0.5)"
+    if reg is None:
+        print(f"located map: {conf}; no rigid fit of A onto its images (too few confident, non-collinear vertices)")
+    else:
+        over = f"over {reg.n_inliers} of {reg.n_pairs} vertices of A (the inliers)"
+        print(f"located map: {conf}; rigid fit of A onto its images (scale 1, as locate assumes): rms residual "
+              f"{reg.rms_text()} {over}, rotation {reg.rotation_degrees:.3g} degrees")
+    return _Located(pm, reg)
 
 
 def _check_zoomout(a: argparse.Namespace) -> None:
@@ -643,16 +676,22 @@ def _json_beta(beta: float) -> float | None:
     return beta if np.isfinite(beta) else None
 
 
+def _registration_json(r: Any) -> dict[str, Any] | None:
+    """A `wpot.maps.registration.Registration` as comparison.json records it."""
+    if r is None:
+        return None
+    return {"scale": r.scale, "rotation": r.rotation.tolist(), "translation": r.translation.tolist(), "rms": r.rms,
+            "n_pairs": r.n_pairs, "n_inliers": r.n_inliers, "method": r.method, "scale_from": r.scale_from}
+
+
 def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
-                     refined: np.ndarray | None = None, located: Any = None) -> list[Path]:
+                     refined: np.ndarray | None = None, located: _Located | None = None) -> list[Path]:
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given, and
-    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located``, a `wpot.maps.locate.PartMap`,
-    is) and correspondence.png (of the refined or located map when there is one, else of the plan's).
+    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located`` (`_locate`) is) and
+    correspondence.png (`_save_picture`).
 
     Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
     maps to -1, and ``index_map_a`` / ``index_map_b`` give the file index of each vertex used."""
-    from wpot.plot import plot_correspondence
-
     out.mkdir(parents=True, exist_ok=True)
     info = {
         "distance": c.distance,
@@ -665,18 +704,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         "n_vertices": [int(a.mesh.n_vertices), int(b.mesh.n_vertices)],
         "self_energies": c.self_energies,
         "history": [[_json_beta(b), float(d)] for b, d in c.history],
-        "registration": None
-        if c.registration is None
-        else {
-            "scale": c.registration.scale,
-            "rotation": c.registration.rotation.tolist(),
-            "translation": c.registration.translation.tolist(),
-            "rms": c.registration.rms,
-            "n_pairs": c.registration.n_pairs,
-            "n_inliers": c.registration.n_inliers,
-            "method": c.registration.method,
-            "scale_from": c.registration.scale_from,
-        },
+        "registration": _registration_json(c.registration),
         **(extra or {}),
     }
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
@@ -693,9 +721,9 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
 
     arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined)}
     if located is not None:
-        arrays.update(correspondence_locate=on_input(located.correspondence),
-                      confidence_locate=per_input(a, located.confidence, np.nan),
-                      region_locate=per_input(b, located.region(), False))
+        arrays.update(correspondence_locate=on_input(located.map.correspondence),
+                      confidence_locate=per_input(a, located.map.confidence, np.nan),
+                      region_locate=per_input(b, located.map.region(), False))
     for name, m in (("index_map_a", a), ("index_map_b", b)):
         if m.index_map is not None:
             arrays[name] = m.index_map
@@ -703,18 +731,38 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     np.savez(files[1], correspondence=on_input(c.correspondence), matched=matched, matched_weight=c.matched_weight,
              mass1=c.mass1, mass2=c.mass2, confidence=per_input(a, c.confidence, np.nan),
              region=per_input(b, c.region(), False), **arrays)
-    mb = b.mesh
-    title_b = "B"
-    if c.registration is not None:  # draw B in A's pose: undo the fitted similarity
-        mb = c.registration.inverse().apply(mb)
-        title_b = "B, moved onto A by the inverse of the fitted registration"
+    _save_picture(c, a.mesh, b.mesh, files[2], refined, located)
+    return files
+
+
+def picture_placement(c: Any, located: _Located | None) -> tuple[Any, str]:
+    """The transform whose inverse draws B in A's pose in correspondence.png, and the picture's name for B: with
+    ``--locate``, the fit to the located map that is drawn (`located_registration`), with its confidence; else the
+    comparison's registration; (None, "B") when there is none."""
+    if located is not None:
+        conf = f"median confidence {np.median(located.map.confidence):.2f}"
+        if located.registration is None:
+            return None, f"B (no rigid fit to the located map; {conf})"
+        return located.registration, f"B, moved onto A by the inverse of a rigid fit to the located map ({conf})"
+    if c.registration is not None:
+        return c.registration, "B, moved onto A by the inverse of the fitted registration"
+    return None, "B"
+
+
+def _save_picture(c: Any, ma: Any, mb: Any, path: Path, refined: np.ndarray | None, located: _Located | None) -> None:
+    """correspondence.png: A coloured through the map that is reported (ZoomOut's, the located one, or the plan's),
+    over B drawn in A's pose by the inverse of the transform that belongs to that map (`picture_placement`)."""
+    from wpot.plot import plot_correspondence
+
+    reg, title_b = picture_placement(c, located)
+    if reg is not None:  # draw B in A's pose: undo the fitted similarity
+        mb = reg.inverse().apply(mb)
     shown, what = (c.correspondence, "correspondence")
     if refined is not None:
         shown, what = refined, "ZoomOut correspondence"
     elif located is not None:
-        shown, what = located.correspondence, "located correspondence"
-    plot_correspondence(a.mesh, mb, shown, titles=(f"A, coloured through the {what}", title_b), path=files[2])
-    return files
+        shown, what = located.map.correspondence, "located correspondence"
+    plot_correspondence(ma, mb, shown, titles=(f"A, coloured through the {what}", title_b), path=path)
 
 
 def _check_out_folder(out: str | None) -> None:
@@ -844,9 +892,11 @@ def cmd_compare(a: argparse.Namespace) -> None:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
                  "settings": config.describe(), "signature_state": info, "repair": repair_setting(repair)}
         if located is not None:
-            extra["locate"] = {"n_anchors": int(len(located.anchors)),
-                               "median_residual": float(np.median(located.residual)),
-                               "orientation": located.orientation, "region_vertices": int(located.region().sum())}
+            pm = located.map
+            extra["locate"] = {"n_anchors": int(len(pm.anchors)), "median_residual": float(np.median(pm.residual)),
+                               "orientation": pm.orientation, "region_vertices": int(pm.region().sum()),
+                               "median_confidence": float(np.median(pm.confidence)),
+                               "registration": _registration_json(located.registration)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))
 

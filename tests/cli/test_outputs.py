@@ -145,3 +145,68 @@ def test_retrieve_reports_the_library_s_set_up_with_progress(capsys, tmp_path):
     assert code == 0 and "signatures of the library" not in err2 and re.findall(r"^\s+\d+\. (\S+)\s+score", out2, re.M) == ranked
     code, _, err3 = cli(capsys, *args, "--no-progress")
     assert code == 0 and "reading meshes" not in err3
+
+
+# --------------------------------------------------------------------------------- compare --locate --out
+def test_the_picture_places_b_by_the_located_map_that_is_reported(capsys, tmp_path, monkeypatch):
+    """With --locate, correspondence.png draws the located map over B moved by the inverse of a rigid fit to that
+    map (not by the transport's registration), and says its confidence; comparison.json records that fit."""
+    import wpot
+    import wpot.plot
+    from wpot.cli import located_registration
+    from wpot.examples import example_pair
+    from wpot.io import save_mesh
+    from wpot.mesh import cut
+
+    p = example_pair(300, seed=0, n_target=300)
+    v = p.source.vertices
+    part = cut(p.source, v[:, 0] > np.median(v[:, 0]))[0]
+    save_mesh(part, tmp_path / "part.off")
+    save_mesh(p.target, tmp_path / "whole.off")
+    drawn = {}
+
+    def spy(source, target, correspondence, **kw):
+        drawn.update(source=source, target=target, correspondence=np.asarray(correspondence), titles=kw["titles"])
+
+    monkeypatch.setattr(wpot.plot, "plot_correspondence", spy)
+    code, out, err = cli(capsys, "compare", tmp_path / "part.off", tmp_path / "whole.off", *FAST_CLI, "--transport",
+                         "partial", "--locate", "--out", tmp_path / "l", "--device", "cpu")
+    assert code == 0, err
+    # the same located map from the API, and the fit to it
+    a, b = wpot.load_mesh(tmp_path / "part.off"), wpot.load_mesh(tmp_path / "whole.off")
+    pm = wpot.Comparer(n_eigen=30, n_energies=30, transport="partial", device="cpu").locate(a, b)
+    np.testing.assert_array_equal(drawn["correspondence"], pm.correspondence)
+    reg = located_registration(a, b, pm)
+    assert reg.scale == 1.0 and reg.scale_from == "given"
+    np.testing.assert_allclose(drawn["target"].vertices, reg.inverse().apply(b).vertices, atol=1e-9)
+    info = json.loads((tmp_path / "l" / "comparison.json").read_text())
+    saved = info["locate"]["registration"]
+    np.testing.assert_allclose(saved["rotation"], reg.rotation, atol=1e-9)
+    np.testing.assert_allclose(saved["translation"], reg.translation, atol=1e-9)
+    assert saved["scale"] == 1.0 and info["locate"]["median_confidence"] == pytest.approx(np.median(pm.confidence))
+    if info["registration"] is not None:  # the transport's own fit is recorded, and is not what placed B
+        assert not np.allclose(drawn["target"].vertices,
+                               wpot.maps.registration.Registration(**{k: np.asarray(info["registration"][k]) if k in (
+                                   "rotation", "translation") else info["registration"][k] for k in (
+                                   "scale", "rotation", "translation", "rms", "n_pairs")}).inverse().apply(b).vertices)
+    conf = f"median confidence {np.median(pm.confidence):.2f}"
+    assert "rigid fit to the located map" in drawn["titles"][1] and conf in drawn["titles"][1]
+    assert re.search(rf"^located map: confidence median {np.median(pm.confidence):.2f} \(\d+% of A's vertices above "
+                     r"0\.5\); rigid fit of A onto its images \(scale 1, as locate assumes\)", out, re.M), out
+
+
+def test_picture_placement_prefers_the_located_map():
+    from types import SimpleNamespace
+
+    from wpot.cli import _Located, picture_placement
+
+    transport = SimpleNamespace(scale=0.38)
+    located = SimpleNamespace(scale=1.0)
+    pm = SimpleNamespace(confidence=np.array([0.2, 0.6, 0.9]))
+    c = SimpleNamespace(registration=transport)
+    reg, title = picture_placement(c, _Located(pm, located))
+    assert reg is located and "located map (median confidence 0.60)" in title
+    reg, title = picture_placement(c, _Located(pm, None))
+    assert reg is None and "no rigid fit to the located map" in title
+    assert picture_placement(c, None)[0] is transport
+    assert picture_placement(SimpleNamespace(registration=None), None) == (None, "B")
