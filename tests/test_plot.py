@@ -64,13 +64,68 @@ def test_confusion_png(tmp_path):
     assert (tmp_path / "conf.png").stat().st_size > 0
     np.testing.assert_allclose(fig.axes[0].images[0].get_array(), 100 * np.ma.masked_invalid(r.confusion))
     # one label per non-zero cell, at its (column, row), with its percentage
-    cells = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in fig.axes[0].texts}
+    cells = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in fig.axes[0].texts
+             if t.get_text() != plot.ONE_MEMBER}
     nz = {(i, j) for i, j in zip(*np.nonzero(np.nan_to_num(r.confusion) > 0))}
     assert set(cells) == nz and cells[(0, 0)] == "100"
     assert r.confusion[2, 1] > 0.01 and float(cells[(2, 1)]) == pytest.approx(100 * r.confusion[2, 1], abs=0.5)
-    assert np.isnan(r.confusion[3]).all()  # "d" has one shape: never tested, a blank row
+    assert np.isnan(r.confusion[3]).all()  # "d" has one shape: never tested, its row says so
+    marked = [t for t in fig.axes[0].texts if t.get_text() == plot.ONE_MEMBER]
+    assert len(marked) == 1 and marked[0].get_position()[1] == 3
     with pytest.raises(ValueError, match="confusion"):
         plot.plot_confusion(np.eye(3))
+
+
+def test_distance_matrix_colours_span_the_off_diagonal_and_axes_name_the_shapes():
+    """The zero diagonal does not set the colour range; with names, each row and column is labelled with its shape
+    (in class order) and the classes name the blocks on the top and right axes."""
+    rng = np.random.default_rng(2)
+    lab = np.array(["b", "a", "b", "a", "c", "b"])
+    d = 5.0 + rng.random((6, 6))
+    d = (d + d.T) / 2
+    np.fill_diagonal(d, 0.0)
+    off = d[~np.eye(6, dtype=bool)]
+    fig = plot.plot_distance_matrix(d, lab)
+    assert fig.axes[0].images[0].get_clim() == pytest.approx((off.min(), off.max()))
+    names = [f"s{k}" for k in range(6)]
+    fig = plot.plot_distance_matrix(d, lab, names=names)
+    ax = fig.axes[0]
+    assert ax.images[0].get_clim() == pytest.approx((off.min(), off.max()))
+    order, blocks, starts = plot.class_order(lab)
+    shown = [names[k] for k in order]
+    assert [t.get_text() for t in ax.get_xticklabels()] == shown == [t.get_text() for t in ax.get_yticklabels()]
+    top, right = ax.child_axes
+    assert [t.get_text() for t in top.xaxis.get_minorticklabels()] == blocks == ["b", "a", "c"]
+    assert [t.get_text() for t in right.yaxis.get_minorticklabels()] == blocks
+    np.testing.assert_allclose(top.get_xticks(), starts - 0.5)  # the brackets: a long tick at each boundary
+    with pytest.raises(ValueError, match="one name per shape"):
+        plot.plot_distance_matrix(d, lab, names=names[:5])
+    # NaN entries (pairs not done) are left out of the range
+    d[0, 1] = np.nan
+    assert plot.plot_distance_matrix(d, lab).axes[0].images[0].get_clim()[1] == pytest.approx(np.nanmax(d))
+
+
+def test_confusion_follows_a_given_class_order_and_keeps_its_title_inside():
+    from wpot.evaluate import one_shot_1nn
+
+    x = np.array([0, 1, 2, 10, 11, 12, 12.4, 13, 30])
+    lab = np.array(["a", "a", "a", "b", "b", "c", "c", "c", "d"])
+    r = one_shot_1nn(np.abs(x[:, None] - x[None]), lab, n_trials=200, seed=0)
+    order = ["c", "d", "a", "b"]
+    title = "one-shot 1-NN (%): ldsift, partial transport, cell-pooled samples of a long run name"
+    fig = plot.plot_confusion(r, classes=order, title=title)
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == order == [t.get_text() for t in ax.get_xticklabels()]
+    pos = [list(r.classes).index(c) for c in order]
+    np.testing.assert_allclose(ax.images[0].get_array(), 100 * np.ma.masked_invalid(r.confusion[np.ix_(pos, pos)]))
+    marked = [t for t in ax.texts if t.get_text() == plot.ONE_MEMBER]
+    assert len(marked) == 1 and marked[0].get_position()[1] == order.index("d")
+    fig.canvas.draw()
+    box, inside = fig.bbox, ax.title.get_window_extent()
+    assert " ".join(ax.title.get_text().split()) == title
+    assert box.x0 <= inside.x0 and inside.x1 <= box.x1 and box.y0 <= inside.y0 and inside.y1 <= box.y1
+    with pytest.raises(ValueError, match="classes must list"):
+        plot.plot_confusion(r, classes=["a", "b"])
 
 
 def test_cumulative_errors_png(tmp_path, sphere):

@@ -1003,7 +1003,7 @@ def cmd_classify(a: argparse.Namespace) -> None:
     from wpot.runs.shapes import warn_repeated_shapes
     from wpot.runs.store import RunStore
     from wpot.paper.table1 import PAPER_TABLE1
-    from wpot.runs.report import classify_run, confusions, misses_text
+    from wpot.runs.report import classify_run, confusions, loo_scores, loo_text, misses_text
 
     _check_trials(a)
     with RunStore(a.run) as store:
@@ -1032,7 +1032,7 @@ def cmd_classify(a: argparse.Namespace) -> None:
     if conf:
         print("  classes below 100%: " + "; ".join(conf))
     for lv, res in r["loo"].items():
-        print(f"leave-one-out 1-NN at level {lv!r} ({res.n_groups} groups): {format_percent(res.accuracy)}")
+        print(loo_text(lv, res, r["levels"][lv]))
         if r["loo_misses"][lv]:
             print("  wrong: " + misses_text(r["loo_misses"][lv]))
     if r["per_beta"]:
@@ -1052,7 +1052,10 @@ def cmd_classify(a: argparse.Namespace) -> None:
                      "classes": list(one.classes),
                      "confusion": [[None if not np.isfinite(v) else float(v) for v in row] for row in one.confusion]},
         "not_converged": r["not_converged"],
-        "leave_one_out": {lv: res.accuracy for lv, res in r["loo"].items()},
+        # None at a level whose shapes are all in one group: nothing to tell apart, no result
+        "leave_one_out": {lv: res.accuracy if res.n_groups > 1 else None for lv, res in r["loo"].items()},
+        "leave_one_out_without_one_shape_groups": {lv: loo_scores(res, r["levels"][lv])["without"]
+                                                   for lv, res in r["loo"].items()},
         "leave_one_out_wrong": r["loo_misses"],
         "one_shot_per_beta": r["per_beta"],
         "draws": None if draws is None else {

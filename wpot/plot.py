@@ -111,10 +111,36 @@ def class_order(labels: ArrayLike, *, classes: Sequence[str] | None = None) -> t
     return order.astype(np.int64), present, np.r_[0, np.cumsum(counts)].astype(np.int64)
 
 
+def _off_diagonal_range(d: np.ndarray) -> tuple[float | None, float | None]:
+    """The smallest and largest finite off-diagonal entries of a square matrix (None, None when there is none)."""
+    off = d[~np.eye(len(d), dtype=bool)]
+    off = off[np.isfinite(off)]
+    if not off.size:
+        return None, None
+    return float(off.min()), float(off.max())
+
+
+def _group_axis(ax: Axes, which: str, starts: np.ndarray, block: Sequence[str], fontsize: float) -> Axes:
+    """A secondary axis (``which``: "top" or "right") naming the class of each block of rows or columns, with
+    long ticks at the block boundaries as brackets."""
+    sec = ax.secondary_xaxis("top") if which == "top" else ax.secondary_yaxis("right")
+    axis = sec.xaxis if which == "top" else sec.yaxis
+    edges = starts - 0.5
+    axis.set_ticks(edges, [""] * len(edges))
+    axis.set_ticks((starts[:-1] + starts[1:] - 1) / 2.0, list(block), minor=True)
+    axis.set_tick_params(which="major", length=14, width=0.8)
+    axis.set_tick_params(which="minor", length=0, labelsize=fontsize)
+    if which == "top":
+        for t in axis.get_minorticklabels():
+            t.set(rotation=45, horizontalalignment="left", verticalalignment="bottom", rotation_mode="anchor")
+    return sec
+
+
 def plot_distance_matrix(
     distances: ArrayLike,
     labels: ArrayLike,
     *,
+    names: Sequence[str] | None = None,
     classes: Sequence[str] | None = None,
     title: str | None = None,
     cmap: str = "viridis",
@@ -124,32 +150,56 @@ def plot_distance_matrix(
 ) -> Figure:
     """Heatmap of an (n, n) distance matrix ordered by class, with lines between classes (paper Fig. 3, 7).
 
-    Small distances are dark blue and large ones yellow (viridis, as in the paper). The diagonal is drawn as it
-    is (usually 0, or the self-comparison value).
+    Small distances are dark blue and large ones yellow (viridis, as in the paper). The colour range spans the
+    off-diagonal distances (the smallest to the largest between two different shapes): the diagonal (usually
+    0, or the self-comparison value) would otherwise set one end of it and flatten every other cell; it is drawn
+    in the colour of the nearest end of the range.
+
+    ``names`` ((n,) strings, e.g. the run's shape names) labels each row and column with its shape; the classes
+    then name the blocks on the opposite sides (top and right), between brackets at their boundaries. Without
+    ``names`` the blocks' classes label the axes. ``classes`` orders the blocks (`class_order`).
     """
     d = np.asarray(distances, dtype=np.float64)
     if d.ndim != 2 or d.shape[0] != d.shape[1]:
         raise ValueError(f"distances must be a square (n, n) matrix, got shape {d.shape}")
-    if np.asarray(labels).shape != (d.shape[0],):
-        raise ValueError(f"labels must have shape ({d.shape[0]},), got {np.asarray(labels).shape}")
+    n = d.shape[0]
+    if np.asarray(labels).shape != (n,):
+        raise ValueError(f"labels must have shape ({n},), got {np.asarray(labels).shape}")
+    if names is not None and len(names) != n:
+        raise ValueError(f"names must give one name per shape ({n}), got {len(names)}")
     order, block, starts = class_order(labels, classes=classes)
-    fig, ax = _figure_and_axes(ax, (6.4, 5.6))
-    im = ax.imshow(np.ma.masked_invalid(d[np.ix_(order, order)]), cmap=cmap, interpolation="nearest")
+    fig, ax = _figure_and_axes(ax, (6.4, 5.6) if names is None else (7.2, 6.4))
+    vmin, vmax = _off_diagonal_range(d)
+    im = ax.imshow(np.ma.masked_invalid(d[np.ix_(order, order)]), cmap=cmap, interpolation="nearest",
+                   vmin=vmin, vmax=vmax)
     for s in starts[1:-1]:
         ax.axhline(s - 0.5, color="w", lw=1.0)
         ax.axvline(s - 0.5, color="w", lw=1.0)
-    centres = (starts[:-1] + starts[1:] - 1) / 2.0
-    ax.set_xticks(centres, block, rotation=60, ha="right", fontsize=8)
-    ax.set_yticks(centres, block, fontsize=8)
-    fig.colorbar(im, ax=ax, shrink=0.8, label="distance")
+    if names is None:
+        centres = (starts[:-1] + starts[1:] - 1) / 2.0
+        ax.set_xticks(centres, block, rotation=60, ha="right", fontsize=8)
+        ax.set_yticks(centres, block, fontsize=8)
+    else:
+        size = float(np.clip(300.0 / n, 3.0, 8.0))
+        shown = [str(names[k]) for k in order]
+        ax.set_xticks(range(n), shown, rotation=90, fontsize=size)
+        ax.set_yticks(range(n), shown, fontsize=size)
+        _group_axis(ax, "top", starts, block, 8)
+        _group_axis(ax, "right", starts, block, 8)
+    fig.colorbar(im, ax=ax, shrink=0.8, label="distance (off-diagonal range)", pad=0.08 if names is not None else 0.05)
     if title:
         ax.set_title(title)
     return _finish(fig, path, dpi)
 
 
+#: how `plot_confusion` marks the row of a class it cannot score: one shape, never a test shape
+ONE_MEMBER = "n/a: 1 member"
+
+
 def plot_confusion(
     result: Any,
     *,
+    classes: Sequence[str] | None = None,
     title: str | None = None,
     cmap: str = "Blues",
     ax: Axes | None = None,
@@ -160,21 +210,37 @@ def plot_confusion(
 
     ``result`` is a `wpot.evaluate.OneShotClassification` (anything with ``classes`` and a (C, C)
     ``confusion``): row = true class, column = the class its test shapes were given, each row summing to 100 %.
-    Cells of 0 are left blank so that the confusions stand out; a class with a single shape, never tested,
-    is a blank (NaN) row.
+    ``classes`` orders the rows and columns (default: ``result.classes``); give `plot_distance_matrix`'s block
+    order (`class_order`) to read the two figures side by side. Cells of 0 are left blank so that the
+    confusions stand out; a class with a single shape is never tested (a NaN row) and its row says so
+    (`ONE_MEMBER`). A long title is wrapped to the figure's width.
     """
-    classes = list(getattr(result, "classes", ()))
+    from textwrap import fill
+
+    own = list(getattr(result, "classes", ()))
     conf = np.asarray(getattr(result, "confusion", None), dtype=np.float64)
-    if not classes or conf.shape != (len(classes), len(classes)):
+    if not own or conf.shape != (len(own), len(own)):
         raise ValueError(
             f"result must have classes and a (C, C) confusion matrix (a wpot.evaluate.OneShotClassification), "
-            f"got {type(result).__name__} with {len(classes)} classes and confusion of shape {conf.shape}"
+            f"got {type(result).__name__} with {len(own)} classes and confusion of shape {conf.shape}"
         )
+    if classes is not None:
+        classes = [str(x) for x in classes]
+        if sorted(classes) != sorted(map(str, own)):
+            raise ValueError(f"classes must list the result's classes {own} once each, in any order, got {classes}")
+        pos = [list(map(str, own)).index(x) for x in classes]
+        conf = conf[np.ix_(pos, pos)]
+    else:
+        classes = own
     c = len(classes)
-    fig, ax = _figure_and_axes(ax, (1.2 + 0.55 * c, 1.0 + 0.5 * c))
+    own_figure = ax is None
+    fig, ax = _figure_and_axes(ax, (max(1.2 + 0.55 * c, 3.6), 1.0 + 0.5 * c))
     pct = 100 * conf
     ax.imshow(np.ma.masked_invalid(pct), cmap=cmap, vmin=0, vmax=100, interpolation="nearest")
     for a in range(c):
+        if not np.isfinite(pct[a]).any():
+            ax.text((c - 1) / 2.0, a, ONE_MEMBER, ha="center", va="center", fontsize=7, color="0.35", style="italic")
+            continue
         for b in range(c):
             v = pct[a, b]
             if np.isfinite(v) and v > 0:
@@ -185,7 +251,9 @@ def plot_confusion(
     ax.set_xlabel("taken for")
     ax.set_ylabel("class")
     if title:
-        ax.set_title(title)
+        # about 0.085 inch per character at 9 points: wrapped to the figure (or, in a given axes, its share of it)
+        width = fig.get_figwidth() * (1.0 if own_figure else ax.get_position().width)
+        ax.set_title(fill(title, max(16, int(width / 0.085))), fontsize=9)
     return _finish(fig, path, dpi)
 
 

@@ -210,3 +210,81 @@ def test_picture_placement_prefers_the_located_map():
     assert reg is None and "no rigid fit to the located map" in title
     assert picture_placement(c, None)[0] is transport
     assert picture_placement(SimpleNamespace(registration=None), None) == (None, "B")
+
+
+# ------------------------------------------------------------------------------ classify and report figures
+@pytest.fixture(scope="module")
+def odd_run(tmp_path_factory) -> Path:
+    """A run over two classes of two shapes and a class of one ("odd"), with a label level "family" that puts
+    every shape in one group."""
+    from helpers import make_dataset
+    from wpot.examples import example_mesh
+    from wpot.io import save_mesh
+    from wpot.mesh import Mesh
+    from wpot.runs.loop import run_all_vs_all
+
+    data = make_dataset(tmp_path_factory.mktemp("odd-data"), n_per_class=2)
+    m = example_mesh(110, seed=5)
+    save_mesh(Mesh(m.vertices * np.array([0.7, 0.7, 2.2]), m.faces), data / "odd1.off")
+    names = sorted(p.stem for p in data.glob("*.off"))
+    csv = data.parent / "labels.csv"
+    csv.write_text("name,class,family\n" + "".join(f"{n},{n.rstrip('0123456789')},all\n" for n in names))
+    run = tmp_path_factory.mktemp("odd-run") / "run"
+    run_all_vs_all(data, run, labels=csv, progress=False, n_eigen=30, n_energies=30).close()
+    return run
+
+
+def test_classify_says_what_a_one_shape_class_and_a_one_group_level_mean(odd_run, capsys):
+    from wpot.evaluate import format_percent, leave_one_out_1nn
+    from wpot.runs.store import RunStore
+
+    code, out, err = cli(capsys, "classify", odd_run, "--trials", "200")
+    assert code == 0, err
+    with RunStore(odd_run) as store:
+        d, labels = store.distance_matrix(), np.array(store.labels("class"))
+    res = leave_one_out_1nn(d, labels)
+    keep = labels != "odd"
+    assert res.score[~keep] == 0  # the one shape of its class: its nearest is always of another class
+    line = next(ln for ln in out.splitlines() if ln.startswith("leave-one-out 1-NN at level 'class'"))
+    assert line == (f"leave-one-out 1-NN at level 'class' (3 groups): {format_percent(res.accuracy)}; "
+                    f"{format_percent(res.score[keep].mean())} without the 1 group of one shape (odd), which "
+                    "leave-one-out cannot get right: no other member to find")
+    assert "leave-one-out 1-NN at level 'family': not scored, all 5 shapes are in one group (all)" in out
+    assert "(1 groups)" not in out
+    info = json.loads((odd_run / "classification.json").read_text())
+    assert info["leave_one_out"] == {"class": pytest.approx(res.accuracy), "family": None}
+    assert info["leave_one_out_without_one_shape_groups"] == {"class": pytest.approx(res.score[keep].mean()),
+                                                              "family": None}
+
+
+def test_report_figures_share_one_class_order_and_mark_a_one_shape_class(odd_run, capsys, monkeypatch, tmp_path):
+    import wpot.plot
+
+    figures = {}
+    for name in ("plot_distance_matrix", "plot_confusion"):
+        real = getattr(wpot.plot, name)
+
+        def spy(*args, _real=real, _name=name, **kw):
+            figures[_name] = fig = _real(*args, **kw)
+            return fig
+
+        monkeypatch.setattr(wpot.plot, name, spy)
+    code, _, err = cli(capsys, "report", odd_run, "--trials", "200", "--out", tmp_path / "report.md")
+    assert code == 0, err
+    heat, conf = figures["plot_distance_matrix"].axes[0], figures["plot_confusion"].axes[0]
+    top = heat.child_axes[0]
+    blocks = [t.get_text() for t in top.xaxis.get_minorticklabels()]
+    assert sorted(blocks) == ["blob", "flat", "odd"]
+    assert [t.get_text() for t in conf.get_yticklabels()] == blocks == [t.get_text() for t in conf.get_xticklabels()]
+    from wpot.runs.store import RunStore
+
+    with RunStore(odd_run) as store:
+        names, d = store.names, store.distance_matrix()
+    assert sorted(t.get_text() for t in heat.get_yticklabels()) == sorted(names)  # the shapes, named
+    off = d[~np.eye(len(d), dtype=bool)]
+    assert heat.images[0].get_clim() == pytest.approx((off.min(), off.max()))
+    marked = [t for t in conf.texts if t.get_text() == wpot.plot.ONE_MEMBER]
+    assert len(marked) == 1 and marked[0].get_position()[1] == blocks.index("odd")
+    text = (tmp_path / "report.md").read_text()
+    assert "| leave-one-out 1-NN, level `family` (one group) | not scored: every shape is in one group |" in text
+    assert "without the 1 group of one shape, which it cannot get right)" in text

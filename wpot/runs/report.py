@@ -15,8 +15,8 @@ import numpy as np
 
 from wpot.paper.table1 import PAPER_TABLE1
 
-__all__ = ["RunNotReadyError", "build_report", "classify_run", "confusions", "loo_misses",
-           "misses_text", "pair_counts", "signature_title"]
+__all__ = ["RunNotReadyError", "build_report", "classify_run", "confusions", "loo_misses", "loo_scores",
+           "loo_text", "misses_text", "pair_counts", "signature_title"]
 
 class RunNotReadyError(ValueError):
     """A run cannot be classified yet: pairs are missing, or its shapes have no class labels."""
@@ -51,6 +51,40 @@ def loo_misses(names: Sequence[str], res: Any, labels: np.ndarray) -> list[dict[
     return [{"shape": names[i], "label": str(labels[i]), "nearest": names[res.nearest[i]],
              "nearest_label": str(labels[res.nearest[i]]), "score": float(res.score[i])}
             for i in np.nonzero(res.score < 1)[0]]
+
+
+def loo_scores(res: Any, labels: np.ndarray) -> dict[str, Any]:
+    """What a leave-one-out accuracy (`wpot.evaluate.LeaveOneOut`) at one label level means: ``scored`` is False
+    when every shape is in one group (each nearest shape then has the query's label: 100 % that says nothing);
+    ``one_member`` lists the groups of a single shape, which leave-one-out cannot get right (no other member to
+    find), and ``without`` is the accuracy over the other shapes (None when there are no such groups, or no
+    other shapes)."""
+    labels = np.asarray(labels, dtype=str)
+    groups, counts = np.unique(labels, return_counts=True)
+    one = [str(g) for g, k in zip(groups, counts) if k == 1]
+    keep = ~np.isin(labels, one)
+    without = float(res.score[keep].mean()) if one and keep.any() else None
+    return {"accuracy": float(res.accuracy), "n_groups": int(res.n_groups), "scored": int(res.n_groups) > 1,
+            "one_member": one, "without": without}
+
+
+def loo_text(level: str, res: Any, labels: np.ndarray) -> str:
+    """The line `wpot classify` prints for leave-one-out 1-NN at ``level`` (`loo_scores`)."""
+    from wpot.evaluate import format_percent
+
+    s = loo_scores(res, labels)
+    n = len(labels)
+    if not s["scored"]:
+        return (f"leave-one-out 1-NN at level {level!r}: not scored, all {n} shapes are in one group ({labels[0]}), "
+                "so every shape's nearest has its label")
+    line = f"leave-one-out 1-NN at level {level!r} ({s['n_groups']} groups): {format_percent(s['accuracy'])}"
+    if s["one_member"]:
+        k = len(s["one_member"])
+        which = ", ".join(s["one_member"][:8]) + (f" and {k - 8} more" if k > 8 else "")
+        without = "n/a" if s["without"] is None else format_percent(s["without"])
+        line += (f"; {without} without the {k} group{'s' if k > 1 else ''} of one shape ({which}), which "
+                 "leave-one-out cannot get right: no other member to find")
+    return line
 
 
 def misses_text(misses: Sequence[Mapping[str, Any]], *, limit: int = 12) -> str:
@@ -102,12 +136,27 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
 
 
 
+def _loo_cells(res: Any, labels: np.ndarray) -> str:
+    """The measure's tail and the "ours" cell of a leave-one-out row of the report's table (`loo_scores`)."""
+    from wpot.evaluate import format_percent
+
+    s = loo_scores(res, labels)
+    if not s["scored"]:
+        return "(one group) | not scored: every shape is in one group"
+    cell = format_percent(s["accuracy"])
+    if s["one_member"]:
+        k = len(s["one_member"])
+        without = "n/a" if s["without"] is None else format_percent(s["without"])
+        cell += f" ({without} without the {k} group{'s' if k > 1 else ''} of one shape, which it cannot get right)"
+    return f"({s['n_groups']} groups) | {cell}"
+
+
 def build_report(runs: Sequence[str | Path], out: str | Path | None = None, *, trials: int = 10_000, seed: int = 0) -> Path:
     """Write a Markdown report of one or more runs beside the paper's Table 1, with a distance-matrix and a
     confusion figure per run; returns the path written (default: ``report.md`` in the first run's folder)."""
     from wpot.runs.store import RunStore
     from wpot.evaluate import format_percent
-    from wpot.plot import plot_confusion, plot_distance_matrix
+    from wpot.plot import class_order, plot_confusion, plot_distance_matrix
 
     sections: list[str] = []
     table1: dict[tuple[str, str], float] = {}
@@ -146,7 +195,7 @@ def build_report(runs: Sequence[str | Path], out: str | Path | None = None, *, t
             lines.append(f"| 1-NN, one training shape per class ({one.n_trials} trials) | {format_percent(one.mean)} "
                          f"| {f'{paper:.1f}% (Table 1, TOSCA8)' if paper is not None else 'n/a'} |")
             for lv, res in r["loo"].items():
-                lines.append(f"| leave-one-out 1-NN, level `{lv}` ({res.n_groups} groups) | {format_percent(res.accuracy)} | "
+                lines.append(f"| leave-one-out 1-NN, level `{lv}` {_loo_cells(res, r['levels'][lv])} | "
                              "Tables 2-4 (anatomical data) |")
             conf = confusions(one)
             lines += ["", "One-shot classes below 100 % (and what they were taken for): "
@@ -158,9 +207,11 @@ def build_report(runs: Sequence[str | Path], out: str | Path | None = None, *, t
                 lines += ["", "One-shot 1-NN accuracy from D(β) at each power of ten of β (D(∞) above):", "", "| β | accuracy |", "|---|---|"]
                 lines += [f"| {b:.3g} | {format_percent(acc)} |" for b, acc in r["per_beta"]]
             fig_path = Path(run) / "distance_matrix.png"
-            plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)
+            classes = class_order(r["levels"]["class"])[1]  # one class order in both figures
+            plot_distance_matrix(store.distance_matrix(), r["levels"]["class"], names=names, classes=classes,
+                                 title=f"D(inf): {key[0]}, {key[1]}", path=fig_path)
             conf_path = Path(run) / "confusion.png"
-            plot_confusion(one, title=f"one-shot 1-NN (%): {key[0]}, {key[1]}", path=conf_path)
+            plot_confusion(one, classes=classes, title=f"one-shot 1-NN (%): {key[0]}, {key[1]}", path=conf_path)
             lines += ["", f"![distance matrix]({os.path.relpath(fig_path.resolve(), out.parent.resolve())}) "
                       f"![one-shot confusion]({os.path.relpath(conf_path.resolve(), out.parent.resolve())})", ""]
             sections.append("\n".join(lines))
