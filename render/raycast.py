@@ -230,7 +230,7 @@ class DepthRenderer:
             handedness)
         cone : (m, 3) unit directions in the frame, every ``z > 0`` (see `inward_cone`)
         facing : +1 when the faces wind counter-clockwise seen from outside, -1 the other way
-            (`wpot.maps.orientation.winding`)
+            (`wpot.mesh.winding`)
 
         Returns
         -------

@@ -30,11 +30,21 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.config import DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS, ComparisonConfig
+from wpot.config import _all_signature_keywords, ComparisonConfig, DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS
 from wpot.mesh import Mesh
 from wpot.progress import as_progress
-from wpot.maps.registration import Registration, fit_similarity
+from wpot.maps.registration import area_scale, fit_similarity, fit_similarity_robust, Registration
 from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_point_sampling
+from wpot._warp import available_memory, resolve_device
+from wpot.cache import Cache
+from wpot.cost import cost_matrix, cost_mean, nearest_costs
+from wpot.maps.locate import locate_part
+from wpot.maps.retrieval import rank_classes
+from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
+from wpot.runs.history import debias_history
+from wpot.signatures import get_signature, Signature
+from wpot.signatures._spectral import SpectralOptions, SpectralSignature
+from wpot.spectral import spectrum_cache
 
 __all__ = [
     "DEFAULT_MASS_PENALTY",
@@ -78,10 +88,8 @@ def cost_scale(C: Any) -> float:
     resampled), which is what makes the relative penalty scale- and size-free. ``C`` is an (N1, N2)
     NumPy array, a float64 ``wp.array``, or a `wpot.ot.FeatureCost` (one pass, nothing stored).
     """
-    from wpot.ot import FeatureCost
 
     if isinstance(C, FeatureCost):
-        from wpot.cost import cost_mean
 
         return cost_mean(C.X, C.Y, metric=C.metric, device=C.device)
     if hasattr(C, "numpy") and not isinstance(C, np.ndarray):
@@ -181,9 +189,7 @@ MIN_EIGENPAIRS = 10
 
 def min_vertices(config: ComparisonConfig) -> tuple[int, str]:
     """The fewest vertices a mesh may have in a comparison with ``config``, and why (for the error message)."""
-    from wpot.signatures import get_signature
 
-    from wpot.signatures._spectral import SpectralOptions
 
     title = get_signature(config.signature).title
     if not isinstance(config.signature_options, SpectralOptions):
@@ -205,14 +211,12 @@ def check_mesh_size(mesh: Mesh, config: ComparisonConfig, name: str = "mesh") ->
 def fit_phase(stage: Any) -> str:
     """The progress name of fitting ``stage`` to a dataset: "spectra" for a spectral signature (its fit inputs are
     the shapes' spectra, the long part), else "fitting <title>"."""
-    from wpot.signatures._spectral import SpectralSignature
 
     return "spectra" if isinstance(stage, SpectralSignature) else f"fitting {stage.title}"
 
 
 def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
     """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
-    from wpot.signatures._spectral import SpectralSignature
 
     if isinstance(stage, SpectralSignature):
         return (f"Laplace-Beltrami spectrum of {label} ({mesh.n_vertices} vertices, "
@@ -361,9 +365,6 @@ class Comparer:
     def _setup(self, config: ComparisonConfig, device: str | None, cache_dir: Any, signature_state: Any,
                memory_limit: float | None, caches: tuple[Any, Any] | None) -> None:
         """Build the stages; ``caches`` = (signature cache, spectrum cache) to share another comparer's."""
-        from wpot.cache import Cache
-        from wpot.ot import make_solver
-        from wpot.signatures import get_signature
 
         self.config = config
         self.device = _resolve_device(device)
@@ -425,7 +426,6 @@ class Comparer:
         is unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
         """
         own = {"device", "cache_dir", "energies", "signature_state", "memory_limit"}
-        from wpot.config import _all_signature_keywords
 
         unknown = sorted(set(changes) - own - set(self.config.keywords()) - _all_signature_keywords())
         if unknown:
@@ -471,7 +471,6 @@ class Comparer:
         mesh for a pair (``labels`` names them; default: their positions), a bar for more."""
         meshes = list(meshes)
         old = self.stage.key()
-        from wpot.signatures import Signature
 
         if self.stage.needs_fit and type(self.stage).fit is not Signature.fit:  # a signature with its own fit
             with self.progress.stage(f"fitting {self.stage.title} to {len(meshes)} shapes"):
@@ -550,7 +549,6 @@ class Comparer:
 
     # ------------------------------------------------------------------------------ transport
     def _budget(self) -> float:
-        from wpot._warp import available_memory
 
         return self.memory_limit if self.memory_limit is not None else MEMORY_FRACTION * available_memory(self.device)
 
@@ -558,8 +556,6 @@ class Comparer:
         """The `wpot.ot.TransportProblem` between two point sets: the cost (dense, or a `FeatureCost` when the
         dense problem does not fit the memory budget, `choose_cost_mode`), the masses, and for partial
         transport the solver's mass-penalty factor (`solver_mass_penalty`)."""
-        from wpot.cost import cost_matrix
-        from wpot.ot import FeatureCost, TransportProblem
 
         n1, n2 = len(pa.signatures), len(pb.signatures)
         metric = self.stage.metric
@@ -618,8 +614,6 @@ class Comparer:
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
         """Compare A with B; see `Comparison`. A signature that needs fitting and is not fitted yet is fitted
         to A and B."""
-        from wpot.runs.history import debias_history
-        from wpot.ot import debiased
 
         for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
             if not isinstance(m, Mesh):
@@ -665,7 +659,6 @@ class Comparer:
         signature to the nearest signature of the whole (`wpot.cost.nearest_costs`); column j's mean is
         `nearest_signature_distance` ``(part, wholes[j])``. What `retrieve` ranks classes from. A signature that
         needs fitting (WKS) must be fitted first (`fit`)."""
-        from wpot.cost import nearest_costs
 
         wholes = list(wholes)
         if not wholes:
@@ -683,7 +676,6 @@ class Comparer:
         a `wpot.maps.retrieval.RetrievalOptions`. Returns a `wpot.maps.retrieval.ClassRanking`, whose ``whole_costs``
         are `nearest_signature_distance` for each whole. On TOSCA it ranks first the part's class where the
         nearest whole fails on a pose that two classes share (README, "Parts looked up in a library")."""
-        from wpot.maps.retrieval import rank_classes
 
         wholes = list(wholes)
         if len(wholes) != len(labels):
@@ -696,7 +688,6 @@ class Comparer:
         signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
         vertices; ``options`` is a `wpot.maps.locate.LocateOptions`. Returns a `wpot.maps.locate.PartMap`."""
-        from wpot.maps.locate import locate_part
 
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
@@ -742,7 +733,6 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
     matched = np.stack([ia[ii], jb[jj]], axis=1).astype(np.int64)
     registration = None
     if len(matched) >= 3:
-        from wpot.maps.registration import area_scale, fit_similarity_robust
 
         # balanced transport matches the whole shapes: their size ratio is the scale. With partial transport the
         # matched regions come from the received masses, too loosely for a size ratio (the quickstart's part,
@@ -779,14 +769,11 @@ def _spectrum_cache(cache_dir: Any) -> Any:
     else one under that folder (memory only for False), as for the signatures."""
     if cache_dir is None:
         return True
-    from wpot.cache import Cache
-    from wpot.spectral import spectrum_cache
 
     return Cache("spectrum", max_entries=spectrum_cache.max_entries, max_bytes=spectrum_cache.max_bytes, cache_dir=cache_dir)
 
 
 def _resolve_device(device: str | None) -> str:
-    from wpot._warp import resolve_device
 
     return str(resolve_device(device))
 

@@ -24,7 +24,7 @@ geodesic distances to choose among them and to fill in the map:
    left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
    (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
    sides of the part apart. Three candidates: (a) the stretches that reverse orientation sent through the
-   whole's left/right symmetry (`wpot.maps.orientation.keep_orientation` with ``symmetry_of="b"``); (b) the map
+   whole's left/right symmetry (`wpot.maps.symmetry.keep_orientation` with ``symmetry_of="b"``); (b) the map
    *unfolded*: redrawn (``n_rounds`` times) from the anchors where it keeps orientation
    (`wpot.maps.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
    through the whole's symmetry, unfolded the same way. Orientation alone does not choose the side: a limb
@@ -44,7 +44,7 @@ geodesics inside the part are those of the whole, which holes or a cut across a 
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
 per anchor and per distinct candidate (about 2 ms each at 5,000 vertices), and a nearest-neighbour search in
 ``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole, plus, the first time a whole is met, its
-symmetry for step 4 (`wpot.maps.orientation.reflection_symmetry`: about 3 s, then cached). The README's
+symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`: about 3 s, then cached). The README's
 partial-correspondence row has the measured effect.
 """
 from __future__ import annotations
@@ -57,6 +57,11 @@ from numpy.typing import ArrayLike
 
 from wpot import _validate
 from wpot.mesh import Mesh
+from wpot.cost import cost_matrix, nearest_rows, paired_costs
+from wpot.evaluate import GeodesicDistances
+from wpot.maps.orientation import local_orientation, orientation_score
+from wpot.maps.symmetry import keep_orientation, reflection_symmetry
+from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning"]
 
@@ -155,7 +160,6 @@ class PartMap:
 
 
 def _geodesics(mesh: Mesh):
-    from wpot.evaluate import GeodesicDistances
 
     return GeodesicDistances(mesh)
 
@@ -163,7 +167,6 @@ def _geodesics(mesh: Mesh):
 def _candidates(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
                 device: str | None) -> np.ndarray:
     """(A, k) the vertices of the whole with the nearest signatures to each anchor, nearest first."""
-    from wpot.cost import cost_matrix
 
     c = np.asarray(cost_matrix(sig_part[anchors], sig_whole, metric=metric, device=device))
     k = min(k, c.shape[1])
@@ -228,14 +231,12 @@ class _Redraw:
     def dense(self, from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``: (N_P,) int64."""
-        from wpot.maps.fmap import nearest_rows
 
         return nearest_rows(_distances(self.g_part, from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
         current images."""
-        from wpot.maps.fmap import nearest_rows
 
         k = np.ones(len(self.src), dtype=bool) if keep is None else keep
         for _ in range(n):
@@ -245,7 +246,6 @@ class _Redraw:
     def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
         """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation, then once from
         all of them."""
-        from wpot.maps.orientation import local_orientation
 
         for _ in range(n):
             keep = np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0
@@ -258,7 +258,6 @@ class _Redraw:
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarray, float, float]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
     score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
-    from wpot.maps.orientation import keep_orientation, orientation_score, reflection_symmetry
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -297,9 +296,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     `PartMap`. Warns (`LocateWarning`) when fewer than 3 consistent matches are found: the map is then
     unreliable, as its residuals say.
     """
-    from wpot.cost import paired_costs
-    from wpot.maps.orientation import local_orientation, orientation_score
-    from wpot.sampling import farthest_point_sampling
 
     for name, m in (("part", part), ("whole", whole)):
         if not isinstance(m, Mesh):

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, winding
+from wpot.signatures._frames import local_frames
 
 __all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
 
@@ -85,7 +86,7 @@ def thickness(
     Parameters
     ----------
     mesh : `wpot.Mesh`; it must enclose a volume (a closed surface, or an open one whose holes are small:
-        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.maps.orientation.winding`).
+        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.mesh.winding`).
     n_rays, cone_angle : rays per vertex and their cone's half-angle in degrees (`N_RAYS`, `CONE_ANGLE`).
     frames : the mesh's `wpot.signatures.LocalFrames` when already computed (default: `local_frames` at K = 3).
     device : Warp device for the ray casting; None is Warp's default device.
@@ -94,8 +95,6 @@ def thickness(
     See the module docstring for the definition and for the vertices whose value is filled in.
     """
     from render.raycast import DepthRenderer, inward_cone
-    from wpot.maps.orientation import winding
-    from wpot.signatures._ldsift import local_frames
 
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
