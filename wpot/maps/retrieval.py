@@ -120,6 +120,9 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalO
                          f"{len(labels)}")
     if not np.isfinite(c).all():
         raise ValueError("costs must be finite")
+    if len(set(labels)) < 2:
+        raise ValueError(f"labels name one class ({labels[0]!r}): a ranking needs a library of at least two "
+                         "classes (a part's class cannot be told from a library that holds one)")
     whole_costs = c.mean(axis=0)
     z = c
     if o.standardize:
