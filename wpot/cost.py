@@ -41,8 +41,8 @@ def _wks_term(x: wp.float64, y: wp.float64) -> wp.float64:
 
 
 # The per-pair sums below run four independent accumulators (combined as (s0 + s1) + (s2 + s3)): the
-# single-accumulator loop is bound by the latency of the additions on the CPU backend (measured 30% faster
-# at D = 100), which matters in the matrix-free OT mode where every pass over C recomputes these sums.
+# single-accumulator loop is bound by the latency of the additions on the CPU backend (the docs' Results
+# page), which matters in the matrix-free OT mode where every pass over C recomputes these sums.
 
 
 @wp.func
