@@ -24,25 +24,21 @@ For every vertex v of a mesh:
    sit. Everything here is relative to S(v), so any choice keeps scale invariance.
 
    * Against an unclipped camera at infinity (every surface counts, background = the image's lowest
-     height), a slab of t = 1 matched points better on TOSCA 5k pairs (300 sampled vertices, median rank
-     percentile of the true match by L2 cost, lower is better): cat0/cat1 0.198, michael0/michael1 0.081,
-     horse0/horse5 0.047, against 0.222, 0.098 and 0.091.
+     height), a slab of t = 1 matched points better on TOSCA 5k pairs (median rank percentile of the true
+     match by L2 cost).
    * Thinner slabs classify articulated shapes better: what lies farther from the tangent plane is mostly
      other parts of the body, which move with the pose (LD-SIFT distances between humans follow a pose-only
-     distance, see ``benchmarks/pose_sensitivity.py``). All 76 TOSCA 5k shapes, 200 cell-pooled samples,
-     balanced ``ot.emd``, 1-NN one-shot / leave-one-out (one-shot on the two halves of every class):
-     t = 2: 67.5 / 84.2 % (64.2 / 63.8); t = 1: 70.4 / 88.2 % (68.5 / 64.5); t = 0.75: 71.9 / 90.8 %;
-     t = 0.5: 74.1 / 89.5 % (70.8 / 70.7); t = 0.25: 75.5 / 90.8 % (72.0 / 74.2); t = 0.125: 75.0 /
-     92.1 % (71.5 / 72.3). With partial transport (`wpot all-vs-all`, κ = 0.01), t = 0.25 against 1:
-     one-shot 82.7 against 79.5 %, but leave-one-out 96.1 against 98.7 %. On HEAD (heads against full
-     shapes, 250 samples, no pooling) t = 0.25 puts 60 % of a head's mass on its true head against 57 %,
-     with the same retrieval (19/19). Pointwise matching is about the same from t = 0.25 to 1 (mean rank
-     percentile of the true match over 7 same-class TOSCA pairs 0.118, 0.117 and 0.123 at t = 0.25, 0.5, 1).
+     distance, see ``benchmarks/pose_sensitivity.py``). On TOSCA 5k, t = 0.25 raises one-shot 1-NN accuracy
+     over t = 1 with balanced and with partial transport (leave-one-out with partial transport drops a
+     little), puts a little more of a HEAD head's mass on its true head with the same retrieval, and matches
+     points about as well.
    * But on smooth shapes whose features are broader than the image, the thin slab loses them: on
-     `wpot.examples.example_partial` (a 40 % part of a generated blob, 300 samples, κ = 0.003) the part's
-     mass on its true region is 0.70, 0.81 and 0.72 at t = 0.25 against 0.82, 0.87 and 0.86 at t = 1
-     (seeds 0, 1, 2). Morphometric data (bones, teeth) are of that kind, so the default stays t = 1;
-     pass ``slab=0.25`` (``Comparer(ldsift_slab=0.25)``, CLI ``--ldsift-slab 0.25``) for articulated shapes.
+     `wpot.examples.example_partial` (a part of a generated blob) less of the part's mass lands on its true
+     region at t = 0.25 than at t = 1. Morphometric data (bones, teeth) are of that kind, so the default
+     stays t = 1; pass ``slab=0.25`` (``Comparer(ldsift_slab=0.25)``, CLI ``--ldsift-slab 0.25``) for
+     articulated shapes.
+
+   The figures behind these choices are on the docs' Results page (LD-SIFT: the depth slab).
 4. descriptor: OpenCV SIFT (`cv2.SIFT_create().compute`) at the centre pixel, for the keypoint angles 0
    and 180 degrees, averaged (the paper averages the image and its 180 degree rotation; a keypoint at
    angle 180 gives exactly the descriptor of the rotated image). The average is what makes the
@@ -57,13 +53,12 @@ The paper used VLFeat. A VLFeat frame ``(x, y, sigma, theta)`` corresponds to
 libraries use 4 x 4 spatial bins of width ``3 sigma`` (``magnif = 3``), so the descriptor window is
 ``12 sigma`` wide. We take ``sigma = R / 12`` (``size = R / 6``, 3.5 for R = 21), so the window covers the
 whole ``R x R`` image: the descriptor summarises the full ``2 S(v)`` square, as the paper's images do. The
-choice matters (size 2.0 instead of 3.5 changes the descriptor to cosine 0.92).
+choice matters: a smaller size changes the descriptor markedly.
 
 OpenCV is called once per image (two keypoints per call). A single call on a tiled image of all the
 depth images is not equivalent: per image, OpenCV skips the samples that fall outside the image and
-blurs with a reflected border, and no padding between tiles reproduces both (measured: descriptor
-differences up to 54 of 255 with reflected padding); it was not faster either (about 0.2 ms per image
-both ways). The per-image loop costs about 0.2 ms per vertex.
+blurs with a reflected border, and no padding between tiles reproduces both (reflected padding changes
+the descriptors), and the tiled call is no faster.
 
 `LDSIFT` is the registered signature (`wpot.signatures.base`): options K, resolution, slab, thickness (an optional
 size column, `wpot.signatures._thickness`); nothing to fit.
@@ -213,7 +208,7 @@ class LDSIFTOptions(SignatureOptions):
     K : scale factor, the image of vertex v covers ``2 K D(v)`` square (paper: 3); positive.
     resolution : R, pixels per side of the depth images (paper: 21); an integer >= 8.
     slab : depth slab half-thickness in units of S(v) (default `SLAB`; None means `SLAB`); positive. Keys carry
-        it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default stay as they were.
+        it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default do not name it.
     thickness : weight w of the size column (`THICKNESS_UNIT` w log t(v), t the local thickness,
         `wpot.signatures._thickness`); 0 (default) leaves it out; finite, >= 0. Keys carry it only when set.
     """
@@ -223,16 +218,16 @@ class LDSIFTOptions(SignatureOptions):
     slab: float = option(
         SLAB, keyword="ldsift_slab", flag="--ldsift-slab", key_omit_default=True,
         help="half-thickness of the depth slab, in units of the image's half width S(v) (default {default:g}; 0.25 "
-             "classifies articulated shapes such as TOSCA better: one-shot 82.7 %% against 79.5 %% with partial "
-             "transport; 1 keeps the broad features of smooth shapes)",
+             "classifies articulated shapes such as TOSCA better, 1 keeps the broad features of smooth shapes; "
+             "see the docs' Results page)",
     )
 
     thickness: float = option(
         0.0, keyword="ldsift_thickness", flag="--ldsift-thickness", key_omit_default=True,
         help="weight w of a size column appended to LD-SIFT: w * 512 * log(local thickness), in the meshes' own "
              "units, so that shapes made from one template at two sizes differ (default {default:g}: the paper's "
-             "scale-free LD-SIFT; 2 on solid shapes whose size tells classes apart, such as TOSCA8: one-shot "
-             "95.0 %% against 83.0 %% balanced, 99.1 %% against 94.2 %% partial)",
+             "scale-free LD-SIFT; 2 on solid shapes whose size tells classes apart, such as TOSCA8; see the docs' "
+             "Results page)",
     )
 
     def __post_init__(self) -> None:
@@ -250,12 +245,10 @@ class LDSIFT(Signature):
     With ``thickness`` w > 0, one more column ``w THICKNESS_UNIT log t(v)`` (N, 129), t the vertex's local
     thickness in the mesh's units (`wpot.signatures._thickness.thickness`). LD-SIFT alone is scale-free; the
     column makes two vertices whose thickness differs by a factor r cost ``w |log r|`` descriptor norms more, so
-    shapes from one template at two sizes (TOSCA's David and Michael, 1.14 apart) are told apart while the
-    descriptor still carries the shape. w = 2 was chosen on TOSCA 5k (76 shapes, 200 cell-pooled samples,
-    balanced `ot.emd`, one-shot / leave-one-out): w = 0: 70.3 / 88.2 %; 0.5: 82.0 / 93.4; 1: 84.5 / 93.4;
-    **2: 84.6 / 96.1**; 4: 83.4 / 94.7; 6: 82.6 / 94.7; the thickness column alone: 82.2 / 93.4 %. Then, on
-    TOSCA8 (`wpot all-vs-all`, same sampling): balanced 95.0 / 100 % against 83.0 / 95.8 % without, partial
-    99.1 / 100 % against 94.2 / 95.8 % (the thickness column alone, balanced: 95.2 / 97.9 %)."""
+    shapes from one template at two sizes (TOSCA's David and Michael) are told apart while the descriptor still
+    carries the shape. w = 2 was chosen on TOSCA 5k, where it classified best of the weights tried (and better
+    than the thickness column alone), and it raises TOSCA8's accuracy with balanced and with partial transport
+    (the docs' Results page: LD-SIFT with its thickness column)."""
 
     name = "ldsift"
     title = "LD-SIFT"

@@ -2,8 +2,8 @@
 
 Why LD-SIFT needs it: LD-SIFT is scale-free by construction (the image of a vertex covers ``2 K D(v)``, a
 multiple of the local edge length, and SIFT normalises its descriptor), so two shapes made from one template
-at two sizes get the same signatures. TOSCA's David and Michael are such a pair (Michael is 1.14 times
-larger), and they are most of LD-SIFT's classification errors on TOSCA (paper Table 1: 83.3 %). A vertex's
+at two sizes get the same signatures. TOSCA's David and Michael are such a pair (Michael is the larger),
+and they are most of LD-SIFT's classification errors on TOSCA (paper Table 1). A vertex's
 thickness is in absolute units (it scales with the shape), it hardly moves with the pose (a limb keeps its
 girth when it bends), and it is local, so a part cut from a shape keeps it away from the cut. `LDSIFT`
 appends ``log`` thickness as one more signature column when ``thickness`` (``ldsift_thickness``) is set.
@@ -63,9 +63,8 @@ def _ray_frames(outward: np.ndarray, e1: np.ndarray) -> np.ndarray:
     """(N, 3, 3) frames of the rays: rows ``e1`` made tangent to the outward normal, ``o x e1``, ``o``.
 
     The axis is the vertex normal, not the LD-SIFT frame's PCA normal: that one is fitted over a ball of radius
-    S(v), which on a finger or an ear thinner than S(v) takes in both sides and tilts along the part (TOSCA8,
-    200 cell-pooled samples, w = 2, balanced `ot.emd`, one-shot: 95.0 % with the vertex normal, 92.0 % with the
-    PCA normal; TOSCA 5k: 84.6 against 81.9 %).
+    S(v), which on a finger or an ear thinner than S(v) takes in both sides and tilts along the part (the
+    vertex normal classifies TOSCA8 and TOSCA 5k better; the docs' Results page).
     """
     t = e1 - np.einsum("ij,ij->i", e1, outward)[:, None] * outward
     norm = np.linalg.norm(t, axis=1)
