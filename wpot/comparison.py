@@ -246,7 +246,7 @@ class Comparison:
         mask and ``rms`` over them), or None when fewer than 3 non-collinear pairs matched. With balanced
         transport its scale is the two shapes' size ratio (`wpot.maps.registration.area_scale`, sqrt of the area
         ratio) and only the rotation and translation are fitted: a scale fitted to the pairs follows the pose
-        (0.73-1.02 between same-size TOSCA poses even with the true correspondence). With partial transport the
+        (even between same-size TOSCA poses with the true correspondence; the docs' Results page). With partial transport the
         scale is fitted too (``scale_from`` says which)
     result : the solver's `OTResult` for A vs B (on the sampled vertices when subsampled)
     self_energies : (U(A, A), U(B, B)) for partial transport, else None
@@ -765,8 +765,8 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
     if len(matched) >= 3:
 
         # balanced transport matches the whole shapes: their size ratio is the scale. With partial transport the
-        # matched regions come from the received masses, too loosely for a size ratio (the quickstart's part,
-        # 40 % of its whole: 1.50 against a true 1), so the scale is fitted there
+        # matched regions come from the received masses, too loosely for a size ratio (far off on the
+        # quickstart's part; the docs' Results page), so the scale is fitted there
         scale = area_scale(mesh_a, mesh_b) if config.transport == "balanced" else None
         try:
             # robust: the wrong matches (pairs pointing across the shape) would pull a least-squares fit in

@@ -189,8 +189,8 @@ class SamplerOptions:
     pooling : ``"none"`` (default): a sample keeps its own signature, masses are uniform. ``"cell"``: a
         sample carries its cell's mean signature (`Subsample.pool`) and a mass proportional to the cell's
         size. It suits whole shapes meshed alike, whose signatures are noisy at the vertex scale
-        (classification); for a part against a whole use it with ``vertices_per_sample``. The README's
-        tables give the measured effect.
+        (classification); for a part against a whole use it with ``vertices_per_sample``. Its effect: the
+        docs' Results page.
     """
 
     max_vertices: int | None = None

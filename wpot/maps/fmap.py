@@ -19,8 +19,8 @@ linear least squares in its k² entries over four terms, each zero for an exact 
 
 Each operator pair (and the descriptor coefficients) is scaled to a unit mean Frobenius norm, so the weights
 are relative and independent of the meshes' size and sampling; the defaults (k = 30, 50 WKS descriptors,
-weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart, which scores 0.865 on the TOSCA test pairs (see the
-README's correspondence rows). The point map of C is read as in ZoomOut (`point_map`).
+weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart (its scores on the TOSCA test pairs: the docs'
+Results page, correspondence). The point map of C is read as in ZoomOut (`point_map`).
 """
 from __future__ import annotations
 

@@ -29,8 +29,8 @@ geodesic distances to choose among them and to fill in the map:
    (`wpot.maps.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
    through the whole's symmetry, unfolded the same way. Orientation alone does not choose the side: a limb
    mapped onto the other limb and unfolded keeps orientation too. LD-SIFT does, as it is not mirror-invariant:
-   on the ground truth of the development benchmark (`benchmarks/partial_poses.py`, 224 part-to-pose pairs)
-   the true side's mean signature cost was below the mirror side's in 222 pairs, by 14 % (median). So of the
+   on the ground truth of the development benchmark (`benchmarks/partial_poses.py`) the true side's mean
+   signature cost was below the mirror side's in nearly every pair (the docs' Results page). So of the
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
    kept. A whole whose symmetry is not detected gets (a) and (b) only.
 
@@ -42,10 +42,9 @@ vertices and the gaps between them).
 Assumptions: the part and the whole are at the same scale (a part of the same object or of a same-size one);
 geodesics inside the part are those of the whole, which holes or a cut across a narrow neck bend (the
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
-per anchor and per distinct candidate (about 2 ms each at 5,000 vertices), and a nearest-neighbour search in
-``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole, plus, the first time a whole is met, its
-symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`: about 3 s, then cached). The README's
-partial-correspondence row has the measured effect.
+per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine`` dimensions, plus, the
+first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached).
+Timings and accuracy: the docs' Results page (Parts across poses).
 """
 from __future__ import annotations
 
@@ -122,17 +121,15 @@ class PartMap:
         wrong, which raises it everywhere)
     confidence : (N_P,) float64 in [0, 1], ``exp(−residual / tol) · (1 + o) / 2`` with o the map's orientation
         score around the vertex (`wpot.maps.orientation.local_orientation`: 1 where the map keeps orientation, −1
-        where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust. On the
-        development pairs (`benchmarks/partial_poses.py`) the more confident half of each pair's points was
-        0.080 √area off and the other 0.117; over all pairs' points pooled, 0.031 and 0.142
+        where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust (on the
+        development pairs the more confident points are the more accurate; the docs' Results page)
     image_distance : (N_W,) float64, per vertex of the whole the distance along its edges to the nearest image
         of a vertex of the part, over √area(whole) (0 on the images)
     cost : the mean signature cost between each vertex of the part and its image (`wpot.cost.paired_costs`).
-        As a distance for retrieval, on the development benchmark (all eight classes), the pose of the part's
-        own class was nearer than every other class's whole for 80 % of part-to-pose pairs by this cost,
-        against 57 % by the partial transport's distance (Eq. 27), 66 % by the mean residual, and 88 % by the
-        mean distance from each vertex's signature to the nearest signature of the whole (no map at all;
-        `Comparer.nearest_signature_distance`)
+        As a distance for retrieval on the development benchmark it ranks the part's own class better than the
+        partial transport's distance (Eq. 27) or the mean residual, and worse than the mean distance from each
+        vertex's signature to the nearest signature of the whole (no map at all;
+        `Comparer.nearest_signature_distance`); the docs' Results page has the figures
     anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
     orientation : the final map's `wpot.maps.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`

@@ -2,8 +2,8 @@
 
 WKS, and every intrinsic signature, is blind to orientation: a body and its mirror image have the same
 Laplace–Beltrami spectrum and eigenfunctions up to sign, so a WKS transport plan mixes the two sides of a
-symmetric shape, and ZoomOut (`wpot.zoomout`) makes the map consistent with one side, on TOSCA the mirror one
-in 38 % of the test pairs. Orientation is what tells the two apart, and it is cheap to measure extrinsically:
+symmetric shape, and ZoomOut (`wpot.zoomout`) makes the map consistent with one side, on TOSCA often the
+mirror one (the docs' Results page). Orientation is what tells the two apart, and it is cheap to measure extrinsically:
 
 * `orientation_score`: a map that keeps orientation carries each triangle of A (its vertices in A's
   counter-clockwise order about A's outward normal) onto a triangle of B that is counter-clockwise about B's

@@ -2,7 +2,8 @@
 
 * `fit_similarity` is the exact weighted least-squares fit (Umeyama 1991). Every pair pulls on it, so the
   wrong matches of a correspondence (pairs that point across the shape) shrink the scale toward the two
-  centroids: on the demo (one surface, B only rigidly moved) it gives a scale of 0.79.
+  centroids: on the demo (one surface, B only rigidly moved) its scale falls well short of 1 (the docs'
+  Results page: Registration).
 * `fit_similarity_robust` is the fit `wpot.Comparer` stores: least median of squares over minimal 3-pair
   samples, then least squares over the pairs it finds consistent (the inliers); wrong matches, up to
   about half of the pairs, do not pull on it.
@@ -239,9 +240,9 @@ def area_scale(mesh_a: Mesh, mesh_b: Mesh, mask_a: ArrayLike | None = None, mask
     vertex masks (None: the whole mesh; a vertex stands for its `Mesh.vertex_areas`).
 
     Between two poses of one body the scale of a similarity fitted to corresponding points is not their size
-    ratio: a least-squares fit shrinks with the pose change (0.73-1.02 on ten same-size TOSCA pairs fitted to
-    their true correspondence), a fit of the points' spread (Horn's symmetric scale) follows it (0.86-1.08),
-    while sqrt(area ratio) is 0.99-1.03 there. Raises ValueError when a region has no area."""
+    ratio: a least-squares fit shrinks with the pose change (even on same-size TOSCA pairs fitted to their true
+    correspondence), a fit of the points' spread (Horn's symmetric scale) follows it, while sqrt(area ratio)
+    stays close to 1 there (the docs' Results page: Registration). Raises ValueError when a region has no area."""
     out = []
     for name, mesh, mask in (("A", mesh_a, mask_a), ("B", mesh_b, mask_b)):
         va = mesh.vertex_areas
@@ -290,7 +291,7 @@ def fit_similarity_robust(
     cutoffs; the docs' Results page has its figures).
 
     Why this and not IRLS with a Tukey or Cauchy loss: IRLS starts from the least-squares fit, which the wrong
-    matches have already pulled in (scale 0.7-0.8 on the demo and on TOSCA), and from there a redescending loss
+    matches have already pulled in (its scale well below the true one on the demo and on TOSCA), and from there a redescending loss
     can settle on that wrong minimum; a minimal-sample search needs no starting point. Why the median and
     not RANSAC's inlier count: the count needs a threshold in mesh units, the median does not. The final step
     is least squares, so with exact pairs among gross outliers the transform is recovered exactly.

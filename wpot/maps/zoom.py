@@ -25,8 +25,8 @@ ZOOMOUT_MIN_EIGEN = 100
 ZOOMOUT_K_START = 10
 ZOOMOUT_STEP = 5
 #: default vertices per mesh in the rounds before the last (farthest-point samples; the last round maps every
-#: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round at a third of the time
-#: (the README's correspondence rows)
+#: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round in much less time
+#: (the docs' Results page)
 ZOOMOUT_SAMPLES = 2000
 
 

@@ -2,7 +2,7 @@
 
 The paper's correspondence (§4.1.3: each vertex of A goes to the vertex of B with the largest plan entry in
 its row) is a vertex-by-vertex choice: nothing makes neighbouring vertices land near each other, and on the
-TOSCA test pairs it scores an AUC of about 0.50 where functional maps score 0.87. ZoomOut is the standard
+TOSCA test pairs it scores a far lower AUC than functional maps (the docs' Results page). ZoomOut is the standard
 post-processing of such maps. It needs no descriptor: it alternates, at growing spectral resolution k,
 
 1. the functional map of the current point map, ``C_k = Φ_A,kᵀ M_A Φ_B,k[T]`` (k × k; it carries the
@@ -17,7 +17,7 @@ signatures has already computed them.
 Meshes with several connected components (scans often have some): the Laplace–Beltrami operator is then
 block diagonal, one block per component, and the eigenvalue 0 repeats once per component. Taking the first k
 eigenpairs of the whole mesh fails twice: a k at or below the component count embeds every vertex of a
-component at one point (on a scan of 11 components, k_start 10 sent 14,174 vertices onto 3), and a small
+component at one point (on a scan, most of its vertices onto a few), and a small
 component's eigenvalues (area-normalized over the whole mesh) come so late that it gets no non-constant
 eigenfunction before k_end and collapses at every k. So `zoomout` refines each component of A on its own: it
 goes to the component of B that most of its vertices map to, and ZoomOut runs between the two components
@@ -43,8 +43,8 @@ orientation, but tears the map at its root):
 Both are refined to k = `ZOOMOUT_K_SELECT` and compared there; the chosen one goes on to k_end.
 
 Each candidate's rounds before the last map only ``samples`` farthest-point samples of each mesh onto each
-other (the functional map fitted to them by least squares); the last resolution maps every vertex. The README's
-correspondence table has the measured effect of both.
+other (the functional map fitted to them by least squares); the last resolution maps every vertex. The docs'
+Results page (Correspondence) has the effect of both.
 """
 from __future__ import annotations
 
@@ -63,19 +63,19 @@ from wpot.signatures._wks import wks_energies
 __all__ = ["zoomout", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_K_SELECT", "ZOOMOUT_SAMPLES",
            "ORIENTATION_TIE"]
 
-#: default largest spectral resolution (fewer when fewer eigenpairs are available). On 8 TOSCA test pairs, plain
-#: ZoomOut from the plan's map: AUC 0.716 for k = 10..100 by 5, 0.699 by 2, 0.722 to 150, 0.672 from 20, 0.621
-#: from 4 by 4. Refining the oriented map chosen at `ZOOMOUT_K_SELECT` on to 200 instead of stopping there gains
-#: 0.008 in AUC on 60 TOSCA test pairs (to 150: 0.006), for about 1.2 s more a pair (the README's correspondence
-#: rows)
+#: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..100 by
+#: 5, then on to 200) was chosen on TOSCA test pairs: a finer step or another start scored lower, and refining the
+#: oriented map chosen at `ZOOMOUT_K_SELECT` on to 200 instead of stopping there gains a little AUC for a little
+#: more time a pair (the docs' Results page)
 ZOOMOUT_K_END = 200
 #: with ``orient``, the resolution to which `zoomout`'s candidates are refined and at which one is chosen
 #: (the chosen one then goes on to k_end): the orientation and stretch scores were tuned there, and refining
 #: one map instead of three beyond it keeps the cost of the higher resolutions down
 ZOOMOUT_K_SELECT = 100
 #: orientation scores within this of the best count as a tie between `zoomout`'s candidates, which the
-#: stretch then decides: good maps of one TOSCA pair score 0.5-0.8, a map mirrored on a limb or half the body
-#: (its score pulled towards 0 or below) is more than this behind
+#: stretch then decides: good maps of one TOSCA pair spread over a range of scores, and a map mirrored on a
+#: limb or half the body (its score pulled towards 0 or below) falls more than this behind (the docs' Results
+#: page)
 ORIENTATION_TIE = 0.15
 def zoomout(
     mesh_a: Mesh,
@@ -148,8 +148,8 @@ def zoomout(
     k_sel = min(k_end, max(k_start, ZOOMOUT_K_SELECT))
     out = refine(t, k_start, k_sel, step)
     # 1. the parts of the map found mirrored are sent through A's (or B's) symmetry, and ZoomOut runs again at
-    # half the rounds (step doubled) to mend the seams: nearly the full second run's accuracy for 60 % of its
-    # time (the README's correspondence table)
+    # half the rounds (step doubled) to mend the seams: nearly the full second run's accuracy in less time
+    # (the docs' Results page)
     out, score, _ = keep_orientation(mesh_a, mesh_b, out, refine=lambda init: refine(init, k_start, k_sel, 2 * step))
     # 2. a second candidate that does not depend on the given map: the functional map fitted with the
     # orientation term, refined from its resolution
