@@ -102,8 +102,13 @@ def _page_of(module: str, names: list[str]) -> str:
 
 def api_page(name: str) -> str:
     kind = "package" if is_package(name) else "module"
-    options = ["    options:", "      show_submodules: false"]
-    return f"# `{name}`\n\n*{kind}* · source: `{name.replace('.', '/')}{'/__init__.py' if kind == 'package' else '.py'}`\n\n::: {name}\n" + "\n".join(options) + "\n"
+    source = name.replace(".", "/") + ("/__init__.py" if kind == "package" else ".py")
+    lines = [f"# `{name}`", "", f"*{kind}* · source: `{source}`", ""]
+    if name == PACKAGES[0]:
+        lines += ["Its public names are imported lazily, so they are listed on the [overview](index.md), each "
+                  "beside the module that defines it.", ""]
+    lines += [f"::: {name}", "    options:", "      show_submodules: false", ""]
+    return "\n".join(lines)
 
 
 def api_index(names: list[str]) -> str:

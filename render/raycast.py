@@ -24,8 +24,8 @@ Conventions (for view k, with ``e1, e2, n = frames[k]``, ``c = centers[k]``, ``S
 * Background: pixels whose ray meets no surface get ``background`` (NaN by default).
 * Ray offset: each ray passes ``RAY_OFFSET = (1e-3, 6e-4)`` pixels from its pixel centre (along
   ``+e1`` and ``+e2``). Views are usually centred on a mesh vertex, and a float32 ray-triangle test on
-  a ray through a vertex exactly can miss all the triangles around it (measured on a bumpy sphere: 3
-  of 10 centre pixels wrong). The offset moves the ray off the vertex, in a direction unlikely to
+  a ray through a vertex exactly can miss all the triangles around it (on a bumpy sphere it did, for
+  many centre pixels; the docs' Results page). The offset moves the ray off the vertex, in a direction unlikely to
   follow an edge; it changes heights by at most the surface slope times 1e-3 pixel.
 * Edge pixels: a ray that passes (to float32 precision) through a triangle edge or vertex may hit
   either triangle, or, rarely, slip between them; silhouette pixels can therefore differ from an
@@ -230,7 +230,7 @@ class DepthRenderer:
             handedness)
         cone : (m, 3) unit directions in the frame, every ``z > 0`` (see `inward_cone`)
         facing : +1 when the faces wind counter-clockwise seen from outside, -1 the other way
-            (`wpot.maps.orientation.winding`)
+            (`wpot.mesh.winding`)
 
         Returns
         -------

@@ -112,7 +112,7 @@ _EXPORTS: dict[str, str] = {
     # refining a correspondence
     "zoomout": "wpot.maps.zoomout",
     "orientation_score": "wpot.maps.orientation",
-    "reflection_symmetry": "wpot.maps.orientation",
+    "reflection_symmetry": "wpot.maps.symmetry",
     # dataset runs
     "run_all_vs_all": "wpot.runs.loop",
     "RunStore": "wpot.runs.store",

@@ -140,8 +140,8 @@ def cpu_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-#: entries (rows x columns) per host thread below which `launch_rows` does not split a CPU launch (a thread
-#: costs ~0.1 ms, an entry of a pass ~2-20 ns)
+#: entries (rows x columns) per host thread below which `launch_rows` does not split a CPU launch (starting a
+#: thread costs more than a pass over fewer entries; the docs' Results page has the figures)
 MIN_ENTRIES_PER_THREAD = 2**16
 
 

@@ -1,4 +1,4 @@
-"""A small content-keyed cache for per-shape results (spectra now, signatures and comparisons later).
+"""A small content-keyed cache for per-shape results (spectra, signatures, symmetries).
 
 Entries are dictionaries of NumPy arrays (scalars are stored as 0-d arrays), keyed by a mesh's content
 `Mesh.fingerprint` plus a canonical JSON of the parameters that produced them, so a result is reused

@@ -24,17 +24,27 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.config import DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS, ComparisonConfig
+from wpot.config import _all_signature_keywords, ComparisonConfig, DEFAULT_MASS_PENALTY, PENALTY_SCALES, TRANSPORTS
 from wpot.mesh import Mesh
 from wpot.progress import as_progress
-from wpot.maps.registration import Registration, fit_similarity
+from wpot.maps.registration import area_scale, fit_similarity, fit_similarity_robust, Registration
 from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_point_sampling
+from wpot._warp import available_memory, resolve_device
+from wpot.cache import Cache
+from wpot.cost import cost_matrix, cost_mean, nearest_costs
+from wpot.maps.locate import locate_part
+from wpot.maps.retrieval import rank_classes
+from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
+from wpot.runs.history import debias_history
+from wpot.signatures import get_signature, Signature
+from wpot.signatures._spectral import MIN_EIGENPAIRS, SpectralOptions, SpectralSignature
+from wpot.spectral import spectrum_cache
 
 __all__ = [
     "DEFAULT_MASS_PENALTY",
@@ -78,10 +88,8 @@ def cost_scale(C: Any) -> float:
     resampled), which is what makes the relative penalty scale- and size-free. ``C`` is an (N1, N2)
     NumPy array, a float64 ``wp.array``, or a `wpot.ot.FeatureCost` (one pass, nothing stored).
     """
-    from wpot.ot import FeatureCost
 
     if isinstance(C, FeatureCost):
-        from wpot.cost import cost_mean
 
         return cost_mean(C.X, C.Y, metric=C.metric, device=C.device)
     if hasattr(C, "numpy") and not isinstance(C, np.ndarray):
@@ -176,10 +184,6 @@ MIN_VERTICES = 3
 
 def min_vertices(config: ComparisonConfig) -> tuple[int, str]:
     """The fewest vertices a mesh may have in a comparison with ``config``, and why (for the error message)."""
-    from wpot.signatures import get_signature
-
-    from wpot.signatures._spectral import MIN_EIGENPAIRS, SpectralOptions
-
     title = get_signature(config.signature).title
     if not isinstance(config.signature_options, SpectralOptions):
         return MIN_VERTICES, f"a comparison needs at least {MIN_VERTICES} points to sample and to match"
@@ -200,14 +204,12 @@ def check_mesh_size(mesh: Mesh, config: ComparisonConfig, name: str = "mesh") ->
 def fit_phase(stage: Any) -> str:
     """The progress name of fitting ``stage`` to a dataset: "spectra" for a spectral signature (its fit inputs are
     the shapes' spectra, the long part), else "fitting <title>"."""
-    from wpot.signatures._spectral import SpectralSignature
 
     return "spectra" if isinstance(stage, SpectralSignature) else f"fitting {stage.title}"
 
 
 def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
     """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
-    from wpot.signatures._spectral import SpectralSignature
 
     if isinstance(stage, SpectralSignature):
         return (f"Laplace-Beltrami spectrum of {label} ({mesh.n_vertices} vertices, "
@@ -237,7 +239,7 @@ class Comparison:
         mask and ``rms`` over them), or None when fewer than 3 non-collinear pairs matched. With balanced
         transport its scale is the two shapes' size ratio (`wpot.maps.registration.area_scale`, sqrt of the area
         ratio) and only the rotation and translation are fitted: a scale fitted to the pairs follows the pose
-        (0.73-1.02 between same-size TOSCA poses even with the true correspondence). With partial transport the
+        (even between same-size TOSCA poses with the true correspondence; the docs' Results page). With partial transport the
         scale is fitted too (``scale_from`` says which)
     result : the solver's `OTResult` for A vs B (on the sampled vertices when subsampled)
     self_energies : (U(A, A), U(B, B)) for partial transport, else None
@@ -289,6 +291,94 @@ class Comparison:
 
 
 # --------------------------------------------------------------------------------------------- comparer
+def solve_with_progress(solver: Any, problem: Any, progress: Any) -> Any:
+    """Solve ``problem`` with ``solver``; with ``progress`` shown live (a terminal, a notebook), a bar counts the
+    solved betas and shows the last β and U."""
+    method = solver.method_for(problem) if hasattr(solver, "method_for") else solver.name
+    if not progress.live or method == "exact":  # the exact LP has one beta (infinity): nothing to count
+        return solver.solve(problem)
+    progress.break_line()  # the transport stage's line: the bar goes below it
+    bar = progress.bar(None, "annealing", "beta")
+    try:
+        def step(s: Any) -> None:
+            bar.set_postfix_str(f"beta {s.beta:.3g}, U {s.cost:.9g}", refresh=False)
+            bar.update()
+
+        return solver.solve(problem, on_beta=step)
+    finally:
+        bar.refresh()  # the last beta and U drawn at least once: tqdm redraws at most every 0.1 s
+        bar.close()
+
+
+class SignatureSource:
+    """One signature stage and its caches: each shape's signatures computed once (in memory, and on disk under a
+    cache folder) and the state fitted to a dataset (WKS's energy grid, HKS's times), shared by every shape.
+
+    ``stage`` is the configured `wpot.signatures.Signature` (replaced, not changed, when its state is set or
+    fitted); ``signature_cache`` holds the signatures (or their pieces), ``spectrum_cache`` the eigenpairs."""
+
+    def __init__(self, stage: Signature, signature_cache: Cache, spectrum_cache: Cache) -> None:
+        self.stage, self.signature_cache, self.spectrum_cache = stage, signature_cache, spectrum_cache
+
+    @property
+    def energies(self) -> np.ndarray | None:
+        """The WKS energy grid (n_energies,) float64, or None until fitted (or for a signature without one)."""
+        st = self.stage.state()
+        return None if not st or "energies" not in st else np.asarray(st["energies"], dtype=np.float64)
+
+    def set_state(self, state: dict[str, Any] | None) -> None:
+        """Set the fitted state (`Signature.with_state`)."""
+        self.stage = self.stage.with_state(state)
+
+    def fit(self, meshes: Sequence[Mesh], *, labels: Sequence[str] | None = None, progress: Any = None) -> None:
+        """Fit the stage to ``meshes``, reported on ``progress`` (a `wpot.progress.Progress`): a signature with a
+        fit of its own in one step, a pair a line per mesh (``labels`` names them), a dataset as a bar."""
+        meshes, progress = list(meshes), as_progress(progress)
+        stage = self.stage
+        if stage.needs_fit and type(stage).fit is not Signature.fit:  # a signature with its own fit
+            with progress.stage(f"fitting {stage.title} to {len(meshes)} shapes"):
+                stage.fit(meshes)
+        elif stage.needs_fit and len(meshes) <= 2:  # a pair: a line per mesh
+            names = list(labels) if labels is not None else [f"shape {k}" for k in range(len(meshes))]
+            inputs = []
+            for name, m in zip(names, meshes):
+                with progress.stage(_fit_step(stage, name, m)):
+                    inputs.append(stage.fit_input(m))
+            stage.fit_from(inputs)
+        elif stage.needs_fit:  # a dataset: a bar
+            bar = progress.bar(len(meshes), fit_phase(stage), "shape")
+            inputs = []
+            try:
+                for m in meshes:
+                    inputs.append(stage.fit_input(m))
+                    bar.update()
+            finally:
+                bar.close()
+            stage.fit_from(inputs)
+
+    def signatures(self, mesh: Mesh) -> np.ndarray:
+        """Per-vertex signatures of the full mesh, (N, d) float64, read-only.
+
+        Cached by mesh content and the signature's parameters (`wpot.cache.Cache`, namespace "signatures"): in
+        memory, and on disk under ``cache_dir`` (or ``$WPOT_CACHE_DIR``); a signature made of pieces
+        (`wpot.signatures.base.Signature.pieces`, e.g. LD-SIFT with its thickness column) is cached piece by
+        piece. A signature fitted to a dataset (WKS) must be fitted first (`fit`, ``energies=``, or
+        `Comparer.compare`, which fits it to its pair).
+        """
+        stage, cache = self.stage, self.signature_cache
+        keys = stage.pieces()
+        got = {name: cache.get(mesh.fingerprint, params) for name, params in keys.items()}
+        missing = [name for name, entry in got.items() if entry is None]
+        if missing:
+            for name, value in stage.compute_pieces(mesh, missing).items():
+                got[name] = cache.put(mesh.fingerprint, keys[name], {"signature": value})
+        sig = stage.assemble({name: entry["signature"] for name, entry in got.items()})
+        sig.setflags(write=False)  # a cached piece already is; an assembled array is new
+        if sig.shape[0] != mesh.n_vertices:
+            raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
+        return sig
+
+
 class Comparer:
     """A comparison session: one configuration, signatures cached per shape, fitted signature state shared.
 
@@ -356,10 +446,6 @@ class Comparer:
     def _setup(self, config: ComparisonConfig, device: str | None, cache_dir: Any, signature_state: Any,
                memory_limit: float | None, caches: tuple[Any, Any] | None) -> None:
         """Build the stages; ``caches`` = (signature cache, spectrum cache) to share another comparer's."""
-        from wpot.cache import Cache
-        from wpot.ot import make_solver
-        from wpot.signatures import get_signature
-
         self.config = config
         self.device = _resolve_device(device)
         self.cache_dir = cache_dir
@@ -368,9 +454,9 @@ class Comparer:
             caches = (Cache("signatures", max_entries=2 * MAX_CACHED_SHAPES, max_bytes=MAX_CACHED_BYTES,
                             cache_dir=cache_dir),
                       _spectrum_cache(cache_dir))
-        self.signature_cache, self.spectrum_cache = caches
-        self.stage = get_signature(config.signature)(config.signature_options, device=self.device,
-                                                     spectrum_cache=self.spectrum_cache, state=signature_state)
+        stage = get_signature(config.signature)(config.signature_options, device=self.device, spectrum_cache=caches[1],
+                                                state=signature_state)
+        self.source = SignatureSource(stage, *caches)
         self.sampler = FarthestPointSampler(config.sampler)
         self.solver = make_solver(config.method, **dict(config.solver_options))
         self._self_energies: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
@@ -386,7 +472,7 @@ class Comparer:
 
     def __getattr__(self, name: str) -> Any:
         # the flat settings (mass_penalty, max_vertices, n_eigen, ldsift_slab, ...) read from the configuration
-        if name.startswith("_") or name in ("config", "stage", "progress"):
+        if name.startswith("_") or name in ("config", "source", "progress"):
             raise AttributeError(name)
         kw = self.config.keywords()
         if name in kw:
@@ -419,77 +505,36 @@ class Comparer:
         (or ``energies`` / ``signature_state`` is given), and the farthest-point samples when ``fps_metric``
         is unchanged. Self-comparisons (Eq. 27) are not shared: they depend on every setting.
         """
-        own = {"device", "cache_dir", "energies", "signature_state", "memory_limit"}
-        from wpot.config import _all_signature_keywords
-
-        unknown = sorted(set(changes) - own - set(self.config.keywords()) - _all_signature_keywords())
-        if unknown:
-            raise ValueError(f"unknown Comparer options {unknown}; known: {sorted(set(self.config.keywords()) | own)}")
-        config = self.config.replace(**{k: v for k, v in changes.items() if k not in own})
-        kw = {"device": self.device, "cache_dir": self.cache_dir, "memory_limit": self.memory_limit}
-        kw.update({k: v for k, v in changes.items() if k in own})
-        if "energies" in kw:
-            kw["signature_state"] = None if kw.pop("energies") is None else {"energies": changes["energies"]}
-        if "energies" not in changes and "signature_state" not in changes and \
-                config.signature == self.config.signature and config.signature_options == self.config.signature_options:
-            kw["signature_state"] = self.stage.state()
-        new = Comparer.__new__(Comparer)
-        same_dir = kw["cache_dir"] == self.cache_dir
-        new._setup(config, kw["device"], kw["cache_dir"], kw.get("signature_state"), kw["memory_limit"],
-                   (self.signature_cache, self.spectrum_cache) if same_dir else None)
-        if new.config.sampler.fps_metric == self.config.sampler.fps_metric:
-            new.sampler.share_samples_with(self.sampler)
-        new.progress = self.progress
-        return new
+        return _derived(self, changes)
 
     # ------------------------------------------------------------------------------ signatures
     @property
+    def stage(self) -> Signature:
+        """The configured signature with its fitted state (`SignatureSource.stage`)."""
+        return self.source.stage
+
+    @property
     def energies(self) -> np.ndarray | None:
         """The WKS energy grid (n_energies,) float64, or None until fitted (or for a signature without one)."""
-        st = self.stage.state()
-        return None if not st or "energies" not in st else np.asarray(st["energies"], dtype=np.float64)
+        return self.source.energies
 
     @energies.setter
     def energies(self, value: ArrayLike | None) -> None:
-        self._set_state(None if value is None else {"energies": value})
+        self._refit(lambda: self.source.set_state(None if value is None else {"energies": value}))
 
-    def _set_state(self, state: dict[str, Any] | None) -> None:
-        old = self.stage.key()
-        self.stage = self.stage.with_state(state)
-        if self.stage.key() != old:
-            self._self_energies.clear()  # the signatures (and so the self-comparisons) depend on the state
+    def _refit(self, change: Callable[[], None]) -> None:
+        """Apply ``change`` to the signature's state; the self-comparisons (Eq. 27) go when the signatures change."""
+        old = self.source.stage.key()
+        change()
+        if self.source.stage.key() != old:
+            self._self_energies.clear()
 
     def fit(self, meshes: Sequence[Mesh], *, labels: Sequence[str] | None = None) -> None:
         """Fit the signature to a dataset (WKS's energy grid, HKS's times: one for every shape, paper §3.2).
 
         With ``progress``, each mesh's share (for WKS and HKS its spectrum, the long part) is reported: a line per
         mesh for a pair (``labels`` names them; default: their positions), a bar for more."""
-        meshes = list(meshes)
-        old = self.stage.key()
-        from wpot.signatures import Signature
-
-        if self.stage.needs_fit and type(self.stage).fit is not Signature.fit:  # a signature with its own fit
-            with self.progress.stage(f"fitting {self.stage.title} to {len(meshes)} shapes"):
-                self.stage.fit(meshes)
-        elif self.stage.needs_fit and len(meshes) <= 2:  # a pair: a line per mesh
-            names = list(labels) if labels is not None else [f"shape {k}" for k in range(len(meshes))]
-            inputs = []
-            for name, m in zip(names, meshes):
-                with self.progress.stage(_fit_step(self.stage, name, m)):
-                    inputs.append(self.stage.fit_input(m))
-            self.stage.fit_from(inputs)
-        elif self.stage.needs_fit:  # a dataset: a bar
-            bar = self.progress.bar(len(meshes), fit_phase(self.stage), "shape")
-            inputs = []
-            try:
-                for m in meshes:
-                    inputs.append(self.stage.fit_input(m))
-                    bar.update()
-            finally:
-                bar.close()
-            self.stage.fit_from(inputs)
-        if self.stage.key() != old:
-            self._self_energies.clear()
+        self._refit(lambda: self.source.fit(meshes, labels=labels, progress=self.progress))
 
     def fit_energies(self, meshes: Sequence[Mesh]) -> np.ndarray:
         """WKS: build one energy grid from the spectra of all ``meshes`` (`wpot.wks_energies`), keep it, return it."""
@@ -499,26 +544,8 @@ class Comparer:
         return self.energies
 
     def signatures(self, mesh: Mesh) -> np.ndarray:
-        """Per-vertex signatures of the full mesh, (N, d) float64, read-only.
-
-        Cached by mesh content and the signature's parameters (`wpot.cache.Cache`, namespace "signatures"): in
-        memory, and on disk under ``cache_dir`` (or ``$WPOT_CACHE_DIR``); a signature made of pieces
-        (`wpot.signatures.base.Signature.pieces`, e.g. LD-SIFT with its thickness column) is cached piece by
-        piece. A signature fitted to a dataset (WKS) must be fitted first (`fit`, ``energies=``, or `compare`,
-        which fits it to its pair).
-        """
-        stage, cache = self.stage, self.signature_cache
-        keys = stage.pieces()
-        got = {name: cache.get(mesh.fingerprint, params) for name, params in keys.items()}
-        missing = [name for name, entry in got.items() if entry is None]
-        if missing:
-            for name, value in stage.compute_pieces(mesh, missing).items():
-                got[name] = cache.put(mesh.fingerprint, keys[name], {"signature": value})
-        sig = stage.assemble({name: entry["signature"] for name, entry in got.items()})
-        sig.setflags(write=False)  # a cached piece already is; an assembled array is new
-        if sig.shape[0] != mesh.n_vertices:
-            raise ValueError(f"signature rows ({sig.shape[0]}) do not match the mesh's {mesh.n_vertices} vertices")
-        return sig
+        """Per-vertex signatures of the full mesh, (N, d) float64, read-only (`SignatureSource.signatures`)."""
+        return self.source.signatures(mesh)
 
     # ------------------------------------------------------------------------------ sampling
     def n_samples(self, n_vertices: int) -> int:
@@ -545,17 +572,12 @@ class Comparer:
 
     # ------------------------------------------------------------------------------ transport
     def _budget(self) -> float:
-        from wpot._warp import available_memory
-
         return self.memory_limit if self.memory_limit is not None else MEMORY_FRACTION * available_memory(self.device)
 
     def transport_problem(self, pa: Points, pb: Points) -> Any:
         """The `wpot.ot.TransportProblem` between two point sets: the cost (dense, or a `FeatureCost` when the
         dense problem does not fit the memory budget, `choose_cost_mode`), the masses, and for partial
         transport the solver's mass-penalty factor (`solver_mass_penalty`)."""
-        from wpot.cost import cost_matrix
-        from wpot.ot import FeatureCost, TransportProblem
-
         n1, n2 = len(pa.signatures), len(pb.signatures)
         metric = self.stage.metric
         if choose_cost_mode(self.solver, n1, n2, pa.signatures.shape[1], self._budget()):
@@ -587,24 +609,6 @@ class Comparer:
             self._self_energies[key] = r
         return r
 
-    def _solve_reported(self, problem: Any) -> Any:
-        """Solve ``problem``; with progress shown live (a terminal, a notebook), a bar counts the solved betas and
-        shows the last β and U."""
-        method = self.solver.method_for(problem) if hasattr(self.solver, "method_for") else self.solver.name
-        if not self.progress.live or method == "exact":  # the exact LP has one beta (infinity): nothing to count
-            return self.solver.solve(problem)
-        self.progress.break_line()  # the transport stage's line: the bar goes below it
-        bar = self.progress.bar(None, "annealing", "beta")
-        try:
-            def step(s: Any) -> None:
-                bar.set_postfix_str(f"beta {s.beta:.3g}, U {s.cost:.9g}", refresh=False)
-                bar.update()
-
-            return self.solver.solve(problem, on_beta=step)
-        finally:
-            bar.refresh()  # the last beta and U drawn at least once: tqdm redraws at most every 0.1 s
-            bar.close()
-
     def _fit_to_pair(self, mesh_a: Mesh, mesh_b: Mesh, labels: tuple[str, str]) -> None:
         """Fit a signature that needs fitting and is not fitted yet to the two meshes of a lone pair."""
         if self.stage.needs_fit and not self.stage.fitted:
@@ -613,9 +617,6 @@ class Comparer:
     def compare(self, mesh_a: Mesh, mesh_b: Mesh) -> "Comparison":
         """Compare A with B; see `Comparison`. A signature that needs fitting and is not fitted yet is fitted
         to A and B."""
-        from wpot.runs.history import debias_history
-        from wpot.ot import debiased
-
         for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
             if not isinstance(m, Mesh):
                 raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
@@ -625,7 +626,7 @@ class Comparer:
         pa, pb = self._reported_points(mesh_a, "A"), self._reported_points(mesh_b, "B")
         what = "every vertex" if pa.subsample is None and pb.subsample is None else "farthest-point samples"
         with self.progress.stage(f"{self.transport} transport on {what}, {len(pa.signatures)} x {len(pb.signatures)}"):
-            res = self._solve_reported(self.transport_problem(pa, pb))
+            res = solve_with_progress(self.solver, self.transport_problem(pa, pb), self.progress)
         hist = res.energy_history
         self_e = None
         distance = float(res.objective)  # U (Eq. 6): for balanced transport the objective is the cost
@@ -643,15 +644,9 @@ class Comparer:
     def nearest_signature_distance(self, part: Mesh, whole: Mesh) -> float:
         """The mean, over the vertices of ``part``, of the cost from its signature to the nearest signature of
         ``whole`` (`wpot.cost.nearest_costs`): how well the whole explains each vertex of the part, whatever
-        their places. Asymmetric, no transport, no map. A distance for retrieving a part's class among whole
-        shapes: on the partial-poses development benchmark (LD-SIFT, all eight TOSCA classes), a part's own
-        class was nearer than every other class for 87.5 % of part-to-pose pairs by it, against 57.1 % by the
-        partial transport's SU (Eq. 27) and 77.7 % by `PartMap.cost`. With LD-SIFT's thickness column
-        (``ldsift_thickness``), which tells apart classes of one template at two sizes, 94.2 % at w = 1 and
-        92.4 % at w = 2 (held-out parts: 89.3 / 88.8 % against 83.0 % without). Looked up among all 76 TOSCA 5k
-        shapes (`benchmarks/part_retrieval.py`), the nearest whole was of the part's class for 97.3 % of the
-        parts at w = 2, 96.4 % at w = 1 and 92.0 % without (held-out parts: 98.2 / 97.3 / 90.2 %). `retrieve`
-        ranks a library's classes better from the same per-vertex costs (99.1 % on both sets at w = 2)."""
+        their places. Asymmetric, no transport, no map: a distance for retrieving a part's class among whole
+        shapes (`retrieve` ranks a library's classes from the same per-vertex costs; the docs' Results page
+        compares the two)."""
         self._fit_to_pair(part, whole, ("part", "whole"))
         return float(self.nearest_costs(part, [whole]).mean())
 
@@ -660,41 +655,14 @@ class Comparer:
         signature to the nearest signature of the whole (`wpot.cost.nearest_costs`); column j's mean is
         `nearest_signature_distance` ``(part, wholes[j])``. What `retrieve` ranks classes from. A signature that
         needs fitting (WKS) must be fitted first (`fit`)."""
-        from wpot.cost import nearest_costs
-
-        wholes = list(wholes)
-        if not wholes:
-            raise ValueError("wholes must hold at least one mesh")
-        if self.stage.needs_fit and not self.stage.fitted:
-            raise ValueError(f"{self.signature} needs fitting: call fit(wholes) first")
-        with self.progress.stage(f"{self.stage.title} signatures of the part ({part.n_vertices} vertices)"):
-            sig = self.signatures(part)
-
-        def costs(w: Mesh) -> np.ndarray:
-            return nearest_costs(sig, self.signatures(w), metric=self.stage.metric, device=self.device)[1]
-
-        if len(wholes) == 1:
-            return costs(wholes[0])[:, None]
-        # a library: a step per whole (its signatures, computed or read from the cache, and its costs)
-        bar = self.progress.bar(len(wholes), f"{self.stage.title} signatures of the library", "shape")
-        cols = []
-        try:
-            for w in wholes:
-                cols.append(costs(w))
-                bar.update()
-        finally:
-            bar.close()
-        return np.column_stack(cols)
+        return library_costs(self, part, wholes)
 
     def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
         """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`): from each
         vertex's cost to the nearest signature of each whole (`nearest_costs`), standardised per vertex, a
         class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
         a `wpot.maps.retrieval.RetrievalOptions`. Returns a `wpot.maps.retrieval.ClassRanking`, whose ``whole_costs``
-        are `nearest_signature_distance` for each whole. On TOSCA it ranks first the part's class where the
-        nearest whole fails on a pose that two classes share (README, "Parts looked up in a library")."""
-        from wpot.maps.retrieval import rank_classes
-
+        are `nearest_signature_distance` for each whole."""
         wholes = list(wholes)
         if len(wholes) != len(labels):
             raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and "
@@ -706,11 +674,62 @@ class Comparer:
         signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
         vertices; ``options`` is a `wpot.maps.locate.LocateOptions`. Returns a `wpot.maps.locate.PartMap`."""
-        from wpot.maps.locate import locate_part
-
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
+
+
+def _derived(base: "Comparer", changes: dict[str, Any]) -> "Comparer":
+    """`Comparer.with_options`: a new comparer from ``base`` with ``changes``, sharing what stays valid."""
+    own = {"device", "cache_dir", "energies", "signature_state", "memory_limit"}
+
+    unknown = sorted(set(changes) - own - set(base.config.keywords()) - _all_signature_keywords())
+    if unknown:
+        raise ValueError(f"unknown Comparer options {unknown}; known: {sorted(set(base.config.keywords()) | own)}")
+    config = base.config.replace(**{k: v for k, v in changes.items() if k not in own})
+    kw = {"device": base.device, "cache_dir": base.cache_dir, "memory_limit": base.memory_limit}
+    kw.update({k: v for k, v in changes.items() if k in own})
+    if "energies" in kw:
+        kw["signature_state"] = None if kw.pop("energies") is None else {"energies": changes["energies"]}
+    if "energies" not in changes and "signature_state" not in changes and \
+            config.signature == base.config.signature and config.signature_options == base.config.signature_options:
+        kw["signature_state"] = base.stage.state()
+    new = Comparer.__new__(Comparer)
+    same_dir = kw["cache_dir"] == base.cache_dir
+    new._setup(config, kw["device"], kw["cache_dir"], kw.get("signature_state"), kw["memory_limit"],
+               (base.source.signature_cache, base.source.spectrum_cache) if same_dir else None)
+    if new.config.sampler.fps_metric == base.config.sampler.fps_metric:
+        new.sampler.share_samples_with(base.sampler)
+    new.progress = base.progress
+    return new
+
+
+def library_costs(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh]) -> np.ndarray:
+    """`Comparer.nearest_costs`: (N, M) float64, each of the part's N vertices' cost to the nearest signature of each
+    of the M wholes."""
+    wholes = list(wholes)
+    if not wholes:
+        raise ValueError("wholes must hold at least one mesh")
+    if comparer.stage.needs_fit and not comparer.stage.fitted:
+        raise ValueError(f"{comparer.signature} needs fitting: call fit(wholes) first")
+    with comparer.progress.stage(f"{comparer.stage.title} signatures of the part ({part.n_vertices} vertices)"):
+        sig = comparer.signatures(part)
+
+    def costs(w: Mesh) -> np.ndarray:
+        return nearest_costs(sig, comparer.signatures(w), metric=comparer.stage.metric, device=comparer.device)[1]
+
+    if len(wholes) == 1:
+        return costs(wholes[0])[:, None]
+    # a library: a step per whole (its signatures, computed or read from the cache, and its costs)
+    bar = comparer.progress.bar(len(wholes), f"{comparer.stage.title} signatures of the library", "shape")
+    cols = []
+    try:
+        for w in wholes:
+            cols.append(costs(w))
+            bar.update()
+    finally:
+        bar.close()
+    return np.column_stack(cols)
 
 
 def _matched_pairs(res: Any, m1: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -752,11 +771,10 @@ def _assemble(res, sub_a, sub_b, mesh_a, mesh_b, distance, self_e, hist, config:
     matched = np.stack([ia[ii], jb[jj]], axis=1).astype(np.int64)
     registration = None
     if len(matched) >= 3:
-        from wpot.maps.registration import area_scale, fit_similarity_robust
 
         # balanced transport matches the whole shapes: their size ratio is the scale. With partial transport the
-        # matched regions come from the received masses, too loosely for a size ratio (the quickstart's part,
-        # 40 % of its whole: 1.50 against a true 1), so the scale is fitted there
+        # matched regions come from the received masses, too loosely for a size ratio (far off on the
+        # quickstart's part; the docs' Results page), so the scale is fitted there
         scale = area_scale(mesh_a, mesh_b) if config.transport == "balanced" else None
         try:
             # robust: the wrong matches (pairs pointing across the shape) would pull a least-squares fit in
@@ -789,14 +807,11 @@ def _spectrum_cache(cache_dir: Any) -> Any:
     else one under that folder (memory only for False), as for the signatures."""
     if cache_dir is None:
         return True
-    from wpot.cache import Cache
-    from wpot.spectral import spectrum_cache
 
     return Cache("spectrum", max_entries=spectrum_cache.max_entries, max_bytes=spectrum_cache.max_bytes, cache_dir=cache_dir)
 
 
 def _resolve_device(device: str | None) -> str:
-    from wpot._warp import resolve_device
 
     return str(resolve_device(device))
 

@@ -22,6 +22,8 @@ from typing import Any, Mapping
 
 from wpot import _validate
 from wpot.sampling import SamplerOptions
+from wpot.ot import SolverOptions, SOLVERS
+from wpot.signatures import get_signature, signature_names, signature_options
 
 __all__ = ["ComparisonConfig", "TRANSPORTS", "PENALTY_SCALES", "DEFAULT_MASS_PENALTY"]
 
@@ -68,8 +70,6 @@ class ComparisonConfig:
     match_ratio: float = 0.9
 
     def __post_init__(self) -> None:
-        from wpot.ot import SOLVERS, SolverOptions
-        from wpot.signatures import get_signature
 
         sig = get_signature(self.signature)
         opts = self.signature_options
@@ -113,7 +113,6 @@ class ComparisonConfig:
         options of a signature other than ``signature`` are ignored). ``solver_options`` may hold
         ``method`` (as `wpot.ot.solve_balanced` takes it); ``method=`` wins over it.
         """
-        from wpot.signatures import signature_options
 
         sampler = SamplerOptions(**{k: keywords.pop(k) for k in _SAMPLER_KEYWORDS if k in keywords})
         so = dict(solver_options or {})
@@ -195,14 +194,12 @@ class ComparisonConfig:
         if self.transport == "partial":
             p["mass_penalty"] = self.mass_penalty
             p["penalty_scale"] = self.penalty_scale
-        from wpot.signatures import get_signature
 
         p.update(get_signature(self.signature)(self.signature_options).run_key())
         return p
 
     def describe(self) -> str:
         """One line for people: the signature, transport, sampling and solver."""
-        from wpot.signatures import get_signature
 
         s = self.sampler
         sampling = "every vertex"
@@ -227,13 +224,11 @@ def _flat_signature_options(name: str, options: Any) -> dict[str, Any]:
 
 
 def _signature_keywords(name: str) -> set[str]:
-    from wpot.signatures import get_signature
 
     return {f.metadata.get("keyword", f.name) for f in dataclasses.fields(get_signature(name).Options)}
 
 
 def _all_signature_keywords() -> set[str]:
-    from wpot.signatures import signature_names
 
     out: set[str] = set()
     for n in signature_names():

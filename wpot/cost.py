@@ -41,8 +41,8 @@ def _wks_term(x: wp.float64, y: wp.float64) -> wp.float64:
 
 
 # The per-pair sums below run four independent accumulators (combined as (s0 + s1) + (s2 + s3)): the
-# single-accumulator loop is bound by the latency of the additions on the CPU backend (measured 30% faster
-# at D = 100), which matters in the matrix-free OT mode where every pass over C recomputes these sums.
+# single-accumulator loop is bound by the latency of the additions on the CPU backend (the docs' Results
+# page), which matters in the matrix-free OT mode where every pass over C recomputes these sums.
 
 
 @wp.func
@@ -258,12 +258,10 @@ def nearest_costs(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device:
     """For each row of S1, the row of S2 with the smallest cost and that cost: ((N1,) int64, (N1,) float64),
     the row minima of `cost_matrix` ``(S1, S2)`` computed ``block`` rows at a time (memory O(block · N2)).
 
-    ``metric="l2"`` goes through BLAS in float64 (`wpot.maps.fmap.nearest_rows`; several times faster than the
+    ``metric="l2"`` goes through BLAS in float64 (`wpot.cost.nearest_rows`; several times faster than the
     kernel for long signatures such as LD-SIFT's, the cost equal to `cost_matrix`'s to about 1e-7 of the
     signatures' norms, so an exact tie may pick another row); the other metrics through `cost_matrix`. Same
     validation as `cost_matrix`."""
-    from wpot.maps.fmap import nearest_rows
-
     dev = resolve_device(device)
     a, b = prepare_signatures(S1, S2, metric, dev)
     if metric == "l2":
@@ -304,3 +302,28 @@ def cost_mean(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device: str
                                          device=dev), a.shape[0], dev,
                 cols=b.shape[0])
     return float(rows.numpy().sum()) / (float(a.shape[0]) * float(b.shape[0]))
+
+
+#: rows of queries per block of `nearest_rows` (a block holds rows x M distances)
+NEAREST_BLOCK = 1024
+
+
+def nearest_rows(queries: np.ndarray, points: np.ndarray, *, dtype: type = np.float32, block: int = NEAREST_BLOCK
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of ``queries`` (N, k), the nearest row of ``points`` (M, k) in Euclidean distance.
+
+    Returns ((N,) int64 indices, (N,) squared distances in ``dtype``). Brute force by blocks of ``block`` rows
+    of BLAS products, ``|q|² + |p|² − 2 q·p``; float32 by default (twice as fast; a k-d tree is slow in the
+    30-100 dimensions used here), the distances then good to about 1e-6 of the rows' squared norms."""
+    pts = np.ascontiguousarray(points, dtype=dtype)
+    pp = np.einsum("ij,ij->i", pts, pts)
+    qs = np.ascontiguousarray(queries, dtype=dtype)
+    out = np.empty(len(qs), dtype=np.int64)
+    best = np.empty(len(qs), dtype=dtype)
+    for s in range(0, len(qs), int(block)):
+        q = qs[s:s + int(block)]
+        d = pp[None, :] - 2.0 * (q @ pts.T)  # |q|^2, constant per row, added below
+        j = np.argmin(d, axis=1)
+        out[s:s + len(q)] = j
+        best[s:s + len(q)] = np.maximum(d[np.arange(len(q)), j] + np.einsum("ij,ij->i", q, q), 0)
+    return out, best

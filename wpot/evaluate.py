@@ -362,8 +362,8 @@ def part_retrieval(
 class GeodesicDistances:
     """Geodesic distances on one mesh by the heat method (potpourri3d), cached per source vertex.
 
-    The heat-method solver is factored once; every requested source vertex costs one solve (about 2 ms at
-    5,000 vertices) and one stored (N,) float32 row, so evaluating many maps onto the same target shape
+    The heat-method solver is factored once; every requested source vertex costs one solve (with the
+    stored factors, no new factorization) and one stored (N,) float32 row, so evaluating many maps onto the same target shape
     reuses the rows of its ground-truth points. Distances between different connected components are
     undefined for the heat method; they are reported as ``inf`` by `from_sources`.
 

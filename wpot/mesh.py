@@ -18,9 +18,10 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from numpy.typing import ArrayLike
 
-__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "validate"]
+__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "validate", "winding"]
 
 #: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
 DEGENERATE_AREA_RTOL = 1e-12
@@ -524,3 +525,42 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
         removed.append(f"{n_pieces} smaller component{'s' if n_pieces > 1 else ''} "
                        f"({n_before - fixed.n_vertices} vertices)")
     return fixed, index_map, ", ".join(removed)
+
+
+# ----------------------------------------------------------------------------- orientation of the surface
+def signed_volume(mesh: Mesh) -> float:
+    """The volume the surface encloses, signed by its winding; an open surface is first closed by capping each
+    boundary loop with a fan to the loop's own centroid (a fan to one common point, the cone the surface spans
+    from its centroid, reads a bent open limb inside out)."""
+    v = mesh.vertices - mesh.vertices.mean(axis=0)
+    f = mesh.faces
+    vol = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum())
+    half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(half, axis=1)
+    n = np.int64(max(mesh.n_vertices, 1))
+    _, inv, cnt = np.unique(key[:, 0] * n + key[:, 1], return_inverse=True, return_counts=True)
+    border = half[cnt[inv] == 1]  # boundary half-edges, in their face's direction
+    if len(border):
+        g = sp.coo_matrix((np.ones(len(border)), (border[:, 0], border[:, 1])), shape=(int(n), int(n)))
+        # each boundary loop is a connected component of the boundary edges (the other vertices are singletons)
+        _, loop = np.unique(connected_components(g, directed=False)[1][border[:, 0]], return_inverse=True)
+        centre = np.zeros((int(loop.max()) + 1, 3))
+        np.add.at(centre, loop, v[border[:, 0]])
+        centre /= np.bincount(loop)[:, None]
+        # the cap triangle (centre, j, i) runs the boundary edge i -> j the other way, as a neighbour face would
+        vol += float(np.einsum("ij,ij->i", centre[loop], np.cross(v[border[:, 1]], v[border[:, 0]])).sum())
+    return vol / 6.0
+
+
+def winding(mesh: Mesh) -> int:
+    """+1 when the faces wind counter-clockwise about the outward normal (positive enclosed volume), -1 when
+    they wind the other way, 0 when that cannot be told (the signed volume is below 1 % of what a sphere of the
+    same area encloses: a flat or nearly flat patch). An open surface (a scan, a cap, a cut limb) reads as the
+    closed surface its boundary loops' caps make (`signed_volume`)."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
+    vol = signed_volume(mesh)
+    # a sphere of the same area encloses area^1.5 / (6 sqrt(pi))
+    if abs(vol) < 0.01 * mesh.area ** 1.5 / (6.0 * np.sqrt(np.pi)):
+        return 0
+    return 1 if vol > 0 else -1

@@ -196,9 +196,9 @@ class SamplerOptions:
     pooling : ``"none"`` (default): a sample keeps its own signature, masses are uniform. ``"cell"``: a
         sample carries its cell's mean signature (`Subsample.pool`) and a mass proportional to the cell's
         size. It suits whole shapes meshed alike, whose signatures are noisy at the vertex scale
-        (classification); for a part against a whole use it with ``vertices_per_sample``. The README's
-        tables give the measured effect. Without ``max_vertices`` or ``vertices_per_sample`` nothing is
-        subsampled, every vertex is its own cell and ``"cell"`` changes nothing: it warns.
+        (classification); for a part against a whole use it with ``vertices_per_sample``. Its effect: the
+        docs' Results page. Without ``max_vertices`` or ``vertices_per_sample`` nothing is subsampled, every
+        vertex is its own cell and ``"cell"`` changes nothing: it warns.
     """
 
     max_vertices: int | None = None

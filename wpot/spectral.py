@@ -25,16 +25,15 @@ Solvers (chosen by `choose_solver`, always reported in `Spectrum.solver`; never 
 * ``"sliced"``: spectrum slicing, shift-invert Lanczos runs of ``SLICE_PAIRS`` = 60 eigenpairs around
   shifts that walk up the spectrum (`LaplaceBeltrami._sliced`). Cost ~ N·k·m plus one factorization a run.
 
-All factorizations are symmetric, without pivoting (SuperLU's partial pivoting triples the fill and makes
-solves 7x slower on these matrices); inside the spectrum, where ``W − σM`` is indefinite, a test solve
+All factorizations are symmetric, without pivoting (SuperLU's partial pivoting adds much fill and makes
+solves several times slower on these matrices); inside the spectrum, where ``W − σM`` is indefinite, a test solve
 checks the accuracy (refined, or refactorized with pivoting, when it falls short).
 
 ``"auto"`` uses dense when ``N ≤ max(DENSE_MIN_N, DENSE_RATIO · k)`` or when ``k ≥ N − 1`` (ARPACK
-needs k < N − 1), else Lanczos for ``k ≤ LANCZOS_MAX_PAIRS`` and sliced above. Timed on the 2-core machine
-with k = 500 (`benchmarks/signatures.py`): 3,400 vertices, dense 7.6 s, sliced 1.1 s; 5,000 vertices, one
-Lanczos run 16.6 s, sliced 1.7 s; 59,978 vertices sliced 39 s and 79,970 vertices 65 s (scipy's eigsh:
-146 s and 186 s). At those sizes the time is about half ARPACK's own work (reorthogonalization against the
-Lanczos basis, memory bound) and half the sparse triangular solves, one per Lanczos step.
+needs k < N − 1), else Lanczos for ``k ≤ LANCZOS_MAX_PAIRS`` and sliced above (timings with k = 500,
+`benchmarks/signatures.py`: the docs' Results page). On large meshes the time is about half ARPACK's own
+work (reorthogonalization against the Lanczos basis, memory bound) and half the sparse triangular solves, one
+per Lanczos step.
 """
 from __future__ import annotations
 
@@ -265,8 +264,9 @@ class LaplaceBeltrami:
     def factorization(self, shift: float = DEFAULT_SHIFT):
         """The (cached) SuperLU factorization of ``W − shift·M`` (CSC), for a negative shift (positive definite).
 
-        Symmetric mode without pivoting keeps the minimum-degree ordering's fill: on a 5,000-vertex mesh 0.2 M
-        nonzeros and 0.7 ms a solve, against 0.58 M and 4.9 ms with SuperLU's default partial pivoting."""
+        Symmetric mode without pivoting keeps the minimum-degree ordering's fill, several times less than with
+        SuperLU's default partial pivoting, and its solves are that much faster (figures: the docs' Results
+        page)."""
         key = float(shift)
         lu = self._lu.get(key)
         if lu is None:
@@ -277,8 +277,8 @@ class LaplaceBeltrami:
     def _shift_inverse(self, sigma: float) -> sla.LinearOperator:
         """x -> (W − σM)⁻¹ x for any σ (the shift-invert operator of one slice, not cached). Inside the spectrum
         the matrix is indefinite: the symmetric factorization (no pivoting) is used when a test solve is accurate
-        to 1e-10 (measured: 2e-11 on a 20,000-vertex mesh), else with one step of iterative refinement, else
-        SuperLU with partial pivoting (7x slower solves)."""
+        to 1e-10, else with one step of iterative refinement, else SuperLU with partial pivoting (much slower
+        solves)."""
         if sigma < 0:
             lu = self.factorization(sigma)
             return sla.LinearOperator(self.W.shape, matvec=lu.solve, dtype=np.float64)
@@ -387,7 +387,7 @@ class LaplaceBeltrami:
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Spectrum slicing: shift-invert Lanczos runs of ``per_slice`` eigenpairs each, around shifts that walk up
         the spectrum, instead of one run of k. A run of m pairs costs ~N m² (orthogonalization) plus one sparse
-        factorization, so k/m runs cost ~N k m: at k = 500 on a 5,000-vertex mesh 5 s against 20 s.
+        factorization, so k/m runs cost ~N k m, a fraction of one run's ~N k² at k = 500.
 
         A run around σ returns the m eigenvalues nearest σ, so every eigenvalue nearer σ than its farthest one has
         been returned, and a gap between two of them is a gap of the spectrum. Each run keeps its pairs from the
@@ -459,16 +459,15 @@ class LaplaceBeltrami:
 
 def _splu_symmetric(A: sp.csc_matrix):
     """SuperLU of a symmetric matrix in symmetric mode, no pivoting, ordered by minimum degree on A + Aᵀ at
-    every size: on a 79,970-vertex mesh COLAMD factorizes a little faster (0.6 s against 0.8 s) with 26% more
-    fill and the same 14 ms solves, and on 59,978 vertices it is slower on both counts."""
+    every size: COLAMD, at best a little faster to factorize on the largest meshes, leaves more fill and solves
+    no faster (the docs' Results page)."""
     return sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
 
 
 #: "auto" uses one Lanczos run up to this many eigenpairs, spectrum slicing above
 LANCZOS_MAX_PAIRS = 100
 #: eigenpairs per shift-invert run of the "sliced" solver. Fewer pairs a run: less orthogonalization, more runs
-#: and factorizations. With k = 500, 60 against 100: 1.7 s against 2.2 s at 5,000 vertices, 39 s against 41 s
-#: at 59,978, even at 79,970
+#: and factorizations. At k = 500, 60 was faster than 100 from 5,000 to 80,000 vertices (the docs' Results page)
 SLICE_PAIRS = 60
 #: a run's range is planned to start this fraction of its radius below the previous cut (the density is estimated)
 SLICE_OVERLAP = 0.2

@@ -131,7 +131,7 @@ def test_comparer_records_and_applies_the_penalty():
     p = c.with_options(mass_penalty=1.0, penalty_scale="paper")
     assert p.params()["penalty_scale"] == "paper" and p.params()["mass_penalty"] == 1.0
     assert p.params() != c.params()  # a pipeline run keyed on params() tells them apart
-    assert p.signature_cache is c.signature_cache and p.sampler.samples is c.sampler.samples
+    assert p.source.signature_cache is c.source.signature_cache and p.sampler.samples is c.sampler.samples
     assert "penalty_scale" not in Comparer(transport="balanced", device="cpu", cache_dir=False).params()
     with pytest.raises(ValueError, match="unknown Comparer options"):
         c.with_options(mass_penalt=1.0)

@@ -259,6 +259,7 @@ def test_classify_says_what_a_one_shape_class_and_a_one_group_level_mean(odd_run
 
 def test_report_figures_share_one_class_order_and_mark_a_one_shape_class(odd_run, capsys, monkeypatch, tmp_path):
     import wpot.plot
+    import wpot.runs.report
 
     figures = {}
     for name in ("plot_distance_matrix", "plot_confusion"):
@@ -268,7 +269,7 @@ def test_report_figures_share_one_class_order_and_mark_a_one_shape_class(odd_run
             figures[_name] = fig = _real(*args, **kw)
             return fig
 
-        monkeypatch.setattr(wpot.plot, name, spy)
+        monkeypatch.setattr(wpot.runs.report, name, spy)  # the names the report draws with
     code, _, err = cli(capsys, "report", odd_run, "--trials", "200", "--out", tmp_path / "report.md")
     assert code == 0, err
     heat, conf = figures["plot_distance_matrix"].axes[0], figures["plot_confusion"].axes[0]

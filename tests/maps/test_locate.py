@@ -181,7 +181,8 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
 
     from wpot.maps.locate import _orient, _Redraw
     from wpot.mesh import cut
-    from wpot.maps.orientation import keep_orientation, orientation_score, reflection_symmetry
+    from wpot.maps.symmetry import keep_orientation, reflection_symmetry
+    from wpot.maps.orientation import orientation_score
     from wpot.sampling import farthest_point_sampling
 
     whole = mirror_symmetric(1500, seed=1)

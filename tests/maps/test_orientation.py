@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 import wpot
 from wpot.mesh import Mesh
-from wpot.maps.orientation import (OrientationWarning, keep_orientation, orientation_score, reflection_symmetry,
-                              winding)
+from wpot.maps.orientation import OrientationWarning, orientation_score
+from wpot.maps.symmetry import keep_orientation, reflection_symmetry
+from wpot.mesh import winding
 from wpot.maps.zoomout import ZOOMOUT_K_SELECT, zoomout
 from helpers import mirror_symmetric
 
@@ -187,7 +188,7 @@ def test_orient_argument_is_checked():
 
 
 def test_symmetry_is_cached_by_content():
-    from wpot.maps.orientation import symmetry_cache
+    from wpot.maps.symmetry import symmetry_cache
 
     m = mirror_symmetric()
     first = reflection_symmetry(m)

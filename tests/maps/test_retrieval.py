@@ -59,7 +59,8 @@ def test_a_class_is_the_union_of_its_nearest_members():
     assert two.classes == ("a", "b") and np.allclose(two.scores, [1.0, 1.2])
     assert sorted(two.members[0]) == [0, 1] and two.rank("b") == 2
     assert two.margin == pytest.approx(0.2) and one.margin == pytest.approx(0.3)
-    assert rank_classes(c[:, :2], labels[:2]).margin == float("inf")  # one class: nothing to be unsure between
+    with pytest.raises(ValueError, match="labels name one class"):  # one class: no answer to give, not a sure one
+        rank_classes(c[:, :2], labels[:2])
     with pytest.raises(ValueError, match="'z' is not in the library"):
         two.rank("z")
 
@@ -68,6 +69,7 @@ def test_a_class_is_the_union_of_its_nearest_members():
     (dict(costs=np.ones((3, 2)), labels=["a"]), "one class per whole"),
     (dict(costs=np.ones(3), labels=["a"]), "n_vertices, n_wholes"),
     (dict(costs=np.full((3, 2), np.nan), labels=["a", "b"]), "finite"),
+    (dict(costs=np.ones((3, 2)), labels=["a", "a"]), "at least two classes"),
     (dict(costs=np.ones((3, 2)), labels=["a", "b"], options={"k_nearest": 2}), "RetrievalOptions"),
 ])
 def test_bad_input_is_named(kwargs, match):

@@ -12,6 +12,7 @@ import warp as wp
 
 import wpot.ot as wo
 from wpot.ot.anneal import linear, newton, resident
+from wpot.ot.anneal.host import HostSolver
 from wpot.ot.anneal.newton import Engine
 from wpot.ot.anneal.state import Point
 from wpot.ot.problem import orient, prepare_cost
@@ -106,7 +107,7 @@ def test_device_assembly_of_the_sparse_schur_approximation_equals_the_host_one(p
     C = _cost(50, 40, seed=8)
     eng, pt = _engine_at(C, partial, beta=3e5, loop="device")
     eng.direction(pt)  # builds the preconditioner (fresh): top-k lists, diag(S_W), e1 at this point
-    dev = eng.dev
+    dev = eng.solver.dev
     n = eng.p.n_c
     data = linear.SchurData(eng.diag_s.numpy().copy(), eng.e1.numpy().copy(), eng.piv.numpy().copy(), eng.p.a_c,
                             not partial)
@@ -153,7 +154,7 @@ def test_device_loop_options_are_validated():
 def test_default_loop_is_the_host_one_on_the_cpu():
     C = _cost(20, 20)
     eng, _ = _engine_at(C, False, beta=1e4, loop=None)
-    assert eng.dev is None
+    assert isinstance(eng.solver, HostSolver)
 
 
 # --------------------------------------------------------------------------- host reads
@@ -247,7 +248,7 @@ def test_a_refit_at_the_same_point_reproduces_the_full_build():
     C = _cost(60, 45, seed=11)
     eng, pt = _engine_at(C, False, beta=3e5, loop="device")
     eng.direction(pt)
-    dev = eng.dev
+    dev = eng.solver.dev
     r = np.random.default_rng(0).normal(size=eng.p.n_c)
     r[-1] = 0.0
     eng.to_device(dev.r, r)
@@ -270,7 +271,7 @@ def test_the_captured_cg_loop_equals_the_plain_one(partial):
     out = []
     for captured in (False, True):
         eng, pt = _engine_at(C, partial, beta=3e5, loop="device", cg_rtol=1e-10)
-        eng.dev.captured = captured
+        eng.solver.dev.captured = captured
         n_lin, ok = eng.direction(Point(None, None, 0.0, 0.0))
         assert ok and n_lin >= 3
         out.append((n_lin, eng.dy_a.numpy().copy(), eng.d_b.numpy().copy()))
@@ -286,12 +287,12 @@ def test_the_captured_cg_graph_is_reused_and_still_exact():
     out = []
     for captured in (False, True):
         eng, pt = _engine_at(C, False, beta=3e5, loop="device")
-        eng.dev.captured = captured
+        eng.solver.dev.captured = captured
         pt, nn, nl, ok = eng.newton(3e5, pt)
         assert ok and nn > 3
         out.append((nn, nl, eng.t.n_refit, eng.lam[0].numpy().copy(), eng.y[0].numpy().copy()))
         if captured:  # one capture per full build, none per refit
-            assert eng.dev.n_captures == eng.t.n_factor < eng.dev.n_solves
+            assert eng.solver.dev.n_captures == eng.t.n_factor < eng.solver.dev.n_solves
     assert out[0][:3] == out[1][:3] and out[1][2] > 0
     np.testing.assert_array_equal(out[0][3], out[1][3])
     np.testing.assert_array_equal(out[0][4], out[1][4])

@@ -1,4 +1,4 @@
-"""Host-device transfers of the OT solver (issue 19): every read of a device array goes through
+"""Host-device transfers of the OT solver: every read of a device array goes through
 `Engine.to_host` (counted in ``Timers.n_d2h``) and every write of host data through `Engine.to_device`
 (``Timers.n_h2d``), so the counts are the transfers (and, for reads, synchronisations) a GPU run makes.
 
@@ -35,7 +35,7 @@ class Spy:
             real_init(eng, *args, **kwargs)
             if gpu_path:
                 eng._host = False
-                eng._mv_view = None
+                eng.solver._mv_view = None
             spy.engines.append(eng)
             spy.at_init = (eng.t.n_d2h, eng.t.n_h2d)
             spy.on = True

@@ -119,9 +119,9 @@ def test_ldsift_thickness_column(sphere):
     assert c.signatures(mesh).shape == (mesh.n_vertices, 128)
     # cached piece by piece: the descriptor under the key it has without the column, so every weight shares it
     assert sig(sig.Options(thickness=2.0)).pieces()["descriptor"] == sig().params() == sig().pieces()["descriptor"]
-    assert len(c.signature_cache) == 2  # the descriptor and the thickness, not one entry per weight
+    assert len(c.source.signature_cache) == 2  # the descriptor and the thickness, not one entry per weight
     half = c.with_options(ldsift_thickness=0.5).signatures(mesh)
-    assert len(c.signature_cache) == 2 and not half.flags.writeable
+    assert len(c.source.signature_cache) == 2 and not half.flags.writeable
     np.testing.assert_array_equal(half, sig(sig.Options(thickness=0.5))(mesh))
     with pytest.raises(ValueError, match="'descriptor' and 'thickness'"):
         sig().compute_pieces(mesh, ["signature"])

@@ -15,18 +15,20 @@ linear least squares in its k² entries over four terms, each zero for an exact 
   This is the term that tells left from right: WKS and the other three terms are intrinsic, so they are
   satisfied as well by the map composed with a left/right symmetry, whereas a mirror map turns the
   orientation operator around (``C O_B^f = −O_A^f C``). It needs both surfaces consistently wound with
-  a readable outside (`wpot.maps.orientation.winding`); the normals are taken outward on both.
+  a readable outside (`wpot.mesh.winding`); the normals are taken outward on both.
 
 Each operator pair (and the descriptor coefficients) is scaled to a unit mean Frobenius norm, so the weights
 are relative and independent of the meshes' size and sampling; the defaults (k = 30, 50 WKS descriptors,
-weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart, which scores 0.865 on the TOSCA test pairs (see the
-README's correspondence rows). The point map of C is read as in ZoomOut (`point_map`).
+weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart (its scores on the TOSCA test pairs: the docs'
+Results page, correspondence). The point map of C is read as in ZoomOut (`point_map`).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from wpot.mesh import Mesh
+from wpot.cost import nearest_rows
+from wpot.mesh import Mesh, winding
+from wpot.spectral import laplace_beltrami
 
 __all__ = ["SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS"]
 
@@ -34,31 +36,8 @@ __all__ = ["SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_D
 FMAP_K = 30
 #: default number of WKS descriptors (every second one of a 2x finer grid, as pyfmaps does)
 FMAP_DESCRIPTORS = 50
-#: rows of A per block of the brute-force nearest-neighbour search (a block holds rows x N_B distances)
-_BLOCK = 1024
 #: faces per block of the orientation operators' per-face products (a block holds faces x m x k floats)
 _FACE_BLOCK = 4096
-
-
-def nearest_rows(queries: np.ndarray, points: np.ndarray, *, dtype: type = np.float32, block: int = _BLOCK
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """For each row of ``queries`` (N, k), the nearest row of ``points`` (M, k) in Euclidean distance.
-
-    Returns ((N,) int64 indices, (N,) squared distances in ``dtype``). Brute force by blocks of ``block`` rows
-    of BLAS products, ``|q|² + |p|² − 2 q·p``; float32 by default (twice as fast; a k-d tree is slow in the
-    30-100 dimensions used here), the distances then good to about 1e-6 of the rows' squared norms."""
-    pts = np.ascontiguousarray(points, dtype=dtype)
-    pp = np.einsum("ij,ij->i", pts, pts)
-    qs = np.ascontiguousarray(queries, dtype=dtype)
-    out = np.empty(len(qs), dtype=np.int64)
-    best = np.empty(len(qs), dtype=dtype)
-    for s in range(0, len(qs), int(block)):
-        q = qs[s:s + int(block)]
-        d = pp[None, :] - 2.0 * (q @ pts.T)  # |q|^2, constant per row, added below
-        j = np.argmin(d, axis=1)
-        out[s:s + len(q)] = j
-        best[s:s + len(q)] = np.maximum(d[np.arange(len(q)), j] + np.einsum("ij,ij->i", q, q), 0)
-    return out, best
 
 
 def point_map(phi_a: np.ndarray, phi_b: np.ndarray, fmap: np.ndarray) -> np.ndarray:
@@ -92,7 +71,7 @@ class SpectralOperators:
 
     Parameters
     ----------
-    mesh : the shape: one connected surface, consistently wound (`wpot.maps.orientation.winding` ≠ 0) when the
+    mesh : the shape: one connected surface, consistently wound (`wpot.mesh.winding` ≠ 0) when the
         orientation operators are asked for
     spectrum : its `wpot.Spectrum` (area-normalized eigenpairs, at least k)
     k : spectral resolution
@@ -105,7 +84,6 @@ class SpectralOperators:
     """
 
     def __init__(self, mesh: Mesh, spectrum, k: int) -> None:
-        from wpot.spectral import laplace_beltrami
 
         if spectrum.evecs.shape[1] < k:
             raise ValueError(f"the spectrum has {spectrum.evecs.shape[1]} eigenpairs, fewer than k={k}")
@@ -130,8 +108,6 @@ class SpectralOperators:
         """(m, k, k): for each function f of ``values`` (N, m), the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis,
         with n the outward normal (per face, integrated over the faces: each face gives a third of its area to
         each corner). Raises ValueError on a mesh whose outside cannot be read."""
-        from wpot.maps.orientation import winding
-
         mesh = self.mesh
         if self._grad_phi is None:
             side = winding(mesh)

@@ -24,13 +24,13 @@ geodesic distances to choose among them and to fill in the map:
    left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
    (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
    sides of the part apart. Three candidates: (a) the stretches that reverse orientation sent through the
-   whole's left/right symmetry (`wpot.maps.orientation.keep_orientation` with ``symmetry_of="b"``); (b) the map
+   whole's left/right symmetry (`wpot.maps.symmetry.keep_orientation` with ``symmetry_of="b"``); (b) the map
    *unfolded*: redrawn (``n_rounds`` times) from the anchors where it keeps orientation
    (`wpot.maps.orientation.local_orientation` > 0), then once from all of them; (c) the mirror image of the map
    through the whole's symmetry, unfolded the same way. Orientation alone does not choose the side: a limb
    mapped onto the other limb and unfolded keeps orientation too. LD-SIFT does, as it is not mirror-invariant:
-   on the ground truth of the development benchmark (`benchmarks/partial_poses.py`, 224 part-to-pose pairs)
-   the true side's mean signature cost was below the mirror side's in 222 pairs, by 14 % (median). So of the
+   on the ground truth of the development benchmark (`benchmarks/partial_poses.py`) the true side's mean
+   signature cost was below the mirror side's in nearly every pair (the docs' Results page). So of the
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
    kept. A whole whose symmetry is not detected gets (a) and (b) only.
 
@@ -42,10 +42,9 @@ vertices and the gaps between them).
 Assumptions: the part and the whole are at the same scale (a part of the same object or of a same-size one);
 geodesics inside the part are those of the whole, which holes or a cut across a narrow neck bend (the
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
-per anchor and per distinct candidate (about 2 ms each at 5,000 vertices), and a nearest-neighbour search in
-``n_refine`` dimensions; about 1–2 s for a 5,000-vertex whole, plus, the first time a whole is met, its
-symmetry for step 4 (`wpot.maps.orientation.reflection_symmetry`: about 3 s, then cached). The README's
-partial-correspondence row has the measured effect.
+per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine`` dimensions, plus, the
+first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached).
+Timings and accuracy: the docs' Results page (Parts across poses).
 """
 from __future__ import annotations
 
@@ -57,6 +56,11 @@ from numpy.typing import ArrayLike
 
 from wpot import _validate
 from wpot.mesh import Mesh
+from wpot.cost import cost_matrix, nearest_rows, paired_costs
+from wpot.evaluate import GeodesicDistances
+from wpot.maps.orientation import local_orientation, orientation_score
+from wpot.maps.symmetry import keep_orientation, reflection_symmetry
+from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning"]
 
@@ -117,17 +121,15 @@ class PartMap:
         wrong, which raises it everywhere)
     confidence : (N_P,) float64 in [0, 1], ``exp(−residual / tol) · (1 + o) / 2`` with o the map's orientation
         score around the vertex (`wpot.maps.orientation.local_orientation`: 1 where the map keeps orientation, −1
-        where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust. On the
-        development pairs (`benchmarks/partial_poses.py`) the more confident half of each pair's points was
-        0.080 √area off and the other 0.117; over all pairs' points pooled, 0.031 and 0.142
+        where it is mirrored or folded, 0 where it cannot be read): ranks the matches by trust (on the
+        development pairs the more confident points are the more accurate; the docs' Results page)
     image_distance : (N_W,) float64, per vertex of the whole the distance along its edges to the nearest image
         of a vertex of the part, over √area(whole) (0 on the images)
     cost : the mean signature cost between each vertex of the part and its image (`wpot.cost.paired_costs`).
-        As a distance for retrieval, on the development benchmark (all eight classes), the pose of the part's
-        own class was nearer than every other class's whole for 80 % of part-to-pose pairs by this cost,
-        against 57 % by the partial transport's distance (Eq. 27), 66 % by the mean residual, and 88 % by the
-        mean distance from each vertex's signature to the nearest signature of the whole (no map at all;
-        `Comparer.nearest_signature_distance`)
+        As a distance for retrieval on the development benchmark it ranks the part's own class better than the
+        partial transport's distance (Eq. 27) or the mean residual, and worse than the mean distance from each
+        vertex's signature to the nearest signature of the whole (no map at all;
+        `Comparer.nearest_signature_distance`); the docs' Results page has the figures
     anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
     orientation : the final map's `wpot.maps.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`
@@ -155,7 +157,6 @@ class PartMap:
 
 
 def _geodesics(mesh: Mesh):
-    from wpot.evaluate import GeodesicDistances
 
     return GeodesicDistances(mesh)
 
@@ -163,7 +164,6 @@ def _geodesics(mesh: Mesh):
 def _candidates(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
                 device: str | None) -> np.ndarray:
     """(A, k) the vertices of the whole with the nearest signatures to each anchor, nearest first."""
-    from wpot.cost import cost_matrix
 
     c = np.asarray(cost_matrix(sig_part[anchors], sig_whole, metric=metric, device=device))
     k = min(k, c.shape[1])
@@ -228,14 +228,12 @@ class _Redraw:
     def dense(self, from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``: (N_P,) int64."""
-        from wpot.maps.fmap import nearest_rows
 
         return nearest_rows(_distances(self.g_part, from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
         current images."""
-        from wpot.maps.fmap import nearest_rows
 
         k = np.ones(len(self.src), dtype=bool) if keep is None else keep
         for _ in range(n):
@@ -245,7 +243,6 @@ class _Redraw:
     def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
         """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation, then once from
         all of them."""
-        from wpot.maps.orientation import local_orientation
 
         for _ in range(n):
             keep = np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0
@@ -258,7 +255,6 @@ class _Redraw:
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarray, float, float]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
     score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
-    from wpot.maps.orientation import keep_orientation, orientation_score, reflection_symmetry
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -297,9 +293,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     `PartMap`. Warns (`LocateWarning`) when fewer than 3 consistent matches are found: the map is then
     unreliable, as its residuals say.
     """
-    from wpot.cost import paired_costs
-    from wpot.maps.orientation import local_orientation, orientation_score
-    from wpot.sampling import farthest_point_sampling
 
     for name, m in (("part", part), ("whole", whole)):
         if not isinstance(m, Mesh):

@@ -2,7 +2,8 @@
 
 * `fit_similarity` is the exact weighted least-squares fit (Umeyama 1991). Every pair pulls on it, so the
   wrong matches of a correspondence (pairs that point across the shape) shrink the scale toward the two
-  centroids: on the demo (one surface, B only rigidly moved) it gives a scale of 0.79.
+  centroids: on the demo (one surface, B only rigidly moved) its scale falls well short of 1 (the docs'
+  Results page: Registration).
 * `fit_similarity_robust` is the fit `wpot.Comparer` stores: least median of squares over minimal 3-pair
   samples, then least squares over the pairs it finds consistent (the inliers); wrong matches, up to
   about half of the pairs, do not pull on it.
@@ -22,6 +23,7 @@ from itertools import combinations
 from math import comb
 
 import numpy as np
+from scipy.stats import chi2
 from numpy.typing import ArrayLike
 
 from wpot.mesh import Mesh
@@ -238,9 +240,9 @@ def area_scale(mesh_a: Mesh, mesh_b: Mesh, mask_a: ArrayLike | None = None, mask
     vertex masks (None: the whole mesh; a vertex stands for its `Mesh.vertex_areas`).
 
     Between two poses of one body the scale of a similarity fitted to corresponding points is not their size
-    ratio: a least-squares fit shrinks with the pose change (0.73-1.02 on ten same-size TOSCA pairs fitted to
-    their true correspondence), a fit of the points' spread (Horn's symmetric scale) follows it (0.86-1.08),
-    while sqrt(area ratio) is 0.99-1.03 there. Raises ValueError when a region has no area."""
+    ratio: a least-squares fit shrinks with the pose change (even on same-size TOSCA pairs fitted to their true
+    correspondence), a fit of the points' spread (Horn's symmetric scale) follows it, while sqrt(area ratio)
+    stays close to 1 there (the docs' Results page: Registration). Raises ValueError when a region has no area."""
     out = []
     for name, mesh, mask in (("A", mesh_a, mask_a), ("B", mesh_b, mask_b)):
         va = mesh.vertex_areas
@@ -285,20 +287,18 @@ def fit_similarity_robust(
 
     ``confidence`` is 0.9 (``|r|² ≤ 6.25 σ²``), not the 0.99 that Gaussian noise would suggest: between two
     poses of a body the residuals of correct pairs have no clean Gaussian core, and wrong matches that stay
-    near the surface (left/right mirrored ones) sit in their tail. Scale on the demo / TOSCA cat0-cat1 /
-    horse0-horse5 (rotation error on the demo): 0.990 (0.39°) / 0.866 / 0.775 at 0.99; 0.994 (0.75°) / 0.900 /
-    0.831 at 0.9; 0.996 (1.46°) / 0.915 / 0.863 at 0.75; least squares 0.794 (1.84°) / 0.713 / 0.596
-    (`benchmarks/registration.py`).
+    near the surface (left/right mirrored ones) sit in their tail (`benchmarks/registration.py` compares the
+    cutoffs; the docs' Results page has its figures).
 
     Why this and not IRLS with a Tukey or Cauchy loss: IRLS starts from the least-squares fit, which the wrong
-    matches have already pulled in (scale 0.7-0.8 on the demo and on TOSCA), and from there a redescending loss
+    matches have already pulled in (its scale well below the true one on the demo and on TOSCA), and from there a redescending loss
     can settle on that wrong minimum; a minimal-sample search needs no starting point. Why the median and
     not RANSAC's inlier count: the count needs a threshold in mesh units, the median does not. The final step
     is least squares, so with exact pairs among gross outliers the transform is recovered exactly.
 
     Deterministic: the samples come from ``numpy.random.default_rng(seed)``, drawn from the pairs in an
     order that depends only on their distances to the weighted centroids (so relabelling the pairs or moving
-    either point set rigidly gives the same samples). Cost: O(n_samples · n) (about 0.1 s for 5,000 pairs).
+    either point set rigidly gives the same samples). Cost: O(n_samples · n).
 
     Parameters
     ----------
@@ -338,15 +338,37 @@ def fit_similarity_robust(
             raise ValueError(f"{name} must be in (0, 1), got {v!r}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
         raise ValueError(f"n_samples must be a positive integer, got {n_samples!r}")
-    n = len(p)
     wn = w / w.sum()
-    # a canonical order of the pairs, invariant to relabelling and to rigid motions (and scalings) of either set
+    fitted = _canonical_positive(p, q, w, wn)  # the median is taken over the pairs that carry weight
+    k = min(len(fitted) - 1, max(0, int(np.ceil(quantile * len(fitted))) - 1))
+    cur = _least_median_fit(p, q, w, fitted, k, int(n_samples), seed, with_scale)
+    inl, cur = _inlier_refit(p, q, w, wn, fitted, k, cur, with_scale, float(chi2.ppf(quantile, 3)),
+                             float(chi2.ppf(confidence, 3)))
+    r2 = _sq_residuals(p, q, *cur)
+    wi = w * inl
+    rms = float(np.sqrt((wi @ r2) / wi.sum())) if wi.sum() > 0 else float("nan")
+    inl = inl.copy()
+    inl.setflags(write=False)
+    return Registration(cur[0], cur[1], cur[2], rms, len(p), n_inliers=int(inl.sum()), inliers=inl,
+                        method="robust")
+
+
+def _canonical_positive(p: np.ndarray, q: np.ndarray, w: np.ndarray, wn: np.ndarray) -> np.ndarray:
+    """The pairs of positive weight, in a canonical order invariant to relabelling and to rigid motions (and
+    scalings) of either point set: by distance to the weighted centroids."""
     rp = np.linalg.norm(p - wn @ p, axis=1)
     rq = np.linalg.norm(q - wn @ q, axis=1)
     order = np.lexsort((w, rq / max(rq.max(), np.finfo(float).tiny), rp / max(rp.max(), np.finfo(float).tiny)))
-    positive = order[w[order] > 0]
+    return order[w[order] > 0]
+
+
+def _least_median_fit(p: np.ndarray, q: np.ndarray, w: np.ndarray, fitted: np.ndarray, k: int, n_samples: int,
+                      seed: int, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """Steps 1-2 of `fit_similarity_robust`: of the exact fits to ``n_samples`` random triples of the ``fitted``
+    pairs, the one whose k-th smallest squared residual over those pairs is least: (scale, rotation (3, 3),
+    translation (3,))."""
     rng = np.random.default_rng(seed)
-    tri = _triples(positive, w[positive] / w[positive].sum(), int(n_samples), rng)
+    tri = _triples(fitted, w[fitted] / w[fitted].sum(), n_samples, rng)
     if len(tri) == 0:
         raise ValueError("no triple of distinct pairs with positive weight could be sampled")
     scale, rot, trans, ok = _minimal_fits(p[tri], q[tri], with_scale)
@@ -356,11 +378,6 @@ def fit_similarity_robust(
             "(numerically) collinear or coincident, or the pairs are inconsistent"
         )
     scale, rot, trans = scale[ok], rot[ok], trans[ok]
-    fitted = positive  # the median is taken over the pairs that carry weight
-    k = min(len(fitted) - 1, max(0, int(np.ceil(quantile * len(fitted))) - 1))
-    from scipy.stats import chi2  # |r|²/σ² ~ χ²₃ for a correct pair with isotropic Gaussian noise σ
-
-    chi2_q, chi2_cut = float(chi2.ppf(quantile, 3)), float(chi2.ppf(confidence, 3))
     best, best_med = -1, np.inf
     for s in range(0, len(scale), _BLOCK):
         sl = slice(s, s + _BLOCK)
@@ -369,7 +386,14 @@ def fit_similarity_robust(
         i = int(np.argmin(med))
         if med[i] < best_med:
             best, best_med = s + i, float(med[i])
-    cur = float(scale[best]), rot[best], trans[best]
+    return float(scale[best]), rot[best], trans[best]
+
+
+def _inlier_refit(p: np.ndarray, q: np.ndarray, w: np.ndarray, wn: np.ndarray, fitted: np.ndarray, k: int,
+                  cur: tuple, with_scale: bool, chi2_q: float, chi2_cut: float) -> tuple[np.ndarray, tuple]:
+    """Step 3 of `fit_similarity_robust`: σ from the k-th smallest squared residual (``|r|²/σ² ~ χ²₃``: ``chi2_q``
+    is the χ²₃ quantile of that order), the inliers below ``chi2_cut`` σ², least squares on them, until the
+    inliers are fixed (at most 20 times). Returns (inliers (n,) bool, the transform)."""
     # a floor for σ, so that exact pairs (residuals of rounding size) are inliers
     size = float(np.sqrt(wn @ np.einsum("ij,ij->i", q - wn @ q, q - wn @ q)))
     floor2 = (1e-9 * max(size, np.finfo(float).tiny)) ** 2
@@ -389,9 +413,4 @@ def fit_similarity_robust(
         inl, cur = new, fit
     if inl is None:  # the minimal fit's own inliers were degenerate: keep that fit and its inliers
         inl = new
-    r2 = _sq_residuals(p, q, *cur)
-    wi = w * inl
-    rms = float(np.sqrt((wi @ r2) / wi.sum())) if wi.sum() > 0 else float("nan")
-    inl = inl.copy()
-    inl.setflags(write=False)
-    return Registration(cur[0], cur[1], cur[2], rms, n, n_inliers=int(inl.sum()), inliers=inl, method="robust")
+    return inl, cur

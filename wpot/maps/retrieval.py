@@ -18,10 +18,10 @@ away from them:
    score is the mean of these costs over the part's vertices; the smallest score ranks first. ``k_nearest``
    stays small because a class with more members would otherwise gain from its size alone.
 
-Measured with LD-SIFT and its thickness column at w = 2 (`benchmarks/part_retrieval.py`: parts cut from TOSCA
-5k poses, each against the 75 other shapes): top-1 99.1 / 99.1 / 97.7 % on three part sets (112, 112 and 217
-parts), against 97.3 / 98.2 / 96.8 % by the nearest whole's class from the same costs; every part of >= 20 % of
-the area right. Each step alone gained less (README, "Parts looked up in a library").
+With LD-SIFT and its thickness column at w = 2 (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k
+poses, each against the 75 other shapes) the two steps together rank the true class first more often than the
+nearest whole's class from the same costs, on each of three part sets, and each step alone gains less (the
+docs' Results page: Parts looked up in a library of whole shapes).
 """
 from __future__ import annotations
 
@@ -80,9 +80,9 @@ class ClassRanking:
 
     @property
     def margin(self) -> float:
-        """The second class's score less the first's (inf with one class): how sure the ranking is. On the
-        TOSCA 5k part sets (`benchmarks/part_retrieval.py`, 441 parts) every miss had a margin under 0.12 and
-        lay in the tenth of the parts with the smallest margins; the other nine tenths were all right."""
+        """The second class's score less the first's (inf with one class): how sure the ranking is: on the
+        TOSCA 5k part sets (`benchmarks/part_retrieval.py`) the misses lay among the parts with the smallest
+        margins (the docs' Results page)."""
         return float(self.scores[1] - self.scores[0]) if len(self.scores) > 1 else float("inf")
 
     def rank(self, label: str) -> int:
@@ -120,6 +120,9 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalO
                          f"{len(labels)}")
     if not np.isfinite(c).all():
         raise ValueError("costs must be finite")
+    if len(set(labels)) < 2:
+        raise ValueError(f"labels name one class ({labels[0]!r}): a ranking needs a library of at least two "
+                         "classes (a part's class cannot be told from a library that holds one)")
     whole_costs = c.mean(axis=0)
     z = c
     if o.standardize:

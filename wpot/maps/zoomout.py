@@ -2,7 +2,7 @@
 
 The paper's correspondence (§4.1.3: each vertex of A goes to the vertex of B with the largest plan entry in
 its row) is a vertex-by-vertex choice: nothing makes neighbouring vertices land near each other, and on the
-TOSCA test pairs it scores an AUC of about 0.50 where functional maps score 0.87. ZoomOut is the standard
+TOSCA test pairs it scores a far lower AUC than functional maps (the docs' Results page). ZoomOut is the standard
 post-processing of such maps. It needs no descriptor: it alternates, at growing spectral resolution k,
 
 1. the functional map of the current point map, ``C_k = Φ_A,kᵀ M_A Φ_B,k[T]`` (k × k; it carries the
@@ -17,7 +17,7 @@ signatures has already computed them.
 Meshes with several connected components (scans often have some): the Laplace–Beltrami operator is then
 block diagonal, one block per component, and the eigenvalue 0 repeats once per component. Taking the first k
 eigenpairs of the whole mesh fails twice: a k at or below the component count embeds every vertex of a
-component at one point (on a scan of 11 components, k_start 10 sent 14,174 vertices onto 3), and a small
+component at one point (on a scan, most of its vertices onto a few), and a small
 component's eigenvalues (area-normalized over the whole mesh) come so late that it gets no non-constant
 eigenfunction before k_end and collapses at every k. So `zoomout` refines each component of A on its own: it
 goes to the component of B that most of its vertices map to, and ZoomOut runs between the two components
@@ -35,7 +35,7 @@ the one that stretches the surface least is returned (a limb sent onto the other
 orientation, but tears the map at its root):
 
 1. the given map, refined; the parts found mirrored are sent through the shape's left/right symmetry and
-   refined again (`wpot.maps.orientation.keep_orientation`);
+   refined again (`wpot.maps.symmetry.keep_orientation`);
 2. the point map of a functional map fitted from WKS descriptors with an orientation-aware term
    (`wpot.maps.fmap`, k = 30), refined from k = 30. It does not use the given map, so it also rescues a map that
    is wrong beyond mirroring; the given map wins where the descriptors alone mislead.
@@ -43,74 +43,48 @@ orientation, but tears the map at its root):
 Both are refined to k = `ZOOMOUT_K_SELECT` and compared there; the chosen one goes on to k_end.
 
 Each candidate's rounds before the last map only ``samples`` farthest-point samples of each mesh onto each
-other (the functional map fitted to them by least squares); the last resolution maps every vertex. The README's
-correspondence table has the measured effect of both.
+other (the functional map fitted to them by least squares); the last resolution maps every vertex. The docs'
+Results page (Correspondence) has the effect of both.
 """
 from __future__ import annotations
-
-from functools import lru_cache
-from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot._validate import boolean, vertex_map
-from wpot.maps.fmap import point_map
-from wpot.mesh import Mesh
+from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, SpectralOperators, functional_map, point_map
+from wpot.maps.orientation import orientation_score
+from wpot.maps.symmetry import keep_orientation
+from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
+from wpot.mesh import Mesh, winding
+from wpot.signatures import wks
+from wpot.signatures._wks import wks_energies
 
 __all__ = ["zoomout", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_K_SELECT", "ZOOMOUT_SAMPLES",
            "ORIENTATION_TIE"]
 
-#: the most eigenpairs `spectrum_size` gives a mesh: the WKS default, so that on meshes of 5,000 vertices and
-#: more the spectrum a WKS comparison computed (and cached) serves
-ZOOMOUT_N_EIGEN = 500
-#: the fewest (the vertex count when smaller)
-ZOOMOUT_MIN_EIGEN = 100
-#: default largest spectral resolution (fewer when fewer eigenpairs are available). On 8 TOSCA test pairs, plain
-#: ZoomOut from the plan's map: AUC 0.716 for k = 10..100 by 5, 0.699 by 2, 0.722 to 150, 0.672 from 20, 0.621
-#: from 4 by 4. Refining the oriented map chosen at `ZOOMOUT_K_SELECT` on to 200 instead of stopping there gains
-#: 0.008 in AUC on 60 TOSCA test pairs (to 150: 0.006), for about 1.2 s more a pair (the README's correspondence
-#: rows)
+#: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..100 by
+#: 5, then on to 200) was chosen on TOSCA test pairs: a finer step or another start scored lower, and refining the
+#: oriented map chosen at `ZOOMOUT_K_SELECT` on to 200 instead of stopping there gains a little AUC for a little
+#: more time a pair (the docs' Results page)
 ZOOMOUT_K_END = 200
 #: with ``orient``, the resolution to which `zoomout`'s candidates are refined and at which one is chosen
 #: (the chosen one then goes on to k_end): the orientation and stretch scores were tuned there, and refining
 #: one map instead of three beyond it keeps the cost of the higher resolutions down
 ZOOMOUT_K_SELECT = 100
 #: orientation scores within this of the best count as a tie between `zoomout`'s candidates, which the
-#: stretch then decides: good maps of one TOSCA pair score 0.5-0.8, a map mirrored on a limb or half the body
-#: (its score pulled towards 0 or below) is more than this behind
+#: stretch then decides: good maps of one TOSCA pair spread over a range of scores, and a map mirrored on a
+#: limb or half the body (its score pulled towards 0 or below) falls more than this behind (the docs' Results
+#: page)
 ORIENTATION_TIE = 0.15
-#: default vertices per mesh in the rounds before the last (farthest-point samples; the last round maps every
-#: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round at a third of the time
-#: (the README's correspondence rows)
-ZOOMOUT_SAMPLES = 2000
-
-
-def spectrum_size(n_vertices: int) -> int:
-    """Eigenpairs that `zoomout` and `wpot.maps.orientation.reflection_symmetry` read for a mesh of ``n_vertices``:
-    a tenth of the vertices, at least `ZOOMOUT_MIN_EIGEN` and at most `ZOOMOUT_N_EIGEN` (never more than the
-    vertices). An eigenfunction beyond about N/10 has a wavelength of a few edges, which the mesh resolves
-    poorly: on meshes of about 800 vertices, WKS descriptors from 500 eigenpairs lose the left/right symmetry
-    that 100 find. The count depends on the mesh alone, never on what a cache holds, so results do not depend
-    on which comparisons ran before."""
-    n = int(n_vertices)
-    return min(n, max(ZOOMOUT_MIN_EIGEN, min(ZOOMOUT_N_EIGEN, n // 10)))
-
-
-def _positive_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
 def zoomout(
     mesh_a: Mesh,
     mesh_b: Mesh,
     correspondence: ArrayLike,
     *,
-    k_start: int = 10,
+    k_start: int = ZOOMOUT_K_START,
     k_end: int | None = None,
-    step: int = 5,
+    step: int = ZOOMOUT_STEP,
     n_eigen: int | None = None,
     orient: bool = True,
     samples: int | None = ZOOMOUT_SAMPLES,
@@ -131,7 +105,7 @@ def zoomout(
         and go on to k_end with the one that, of those oriented about as well as the better one, stretches the
         surface least (the module docstring). The candidates: the given map, with the parts
         where it reverses orientation (`wpot.maps.orientation.local_orientation`) sent through A's left/right
-        symmetry (or B's; `wpot.maps.orientation.keep_orientation`), and the map of an orientation-aware functional
+        symmetry (or B's; `wpot.maps.symmetry.keep_orientation`), and the map of an orientation-aware functional
         map fitted from WKS descriptors (`wpot.maps.fmap`; only for two connected surfaces with a readable outside).
         False: the plain ZoomOut of the given map, which settles on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
@@ -149,46 +123,33 @@ def zoomout(
     for name, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
         if not isinstance(m, Mesh):
             raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
-    k_start = _positive_int(k_start, "k_start")
-    step = _positive_int(step, "step")
+    k_start = positive_int(k_start, "k_start")
+    step = positive_int(step, "step")
     t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
     n_avail = min(mesh_a.n_vertices, mesh_b.n_vertices)
     if n_eigen is not None:
-        n_eigen = _positive_int(n_eigen, "n_eigen")
+        n_eigen = positive_int(n_eigen, "n_eigen")
         if n_eigen > n_avail:
             raise ValueError(f"n_eigen={n_eigen} exceeds the smaller mesh's {n_avail} vertices")
     k_max = n_eigen if n_eigen is not None else spectrum_size(n_avail)
-    k_end = min(ZOOMOUT_K_END, k_max) if k_end is None else _positive_int(k_end, "k_end")
+    k_end = min(ZOOMOUT_K_END, k_max) if k_end is None else positive_int(k_end, "k_end")
     if k_start > k_end:
         raise ValueError(f"k_start must be <= k_end, got k_start={k_start}, k_end={k_end}")
     if k_end > k_max:
         raise ValueError(f"k_end={k_end} exceeds the {k_max} eigenpairs available (n_eigen={n_eigen}; meshes of "
                          f"{mesh_a.n_vertices} and {mesh_b.n_vertices} vertices); lower k_end")
     orient = boolean("orient", orient)
-    samples = None if samples is None else _positive_int(samples, "samples")
+    samples = None if samples is None else positive_int(samples, "samples")
 
-    @lru_cache(maxsize=8)  # each mesh is sampled once per call, whatever the candidates and components
-    def sample(mesh: Mesh) -> np.ndarray | None:
-        if samples is None or samples >= mesh.n_vertices:
-            return None
-        from wpot.sampling import farthest_point_sampling
-
-        return farthest_point_sampling(mesh, samples, metric="euclidean").indices
-
-    def refine(init: np.ndarray, k0: int, k1: int, dk: int) -> np.ndarray:
-        if mesh_a.n_components == 1 and mesh_b.n_components == 1:
-            return _zoom(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, sample=sample)
-        return _zoom_components(mesh_a, mesh_b, init, k0, k1, dk, n_eigen, sample)
+    refine = Refiner(mesh_a, mesh_b, n_eigen, samples)
 
     if not orient:
         return refine(t, k_start, k_end, step)
-    from wpot.maps.orientation import keep_orientation, orientation_score
-
     k_sel = min(k_end, max(k_start, ZOOMOUT_K_SELECT))
     out = refine(t, k_start, k_sel, step)
     # 1. the parts of the map found mirrored are sent through A's (or B's) symmetry, and ZoomOut runs again at
-    # half the rounds (step doubled) to mend the seams: nearly the full second run's accuracy for 60 % of its
-    # time (the README's correspondence table)
+    # half the rounds (step doubled) to mend the seams: nearly the full second run's accuracy in less time
+    # (the docs' Results page)
     out, score, _ = keep_orientation(mesh_a, mesh_b, out, refine=lambda init: refine(init, k_start, k_sel, 2 * step))
     # 2. a second candidate that does not depend on the given map: the functional map fitted with the
     # orientation term, refined from its resolution
@@ -217,16 +178,12 @@ def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int)
     """The point map (N_A,) of the functional map fitted from WKS descriptors with the orientation term
     (`wpot.maps.fmap`, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)), and that k; None when it cannot be fitted: a mesh of
     several components, or one whose outside cannot be read (an open or flat surface)."""
-    from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, SpectralOperators, functional_map
-    from wpot.maps.orientation import winding
-    from wpot.signatures import wks
-    from wpot.signatures._wks import wks_energies
 
     meshes = (mesh_a, mesh_b)
     if any(m.n_components != 1 or winding(m) == 0 for m in meshes):
         return None
     k = min(FMAP_K, k_end)
-    specs = [_spectrum(m, n_eigen) for m in meshes]
+    specs = [spectral_basis(m, n_eigen) for m in meshes]
     # scale-invariant WKS on one grid for both shapes, every second energy of a grid twice as fine (pyfmaps')
     grid = wks_energies(specs, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
     desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in specs]
@@ -234,84 +191,3 @@ def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int)
     return point_map(ops[0].phi, ops[1].phi, functional_map(*ops, *desc)), k
 
 
-def _spectrum(mesh: Mesh, n_eigen: int | None):
-    """The eigenpairs ZoomOut uses: ``n_eigen``, by default `spectrum_size`, from the spectrum cache when they
-    are there. Always that many, whatever else is cached (a larger cached spectrum would change the WKS
-    descriptors of `_oriented_start` and with them the map)."""
-    from wpot.spectral import eigenpairs
-
-    return eigenpairs(mesh, spectrum_size(mesh.n_vertices) if n_eigen is None else n_eigen)
-
-
-def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
-    ks = list(range(k_start, k_end + 1, step))
-    if ks[-1] != k_end:
-        ks.append(k_end)
-    return ks
-
-
-def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int, n_eigen: int | None,
-          valid: np.ndarray | None = None, sample: Callable[[Mesh], np.ndarray | None] | None = None
-          ) -> np.ndarray:
-    """ZoomOut between two connected meshes: t (N_A,) int64 → (N_A,) int64. ``valid`` (N_A,) bool, optional:
-    the vertices of A whose map enters the first functional map (the others' entries of t are ignored).
-    ``sample``: a mesh's sampled vertices (or None: every vertex); with both meshes sampled, the rounds before
-    the last map only the samples onto each other, and fit the functional map to them by least squares; the
-    last round maps every vertex with that fit, and once more with the fit to every vertex."""
-    from wpot.maps.fmap import SpectralOperators
-
-    ops_a, ops_b = (SpectralOperators(m, _spectrum(m, n_eigen), k_end) for m in (mesh_a, mesh_b))
-    phi_a, phi_b = ops_a.phi, ops_b.phi
-    ks = _schedule(k_start, k_end, step)
-    sa, sb = (None, None) if sample is None else (sample(mesh_a), sample(mesh_b))
-    if sa is not None and sb is not None and len(ks) > 1:
-        if valid is not None:
-            sa = sa[valid[sa]]
-        ts = t[sa]
-        for n, k in enumerate(ks):
-            fmap = np.linalg.lstsq(phi_a[sa, :k], phi_b[ts, :k], rcond=None)[0]
-            if n < len(ks) - 1:
-                ts = sb[point_map(phi_a[sa, :k], phi_b[sb, :k], fmap)]
-        t, ks, valid = point_map(phi_a, phi_b, fmap), ks[-1:], None
-    weighted_a = ops_a.pinv.T  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
-    first = weighted_a if valid is None else weighted_a * valid[:, None]
-    t = np.where(valid, t, 0) if valid is not None else t
-    for n, k in enumerate(ks):
-        fmap = (first if n == 0 else weighted_a)[:, :k].T @ phi_b[t, :k]  # (k, k): B's coefficients -> A's
-        t = point_map(phi_a[:, :k], phi_b[:, :k], fmap)
-    return t
-
-
-def _component(mesh: Mesh, labels: np.ndarray, c: int) -> tuple[Mesh, np.ndarray]:
-    """Component ``c`` of ``mesh`` as a mesh of its own, and its vertices' indices (n_c,) in ``mesh``."""
-    idx = np.nonzero(labels == c)[0]
-    local = np.full(mesh.n_vertices, -1, dtype=np.int64)
-    local[idx] = np.arange(idx.size)
-    return Mesh(mesh.vertices[idx], local[mesh.faces[labels[mesh.faces[:, 0]] == c]]), idx
-
-
-def _zoom_components(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int,
-                     n_eigen: int | None, sample: Callable[[Mesh], np.ndarray | None] | None = None) -> np.ndarray:
-    """ZoomOut component by component (see the module docstring): each component of A against the component of
-    B that most of its vertices map to."""
-    la, lb = mesh_a.component_labels, mesh_b.component_labels
-    out = t.copy()
-    parts_b: dict[int, tuple[Mesh, np.ndarray]] = {}
-    for ca in np.unique(la):
-        sub_a, ia = _component(mesh_a, la, int(ca))
-        cb = int(np.argmax(np.bincount(lb[t[ia]])))
-        if cb not in parts_b:
-            parts_b[cb] = _component(mesh_b, lb, cb)
-        sub_b, ib = parts_b[cb]
-        n_loc = min(ia.size, ib.size)
-        if n_loc < 3 or sub_a.n_faces == 0 or sub_b.n_faces == 0:
-            continue
-        local_b = np.full(mesh_b.n_vertices, -1, dtype=np.int64)
-        local_b[ib] = np.arange(ib.size)
-        t_loc = local_b[t[ia]]
-        # each component's own spectrum: `spectrum_size` of its vertices (the whole mesh's may be larger)
-        ke = min(k_end, spectrum_size(min(sub_a.n_vertices, sub_b.n_vertices)) if n_eigen is None
-                 else min(n_eigen, n_loc))
-        out[ia] = ib[_zoom(sub_a, sub_b, t_loc, min(k_start, ke), ke, step,
-                           None if n_eigen is None else min(n_eigen, n_loc), valid=t_loc >= 0, sample=sample)]
-    return out

@@ -1,8 +1,9 @@
 """Passes over a matrix-free Euclidean cost on the CPU through BLAS: the Gram matrix a block of rows at a time.
 
 Warp's CPU backend runs a kernel on one thread without SIMD, so a pass over C(k, l) = ||A(k) - B(l)||
-recomputed from D ~ 100 features costs ~100x a pass over a stored C. Almost all of that work is the inner
-products, which BLAS (NumPy's matmul, every core, SIMD) does ~20x faster. `GramBlocks` fills one block
+recomputed from D ~ 100 features costs on the order of D times a pass over a stored C. Almost all of that
+work is the inner products, which BLAS (NumPy's matmul, every core, SIMD) does many times faster (the docs'
+Results page). `GramBlocks` fills one block
 P(i, l) = A(k0 + i) . B(l) at a time; a Warp kernel then reads
 
     ||A(k) - B(l)||^2 = a2(k) + b2(l) - 2 P(i, l),   off by at most err (an(k) + bn(l))^2,

@@ -33,8 +33,8 @@ import wpot._warp  # noqa: F401  (quiet Warp start-up, shared by every module)
 from wpot.cost import pair_cost
 
 # no fused multiply-add (Warp's default on CUDA): the double-double sums below are error-free only when
-# each product is rounded on its own (fusing C * inv_scale into c + lam broke two_sum_err on an H100: row
-# sums of the plan 1.7e-7 off the marginals at high beta), and every kernel must round alike
+# each product is rounded on its own (fusing C * inv_scale into c + lam breaks two_sum_err: on a GPU the
+# plan's row sums drift off the marginals at high beta), and every kernel must round alike
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 f64 = wp.float64

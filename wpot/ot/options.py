@@ -24,18 +24,17 @@ NEWTON_LOOPS = ("host", "device")
 #: the device loop's preconditioners (see `SolverOptions.device_preconditioner`)
 DEVICE_PRECONDITIONERS = ("multilevel", "fsai")
 #: default relative change of U that stops the annealing (Algorithm 1). Since U(beta) - U* ~ N1 N2 /
-#: beta_n, the change over one step of 10 is ~9x the remaining gap: tol = 1e-6 leaves a gap ~1e-7 (measured
-#: <= 2e-7 relative to ot.emd on the tests' and benchmark's problems).
+#: beta_n, the change over one step of 10 is ~9x the remaining gap: tol = 1e-6 leaves a gap ~1e-7 (the gaps to
+#: ot.emd on the tests' and the benchmarks' problems: the docs' Results page).
 DEFAULT_TOL = 1e-6
 #: annealing also stops when |Delta U| <= atol * max C (needed when U* = 0, e.g. a shape against itself,
 #: where the relative change never falls)
 DEFAULT_ATOL = 1e-10
-#: weights kept per row and per column of W for the sparse preconditioner. Measured at N = 1000
-#: (benchmarks/ot_speed.py problem): 4 needs about as many CG iterations as 8 (508 vs 484 in all; 5 per
-#: solve at high beta) with half the LU fill (SuperLU time 42 vs 80 ms); 2 needs ~30% more
+#: weights kept per row and per column of W for the sparse preconditioner: 4 needs about as many CG iterations
+#: as 8 with half the LU fill, 2 needs more (benchmarks/ot_speed.py's problem; the docs' Results page)
 DEFAULT_TOPK = 4
 #: Newton iterations allowed per beta: the transition from a spread-out plan to a near-permutation takes
-#: the most (measured: 29 at N = 1000 and 50 at N = 3400 for the step of 10; 1-6 at the other betas)
+#: the most, a few tens of steps where the other betas take a few (the docs' Results page)
 DEFAULT_MAX_NEWTON = 100
 #: default number of plan entries kept per row in `OTResult.plan_top`
 DEFAULT_PLAN_TOPK = 8
@@ -65,7 +64,7 @@ class SolverOptions:
     Newton's method at each beta (Eq. 14-16 / 25-26)
     ------------------------------------------------
     max_newton : Newton iterations per beta (default 100: the beta where the plan turns from spread out
-        to a near-permutation takes the most, ~30-50 at N = 1000-3400).
+        to a near-permutation takes the most).
     newton_tol : stopping residual, sum of |marginal errors| / (2 total mass) (default 1e-11).
     linear_solver : "cg" (default: PCG on the Schur complement with a sparse preconditioner built from the
         ``topk`` largest weights per row and column of W, factorized by SuperLU and reused across Newton

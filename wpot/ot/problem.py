@@ -25,13 +25,12 @@ class FeatureCost:
     ``C(i, j) = metric(X[i], Y[j])`` is recomputed inside the solver's kernels and never stored, so memory
     is O((N1 + N2) D) instead of O(N1 N2). Pass it wherever a cost matrix is accepted
     (`solve_balanced`, `solve_partial`); results agree with passing ``cost_matrix(X, Y, metric=metric)``
-    (the same iterates: measured equal to the last bit). The price is time: every pass over C or over the
-    Hessian weights recomputes the D-term sums (a CG matvec, two of them). Measured on the single-threaded CPU
-    backend at D = 100, N = 1000-5000: an evaluation pass 15-25x and a matvec ~100x slower than in stored mode
-    (a whole annealing solve ~30x at N = 1000). The exact solver's passes over an ``"l2"`` cost on the CPU take
-    the inner products from BLAS instead (`wpot.ot.gram`, the same results): there the mode costs ~1.5x the
-    stored one (N = 10,000 in R^100: 20 s against 14 s). The mode is for GPUs and for sizes where C does not
-    fit in memory.
+    (the same iterates, equal to the last bit). The price is time: every pass over C or over the Hessian
+    weights recomputes the D-term sums (a CG matvec, two of them), so on the single-threaded CPU backend passes
+    and matvecs are one to two orders of magnitude slower than in stored mode. The exact solver's passes over an
+    ``"l2"`` cost on the CPU take the inner products from BLAS instead (`wpot.ot.gram`, the same results): there
+    the mode costs little more than the stored one. Timings: the docs' Results page. The mode is for GPUs and
+    for sizes where C does not fit in memory.
 
     Parameters
     ----------

@@ -9,8 +9,8 @@ the function forms `solve_balanced` / `solve_partial`.
 - "auto": "exact", balanced or partial.
 
 The annealing solvers record D(beta), the paper's distance along beta (every recorded beta is that beta's saddle
-point); "exact" records beta = infinity only, and is faster than the annealing: 3-30x for balanced transport
-(`benchmarks/ot_speed.py`), 50-180x for partial transport at full resolution (`benchmarks/table6.py`).
+point); "exact" records beta = infinity only, and is much faster than the annealing, for partial transport
+the most (`benchmarks/ot_speed.py`, `benchmarks/table6.py`; the docs' Results page).
 """
 from __future__ import annotations
 
@@ -39,10 +39,9 @@ _HOST_BYTES_PER_POINT_TOPK = 128
 #: copies, residuals, the Schur data, the CG recurrences: about 40 float64 vectors)
 _HOST_BYTES_PER_POINT = 64 * _F64
 #: the preconditioner's LU factor (SuperLU, `wpot.ot.anneal.linear`) is the one term whose size depends on the
-#: cost's structure: its fill grows with the intrinsic dimension of the points. Measured nonzeros per column
-#: (the largest over a solve, topk = 4): 30-40 for points on a 2-D manifold (a sphere: surfaces' signatures
-#: are such) at N = 500-2000; 206, 365, 679 at N = 1000, 2000, 4000 for points filling a 6-D cube; 297 at
-#: N = 1000 in 20-D; 327, 585 at N = 1000, 2000 in 100-D. The count follows the largest, N^1.85 nonzeros,
+#: cost's structure: its fill grows with the intrinsic dimension of the points (nonzeros per column, the
+#: largest over a solve at topk = 4, from points on a 2-D manifold, as surfaces' signatures are, to points
+#: filling 6-D to 100-D: the docs' Results page). The count follows the fastest growth seen, N^1.85 nonzeros,
 #: capped by the dense factor's N^2
 _FACTOR_EXPONENT = 1.85
 #: bytes per nonzero of the LU factor (its values and indices, and SuperLU's growing work space)
@@ -161,8 +160,8 @@ class AnnealSolver(_Solver):
         preconditioner's LU factor (grows like N^1.85 for high-dimensional points, the largest fill
         measured; see `_FACTOR_EXPONENT`), and per ``plan_topk`` entry for ``plan_top``.
 
-        The count bounds the peak RSS growth of CPU solves from above (the README's table gives both, measured
-        with glibc's mmap threshold fixed; with its default adaptive threshold the allocator may keep up to
+        The count bounds the peak RSS growth of CPU solves from above (the docs' Results page gives both, the
+        growth measured with glibc's mmap threshold fixed; with its default adaptive threshold the allocator may keep up to
         one more freed (N1, N2) array mapped). On a GPU it bounds the device's share; the returned plan's host
         copy comes on top, in host memory.
         """
@@ -183,7 +182,7 @@ class InteriorPointSolver(_Solver):
     at beta is the LP central point with G s = 1/beta) from the product plan to the first grid beta whose
     gap bound N1 N2 / beta is <= 1e-3 U; Algorithm 1 goes on from there (``history`` starts at that beta;
     ``n_newton`` / ``n_linear`` include the interior-point iterations). The same result at convergence, and
-    faster at N >= ~1000 (`benchmarks/ot_speed.py`). Balanced transport with a stored cost only: it keeps
+    faster (`benchmarks/ot_speed.py`; the docs' Results page). Balanced transport with a stored cost only: it keeps
     the primal plan and the reduced costs, two more (N1, N2) arrays (`wpot.ot.anneal.ipm`)."""
 
     name: ClassVar[str] = "ipm"
@@ -221,7 +220,7 @@ class ExactSolver(_Solver):
     on a sparse support that Warp pricing passes over all N1 N2 entries grow until none has a negative
     reduced cost; the last pass certifies the optimum. Stored cost or `FeatureCost`.
     ``history`` has the one beta = inf step (no D(beta) along the annealing); of the options it reads
-    ``tol``, ``atol`` (the certified gap), ``max_iter`` (pricing rounds; 3-7 are measured), ``dense_plan``,
+    ``tol``, ``atol`` (the certified gap), ``max_iter`` (pricing rounds; a few in practice), ``dense_plan``,
     ``plan_topk`` and ``verbose``."""
 
     name: ClassVar[str] = "exact"
@@ -343,8 +342,8 @@ def solve_partial(C, rho1=None, rho2=None, *, mass_penalty: float = 1.0, method:
     Parameters are those of `solve_balanced` (``C`` may be a `FeatureCost`; ``options`` and the keyword
     overrides of `SolverOptions`), with rho1 (N1,), rho2 (N2,) positive reference measures (default
     uniform; normalized to sum 1) instead of a, b. ``method``: "auto" (default) or "exact" (the QP, certified
-    over every entry; ``history`` holds beta = inf only; 50-180x faster than the annealing at 3,400 points a
-    side) or "anneal" (every grid beta solved and recorded; "ipm" is a ValueError, as for the solver).
+    over every entry; ``history`` holds beta = inf only; much faster than the annealing, see the docs' Results
+    page) or "anneal" (every grid beta solved and recorded; "ipm" is a ValueError, as for the solver).
 
     Returns OTResult with ``mass1``, ``mass2`` the plan's marginals (sum 1 together), ``cost`` the
     transport part sum C G, ``objective`` Eq. 17 (cost + penalty), ``free_energy`` Eq. 23 (= ``objective``

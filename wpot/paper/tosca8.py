@@ -54,8 +54,8 @@ def tosca8(folder: str | Path, *, per_class: int = TOSCA8_PER_CLASS, classes: Se
     Which six: the paper names the eight classes and says "six of each", not which six. Here each class
     contributes its ``per_class`` shapes with the *lowest shape numbers that exist* (``cat0`` ... ``cat5``,
     ``horse0, horse2`` ... ``horse6``: there is no ``horse1``). The rule needs no random seed, depends only on
-    the file names, and does not change if shapes with higher numbers are added; it is also the choice issue
-    20's first TOSCA8 measurements used. It is not claimed to be the paper's choice, which is why accuracies
+    the file names, and does not change if shapes with higher numbers are added; the TOSCA8 figures on the
+    docs' Results page use it. It is not claimed to be the paper's choice, which is why accuracies
     on TOSCA8 should also be reported over random draws of six from ``full`` (`tosca8_draws`). Centaur and
     seahorse have exactly six shapes in the low-resolution set, so only the other six classes vary. Two
     pairs of files hold the same mesh, victoria0 = victoria1 (both in the six) and victoria13 = victoria22:

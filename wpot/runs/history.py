@@ -7,6 +7,7 @@ every β for partial transport.
 from __future__ import annotations
 
 import numpy as np
+from wpot.ot import debiased
 
 __all__ = ["history_at", "debias_history"]
 
@@ -26,7 +27,6 @@ def history_at(h: np.ndarray, betas: np.ndarray) -> np.ndarray:
 def debias_history(h_ab: np.ndarray, h_aa: np.ndarray, h_bb: np.ndarray) -> np.ndarray:
     """SU_β (Eq. 27, `wpot.ot.debiased`) on the β grid of ``h_ab``; each self history is read at the same β
     (its last value after it converged, NaN before its first β)."""
-    from wpot.ot import debiased
 
     out = np.array(h_ab, dtype=np.float64, copy=True).reshape(-1, 2)
     if len(out) == 0:

@@ -14,6 +14,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from wpot.paper.table1 import PAPER_TABLE1
+from wpot.evaluate import format_percent, leave_one_out_levels, one_shot_1nn
+from wpot.plot import class_order, plot_confusion, plot_distance_matrix
+from wpot.runs.store import RunStore
+from wpot.signatures import SIGNATURES
 
 __all__ = ["RunNotReadyError", "build_report", "classify_run", "confusions", "loo_misses", "loo_scores",
            "loo_text", "misses_text", "pair_counts", "signature_title"]
@@ -24,7 +28,6 @@ class RunNotReadyError(ValueError):
 
 def signature_title(name: str | None) -> str:
     """The printed name of a registered signature ("WKS", "LD-SIFT"); the name itself if it is not registered."""
-    from wpot.signatures import SIGNATURES
 
     sig = SIGNATURES.get(name)
     return sig.title if sig is not None else str(name)
@@ -33,7 +36,6 @@ def signature_title(name: str | None) -> str:
 def confusions(one: Any, *, top: int = 3) -> list[str]:
     """One entry per class whose one-shot accuracy is below 100 %: its accuracy, then the (at most ``top``)
     classes it was taken for most often."""
-    from wpot.evaluate import format_percent
 
     out = []
     for a, cls in enumerate(one.classes):
@@ -70,8 +72,6 @@ def loo_scores(res: Any, labels: np.ndarray) -> dict[str, Any]:
 
 def loo_text(level: str, res: Any, labels: np.ndarray) -> str:
     """The line `wpot classify` prints for leave-one-out 1-NN at ``level`` (`loo_scores`)."""
-    from wpot.evaluate import format_percent
-
     s = loo_scores(res, labels)
     n = len(labels)
     if not s["scored"]:
@@ -113,7 +113,6 @@ def pair_counts(store) -> tuple[np.ndarray, int, int]:
 def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any]:
     """Table 1's one-shot 1-NN (level "class") and leave-one-out 1-NN at every label level, from D(∞),
     plus the one-shot accuracy from D(β) at every power of ten of β where every pair has a value."""
-    from wpot.evaluate import leave_one_out_levels, one_shot_1nn
 
     d, missing, not_converged = pair_counts(store)
     off = ~np.eye(len(d), dtype=bool)
@@ -138,8 +137,6 @@ def classify_run(store, *, trials: int = 10_000, seed: int = 0) -> dict[str, Any
 
 def _loo_cells(res: Any, labels: np.ndarray) -> str:
     """The measure's tail and the "ours" cell of a leave-one-out row of the report's table (`loo_scores`)."""
-    from wpot.evaluate import format_percent
-
     s = loo_scores(res, labels)
     if not s["scored"]:
         return "(one group) | not scored: every shape is in one group"
@@ -154,9 +151,6 @@ def _loo_cells(res: Any, labels: np.ndarray) -> str:
 def build_report(runs: Sequence[str | Path], out: str | Path | None = None, *, trials: int = 10_000, seed: int = 0) -> Path:
     """Write a Markdown report of one or more runs beside the paper's Table 1, with a distance-matrix and a
     confusion figure per run; returns the path written (default: ``report.md`` in the first run's folder)."""
-    from wpot.runs.store import RunStore
-    from wpot.evaluate import format_percent
-    from wpot.plot import class_order, plot_confusion, plot_distance_matrix
 
     sections: list[str] = []
     table1: dict[tuple[str, str], float] = {}

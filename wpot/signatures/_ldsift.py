@@ -24,25 +24,21 @@ For every vertex v of a mesh:
    sit. Everything here is relative to S(v), so any choice keeps scale invariance.
 
    * Against an unclipped camera at infinity (every surface counts, background = the image's lowest
-     height), a slab of t = 1 matched points better on TOSCA 5k pairs (300 sampled vertices, median rank
-     percentile of the true match by L2 cost, lower is better): cat0/cat1 0.198, michael0/michael1 0.081,
-     horse0/horse5 0.047, against 0.222, 0.098 and 0.091.
+     height), a slab of t = 1 matched points better on TOSCA 5k pairs (median rank percentile of the true
+     match by L2 cost).
    * Thinner slabs classify articulated shapes better: what lies farther from the tangent plane is mostly
      other parts of the body, which move with the pose (LD-SIFT distances between humans follow a pose-only
-     distance, see ``benchmarks/pose_sensitivity.py``). All 76 TOSCA 5k shapes, 200 cell-pooled samples,
-     balanced ``ot.emd``, 1-NN one-shot / leave-one-out (one-shot on the two halves of every class):
-     t = 2: 67.5 / 84.2 % (64.2 / 63.8); t = 1: 70.4 / 88.2 % (68.5 / 64.5); t = 0.75: 71.9 / 90.8 %;
-     t = 0.5: 74.1 / 89.5 % (70.8 / 70.7); t = 0.25: 75.5 / 90.8 % (72.0 / 74.2); t = 0.125: 75.0 /
-     92.1 % (71.5 / 72.3). With partial transport (`wpot all-vs-all`, κ = 0.01), t = 0.25 against 1:
-     one-shot 82.7 against 79.5 %, but leave-one-out 96.1 against 98.7 %. On HEAD (heads against full
-     shapes, 250 samples, no pooling) t = 0.25 puts 60 % of a head's mass on its true head against 57 %,
-     with the same retrieval (19/19). Pointwise matching is about the same from t = 0.25 to 1 (mean rank
-     percentile of the true match over 7 same-class TOSCA pairs 0.118, 0.117 and 0.123 at t = 0.25, 0.5, 1).
+     distance, see ``benchmarks/pose_sensitivity.py``). On TOSCA 5k, t = 0.25 raises one-shot 1-NN accuracy
+     over t = 1 with balanced and with partial transport (leave-one-out with partial transport drops a
+     little), puts a little more of a HEAD head's mass on its true head with the same retrieval, and matches
+     points about as well.
    * But on smooth shapes whose features are broader than the image, the thin slab loses them: on
-     `wpot.examples.example_partial` (a 40 % part of a generated blob, 300 samples, κ = 0.003) the part's
-     mass on its true region is 0.70, 0.81 and 0.72 at t = 0.25 against 0.82, 0.87 and 0.86 at t = 1
-     (seeds 0, 1, 2). Morphometric data (bones, teeth) are of that kind, so the default stays t = 1;
-     pass ``slab=0.25`` (``Comparer(ldsift_slab=0.25)``, CLI ``--ldsift-slab 0.25``) for articulated shapes.
+     `wpot.examples.example_partial` (a part of a generated blob) less of the part's mass lands on its true
+     region at t = 0.25 than at t = 1. Morphometric data (bones, teeth) are of that kind, so the default
+     stays t = 1; pass ``slab=0.25`` (``Comparer(ldsift_slab=0.25)``, CLI ``--ldsift-slab 0.25``) for
+     articulated shapes.
+
+   The figures behind these choices are on the docs' Results page (LD-SIFT: the depth slab).
 4. descriptor: OpenCV SIFT (`cv2.SIFT_create().compute`) at the centre pixel, for the keypoint angles 0
    and 180 degrees, averaged (the paper averages the image and its 180 degree rotation; a keypoint at
    angle 180 gives exactly the descriptor of the rotated image). The average is what makes the
@@ -57,40 +53,35 @@ The paper used VLFeat. A VLFeat frame ``(x, y, sigma, theta)`` corresponds to
 libraries use 4 x 4 spatial bins of width ``3 sigma`` (``magnif = 3``), so the descriptor window is
 ``12 sigma`` wide. We take ``sigma = R / 12`` (``size = R / 6``, 3.5 for R = 21), so the window covers the
 whole ``R x R`` image: the descriptor summarises the full ``2 S(v)`` square, as the paper's images do. The
-choice matters (size 2.0 instead of 3.5 changes the descriptor to cosine 0.92).
+choice matters: a smaller size changes the descriptor markedly.
 
 OpenCV is called once per image (two keypoints per call). A single call on a tiled image of all the
 depth images is not equivalent: per image, OpenCV skips the samples that fall outside the image and
-blurs with a reflected border, and no padding between tiles reproduces both (measured: descriptor
-differences up to 54 of 255 with reflected padding); it was not faster either (about 0.2 ms per image
-both ways). The per-image loop costs about 0.2 ms per vertex.
+blurs with a reflected border, and no padding between tiles reproduces both (reflected padding changes
+the descriptors), and the tiled call is no faster.
 
 `LDSIFT` is the registered signature (`wpot.signatures.base`): options K, resolution, slab, thickness (an optional
 size column, `wpot.signatures._thickness`); nothing to fit.
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from wpot._validate import integer_at_least, nonnegative_finite
 from wpot.mesh import Mesh
+from wpot.signatures._frames import MIN_NEIGHBOURS, LocalFrames, check_K, check_mesh, local_frames, positive_finite
+from wpot.signatures._thickness import VERSION as THICKNESS_VERSION
+from wpot.signatures._thickness import thickness
 from wpot.signatures.base import Signature, SignatureOptions, option, register_signature
 
 __all__ = ["VERSION", "LocalFrames", "local_frames", "ldsift", "ldsift_images", "sift_at_center", "keypoint_size", "to_slab",
            "MIN_NEIGHBOURS", "SLAB", "THICKNESS_UNIT", "LDSIFT", "LDSIFTOptions"]
 
-#: a vertex's covariance neighbourhood N(v) must hold at least this many vertices besides v itself;
-#: when the ball of radius S(v) holds fewer, it is grown to the MIN_NEIGHBOURS nearest vertices
 #: bumped whenever this module's output changes; part of the signature cache keys (`LDSIFT.params`)
 VERSION = 1
-MIN_NEIGHBOURS = 3
-#: the covariance counts as rank-deficient (no dominant plane) when lambda_2 <= DEGENERATE_RTOL * lambda_1
-DEGENERATE_RTOL = 1e-10
 #: default depth slab half-thickness, in units of S(v): rays start at height +slab S(v) above the plane,
 #: heights are clipped to [-slab S(v), +slab S(v)], and pixels that see no surface read -slab S(v).
 #: 0.25 classifies articulated shapes better; see the module docstring for why the default stays 1.0
@@ -100,142 +91,8 @@ SLAB = 1.0
 THICKNESS_UNIT = 512.0
 
 
-@dataclass(frozen=True)
-class LocalFrames:
-    """Per-vertex LD-SIFT frames (paper Eq. 1 and 28).
-
-    Attributes
-    ----------
-    frames : (N, 3, 3) float64, rows ``e1, e2, n``: right-handed orthonormal, ``n`` outward
-    half_sizes : (N,) float64, ``S(v) = K D(v)``, the half width of each depth image
-    n_neighbours : (N,) int64, number of vertices besides v in the covariance neighbourhood
-    grown : (N,) bool, neighbourhood grown beyond radius S(v) (fewer than `MIN_NEIGHBOURS` inside)
-    degenerate : (N,) bool, rank-deficient covariance: the frame was built from the vertex normal
-    """
-
-    frames: np.ndarray
-    half_sizes: np.ndarray
-    n_neighbours: np.ndarray
-    grown: np.ndarray
-    degenerate: np.ndarray
-
-
-def _check_mesh(mesh: Mesh) -> Mesh:
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
-    d = mesh.one_ring_mean_edge_length
-    bad = np.nonzero(~np.isfinite(d) | ~(d > 0))[0]
-    if bad.size:
-        raise ValueError(
-            f"{bad.size} vertices have no edge of positive length (unreferenced or collapsed), e.g. vertices "
-            f"{bad[:10].tolist()}; LD-SIFT needs D(v) > 0 at every vertex (Mesh.cleaned() removes them)"
-        )
-    return mesh
-
-
-def _positive_finite(value: float, name: str, unit: str = "") -> float:
-    """``value`` as a float, or ValueError naming ``name`` unless it is a positive finite number (not a bool)."""
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a positive finite number{unit}, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive number{unit}, got {value!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive finite number{unit}, got {value!r}")
-    return v
-
-
 def _check_slab(slab: float) -> float:
-    return _positive_finite(slab, "slab", " (a multiple of S(v))")
-
-
-def _check_K(K: float) -> float:
-    return _positive_finite(K, "K")
-
-
-def local_frames(mesh: Mesh, *, K: float = 3.0) -> LocalFrames:
-    """Scale S(v) and dominant-plane frame (e1, e2, n) of every vertex (paper Eq. 1 and 28).
-
-    ``N(v)`` is the set of vertices within Euclidean distance ``S(v) = K D(v)`` of v, v included (a
-    `scipy.spatial.cKDTree` ball query). Corner cases:
-
-    * fewer than `MIN_NEIGHBOURS` vertices besides v in the ball: ``N(v)`` becomes v and its
-      `MIN_NEIGHBOURS` nearest vertices (the radius grows to the third-nearest distance); ``S(v)``,
-      the image size, is unchanged. Flagged in ``grown``.
-    * rank-deficient covariance (``lambda_2 <= 1e-10 lambda_1``: the neighbours are collinear or
-      coincide), so there is no dominant plane: ``n`` is the area-weighted vertex normal, ``e1`` the
-      leading eigenvector projected onto the plane normal to n (any unit vector normal to n when that
-      projection vanishes), ``e2 = n x e1``. Flagged in ``degenerate``, and a `UserWarning` names them.
-
-    ``n`` is turned to the outside (``n . vertex_normal >= 0``) by flipping ``e2``; when the vertex
-    normal is perpendicular to the plane's normal, the eigen-solver's sign is kept.
-
-    Parameters
-    ----------
-    mesh : `wpot.Mesh` with D(v) > 0 at every vertex
-    K : scale factor (paper: 3)
-
-    Returns
-    -------
-    `LocalFrames`
-    """
-    mesh = _check_mesh(mesh)
-    K = _check_K(K)
-    v = mesh.vertices
-    n_v = len(v)
-    S = K * mesh.one_ring_mean_edge_length
-    tree = cKDTree(v)
-    balls = tree.query_ball_point(v, r=S)
-    counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=n_v)
-    grown = counts - 1 < MIN_NEIGHBOURS
-    if grown.any():
-        k = min(MIN_NEIGHBOURS + 1, n_v)
-        _, nn = tree.query(v[grown], k=k)
-        for row, i in zip(np.atleast_2d(nn), np.nonzero(grown)[0]):
-            balls[i] = list(row)
-        counts[grown] = k
-    members = np.concatenate([np.asarray(b, dtype=np.int64) for b in balls])
-    owner = np.repeat(np.arange(n_v), counts)
-    d = v[members] - v[owner]  # relative to v: Eq. 28 is translation invariant, this keeps precision
-    cnt = counts.astype(np.float64)
-    mean = np.stack([np.bincount(owner, d[:, a], n_v) for a in range(3)], axis=1) / cnt[:, None]
-    cov = np.empty((n_v, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            m2 = np.bincount(owner, d[:, a] * d[:, b], n_v) / cnt
-            cov[:, a, b] = cov[:, b, a] = m2 - mean[:, a] * mean[:, b]
-    lam, vec = np.linalg.eigh(cov)  # ascending
-    e1 = vec[:, :, 2]
-    e2 = vec[:, :, 1]
-    nrm = np.cross(e1, e2)
-    vn = mesh.vertex_normals
-    degenerate = lam[:, 1] <= DEGENERATE_RTOL * np.maximum(lam[:, 2], np.finfo(float).tiny)
-    if degenerate.any():
-        idx = np.nonzero(degenerate)[0]
-        nd = vn[idx]
-        t = e1[idx] - np.sum(e1[idx] * nd, axis=1, keepdims=True) * nd
-        tn = np.linalg.norm(t, axis=1)
-        small = tn < 1e-6
-        if small.any():  # any unit vector normal to n
-            a = np.where(np.abs(nd[small, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-            t[small] = a - np.sum(a * nd[small], axis=1, keepdims=True) * nd[small]
-            tn[small] = np.linalg.norm(t[small], axis=1)
-        e1[idx] = t / tn[:, None]
-        nrm[idx] = nd
-        e2[idx] = np.cross(nd, e1[idx])
-        warnings.warn(
-            f"{idx.size} vertices have a rank-deficient neighbourhood covariance (collinear or coincident "
-            f"neighbours, e.g. vertices {idx[:10].tolist()}); their LD-SIFT frames use the vertex normal. "
-            "A larger K, or a cleaner mesh, avoids this.",
-            UserWarning,
-            stacklevel=2,
-        )
-    flip = np.sum(nrm * vn, axis=1) < 0
-    nrm[flip] *= -1.0
-    e2[flip] *= -1.0
-    frames = np.stack([e1, e2, nrm], axis=1)
-    return LocalFrames(frames=frames, half_sizes=S, n_neighbours=counts - 1, grown=grown, degenerate=degenerate)
+    return positive_finite(slab, "slab", " (a multiple of S(v))")
 
 
 def keypoint_size(resolution: int) -> float:
@@ -292,7 +149,7 @@ def ldsift_images(
     from render.raycast import DepthRenderer
 
     slab = _check_slab(slab)
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     fr = local_frames(mesh, K=K) if frames is None else frames
     raw = DepthRenderer(mesh, device=device).render(
         mesh.vertices, fr.frames, fr.half_sizes, resolution, ceiling=slab
@@ -351,7 +208,7 @@ class LDSIFTOptions(SignatureOptions):
     K : scale factor, the image of vertex v covers ``2 K D(v)`` square (paper: 3); positive.
     resolution : R, pixels per side of the depth images (paper: 21); an integer >= 8.
     slab : depth slab half-thickness in units of S(v) (default `SLAB`; None means `SLAB`); positive. Keys carry
-        it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default stay as they were.
+        it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default do not name it.
     thickness : weight w of the size column (`THICKNESS_UNIT` w log t(v), t the local thickness,
         `wpot.signatures._thickness`); 0 (default) leaves it out; finite, >= 0. Keys carry it only when set.
     """
@@ -361,7 +218,8 @@ class LDSIFTOptions(SignatureOptions):
     slab: float = option(
         SLAB, keyword="ldsift_slab", flag="--ldsift-slab", key_omit_default=True,
         help="half-thickness of the depth slab, in units of the image's half width S(v) (default {default:g}; 0.25 "
-             "suits articulated shapes such as TOSCA's; 1 keeps the broad features of smooth shapes)",
+             "classifies articulated shapes such as TOSCA better, 1 keeps the broad features of smooth shapes; "
+             "see the docs' Results page)",
     )
 
     thickness: float = option(
@@ -369,12 +227,12 @@ class LDSIFTOptions(SignatureOptions):
         help="weight w of a size column appended to LD-SIFT: w * 512 * log(local thickness), in the meshes' own "
              "units, so that shapes made from one template at two sizes differ (default {default:g}; 0 leaves it "
              "out, the paper's scale-free LD-SIFT; 2 suits solid shapes whose size tells classes apart, such as "
-             "TOSCA8's)",
+             "TOSCA8; see the docs' Results page)",
     )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "thickness", nonnegative_finite("thickness", self.thickness))
-        object.__setattr__(self, "K", _check_K(self.K))
+        object.__setattr__(self, "K", check_K(self.K))
         object.__setattr__(self, "resolution", integer_at_least("resolution", self.resolution, 8))
         object.__setattr__(self, "slab", SLAB if self.slab is None else _check_slab(self.slab))
 
@@ -387,12 +245,10 @@ class LDSIFT(Signature):
     With ``thickness`` w > 0, one more column ``w THICKNESS_UNIT log t(v)`` (N, 129), t the vertex's local
     thickness in the mesh's units (`wpot.signatures._thickness.thickness`). LD-SIFT alone is scale-free; the
     column makes two vertices whose thickness differs by a factor r cost ``w |log r|`` descriptor norms more, so
-    shapes from one template at two sizes (TOSCA's David and Michael, 1.14 apart) are told apart while the
-    descriptor still carries the shape. w = 2 was chosen on TOSCA 5k (76 shapes, 200 cell-pooled samples,
-    balanced `ot.emd`, one-shot / leave-one-out): w = 0: 70.3 / 88.2 %; 0.5: 82.0 / 93.4; 1: 84.5 / 93.4;
-    **2: 84.6 / 96.1**; 4: 83.4 / 94.7; 6: 82.6 / 94.7; the thickness column alone: 82.2 / 93.4 %. Then, on
-    TOSCA8 (`wpot all-vs-all`, same sampling): balanced 95.0 / 100 % against 83.0 / 95.8 % without, partial
-    99.1 / 100 % against 94.2 / 95.8 % (the thickness column alone, balanced: 95.2 / 97.9 %)."""
+    shapes from one template at two sizes (TOSCA's David and Michael) are told apart while the descriptor still
+    carries the shape. w = 2 was chosen on TOSCA 5k, where it classified best of the weights tried (and better
+    than the thickness column alone), and it raises TOSCA8's accuracy with balanced and with partial transport
+    (the docs' Results page: LD-SIFT with its thickness column)."""
 
     name = "ldsift"
     title = "LD-SIFT"
@@ -402,11 +258,9 @@ class LDSIFT(Signature):
 
     def params(self) -> dict[str, Any]:
         """`Signature.params`, plus the thickness module's ``VERSION`` when the thickness column is on."""
-        from wpot.signatures import _thickness
-
         p = super().params()
         if self.options.thickness:
-            p["thickness_version"] = _thickness.VERSION
+            p["thickness_version"] = THICKNESS_VERSION
         return p
 
     def pieces(self) -> dict[str, dict[str, Any]]:
@@ -414,24 +268,20 @@ class LDSIFT(Signature):
         without it, or at two weights of it, share one) and, with the column, the thickness itself (keyed by the
         thickness module's ``VERSION``, and by K and this module's `VERSION`, which set the frames its rays lie
         in)."""
-        from wpot.signatures import _thickness
-
         out = {"descriptor": type(self)(replace(self.options, thickness=0.0)).params()}
         if self.options.thickness:
-            out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": _thickness.VERSION,
+            out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": THICKNESS_VERSION,
                                 "frames_version": VERSION}
         return out
 
     def compute_pieces(self, mesh: Mesh, names: Sequence[str]) -> dict[str, np.ndarray]:
         """``"descriptor"``: (N, 128) `ldsift`; ``"thickness"``: (N,) the local thickness in the mesh's units;
         both from one computation of the frames."""
-        from wpot.signatures._thickness import thickness
-
         bad = sorted(set(names) - {"descriptor", "thickness"})
         if bad:
             raise ValueError(f"LD-SIFT's cached pieces are 'descriptor' and 'thickness', got {bad}")
         o = self.options
-        fr = local_frames(_check_mesh(mesh), K=o.K)
+        fr = local_frames(check_mesh(mesh), K=o.K)
         out = {}
         if "descriptor" in names:
             out["descriptor"] = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)

@@ -2,8 +2,8 @@
 
 Why LD-SIFT needs it: LD-SIFT is scale-free by construction (the image of a vertex covers ``2 K D(v)``, a
 multiple of the local edge length, and SIFT normalises its descriptor), so two shapes made from one template
-at two sizes get the same signatures. TOSCA's David and Michael are such a pair (Michael is 1.14 times
-larger), and they are most of LD-SIFT's classification errors on TOSCA (paper Table 1: 83.3 %). A vertex's
+at two sizes get the same signatures. TOSCA's David and Michael are such a pair (Michael is the larger),
+and they are most of LD-SIFT's classification errors on TOSCA (paper Table 1). A vertex's
 thickness is in absolute units (it scales with the shape), it hardly moves with the pose (a limb keeps its
 girth when it bends), and it is local, so a part cut from a shape keeps it away from the cut. `LDSIFT`
 appends ``log`` thickness as one more signature column when ``thickness`` (``ldsift_thickness``) is set.
@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, winding
+from wpot.signatures._frames import local_frames
 
 __all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
 
@@ -62,9 +63,8 @@ def _ray_frames(outward: np.ndarray, e1: np.ndarray) -> np.ndarray:
     """(N, 3, 3) frames of the rays: rows ``e1`` made tangent to the outward normal, ``o x e1``, ``o``.
 
     The axis is the vertex normal, not the LD-SIFT frame's PCA normal: that one is fitted over a ball of radius
-    S(v), which on a finger or an ear thinner than S(v) takes in both sides and tilts along the part (TOSCA8,
-    200 cell-pooled samples, w = 2, balanced `ot.emd`, one-shot: 95.0 % with the vertex normal, 92.0 % with the
-    PCA normal; TOSCA 5k: 84.6 against 81.9 %).
+    S(v), which on a finger or an ear thinner than S(v) takes in both sides and tilts along the part (the
+    vertex normal classifies TOSCA8 and TOSCA 5k better; the docs' Results page).
     """
     t = e1 - np.einsum("ij,ij->i", e1, outward)[:, None] * outward
     norm = np.linalg.norm(t, axis=1)
@@ -85,7 +85,7 @@ def thickness(
     Parameters
     ----------
     mesh : `wpot.Mesh`; it must enclose a volume (a closed surface, or an open one whose holes are small:
-        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.maps.orientation.winding`).
+        a cut part, a scan), with consistently wound faces; either winding is read (`wpot.mesh.winding`).
     n_rays, cone_angle : rays per vertex and their cone's half-angle in degrees (`N_RAYS`, `CONE_ANGLE`).
     frames : the mesh's `wpot.signatures.LocalFrames` when already computed (default: `local_frames` at K = 3).
     device : Warp device for the ray casting; None is Warp's default device.
@@ -94,8 +94,6 @@ def thickness(
     See the module docstring for the definition and for the vertices whose value is filled in.
     """
     from render.raycast import DepthRenderer, inward_cone
-    from wpot.maps.orientation import winding
-    from wpot.signatures._ldsift import local_frames
 
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")

@@ -29,6 +29,7 @@ from types import MappingProxyType
 from typing import Any, ClassVar, Iterable, Mapping, Sequence
 
 import numpy as np
+from wpot.cache import Cache, canonical_json
 
 __all__ = [
     "Signature",
@@ -158,7 +159,6 @@ class Signature:
         if device is not None and not isinstance(device, str):
             raise TypeError(f"device must be a string such as 'cpu' or 'cuda:0', or None, got {type(device).__name__}")
         if not isinstance(spectrum_cache, bool):
-            from wpot.cache import Cache
 
             if not isinstance(spectrum_cache, Cache):
                 raise TypeError(f"spectrum_cache must be True, False or a wpot.cache.Cache, got {type(spectrum_cache).__name__}")
@@ -253,7 +253,6 @@ class Signature:
         """`params` as canonical JSON (`wpot.cache.canonical_json`, floats exact): equal strings exactly when two
         signatures compute the same values. Compare these, not `params` dicts, whose state arrays do not compare
         with ``==``."""
-        from wpot.cache import canonical_json
 
         return canonical_json(self.params())
 

@@ -45,7 +45,7 @@ distance (the L2 distance of the heat-trace-scaled HKS, integrated over log t, w
 evenly). The relative L1 of Eq. 29 (``"wks"``), which suits positive values that span decades, is not needed
 once they do not, and it amplifies noise where both values are near zero: at the largest times HKS tends to
 φ_1², which vanishes on φ_1's nodal line, so two unrelated vertices near that line cost nearly 1 at such times.
-On two generated test pairs L2 also ranks the true match slightly higher (README).
+On two generated test pairs L2 also ranks the true match slightly higher (the docs' Results page).
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ For the balanced problem with N1, N2 >= ~50, every entry of the mean-field plan 
 beta is the point of the transport LP's central path with G(k, l) s(k, l) = 1/beta, s = C + lam + mu:
 annealing beta is path following with the barrier parameter 1/beta. Newton's method on the duals alone
 (`wpot.ot.anneal.newton.Engine.newton`) needs many damped steps at the one or two betas where the plan goes
-from spread out to a near-permutation (50 + 21 at N = 3,400). Mehrotra's predictor-corrector method,
+from spread out to a near-permutation (the docs' Results page). Mehrotra's predictor-corrector method,
 which keeps G as a variable of its own, crosses that region in a few iterations.
 
 `ipm_start` runs it from the product plan to the barrier 1/beta_h of the first beta of the annealing grid
@@ -35,8 +35,8 @@ from wpot.ot.anneal.state import Point
 # no fused multiply-add: the same rounding on every device as wpot.ot.kernels (see there)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-#: the annealing takes over at the first grid beta with N1 N2 / beta <= HANDOFF * U (relative gap bound).
-#: Measured on the benchmark problem (N = 1000, 3400): the Newton solves need <= 4 steps from there
+#: the annealing takes over at the first grid beta with N1 N2 / beta <= HANDOFF * U (relative gap bound),
+#: from where the Newton solves need only a few steps (the docs' Results page)
 HANDOFF = 1e-3
 #: fraction of the step to the boundary (G > 0, s > 0)
 ETA = 0.99

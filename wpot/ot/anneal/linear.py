@@ -17,7 +17,7 @@ small eigenvalues (the "rotations" of nearly matched pairs) are lost to rounding
 
 Solvers: preconditioned CG on S with a sparse approximation of S built from the top-k weights per row
 and per column of W (exact diagonal), factorized by SuperLU (symmetric mode, no pivoting) and reused
-across Newton steps and betas until CG with it slows down (see `wpot.ot.anneal.newton.REFRESH_EXTRA_CG`); or a dense direct
+across Newton steps and betas until CG with it slows down (see `wpot.ot.anneal.schur.REFRESH_EXTRA_CG`); or a dense direct
 (Cholesky) solve of S, formed with BLAS, as the paper does (LU) for comparison.
 The balanced gauge is fixed by dy(last) = 0.
 """

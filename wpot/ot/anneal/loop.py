@@ -162,14 +162,13 @@ def anneal(eng: Engine, free_energy: FreeEnergy, *, beta0: float | None = None,
             eng.restore(good)
             beta_prev = solved[-1]
             if beta / beta_prev > MIN_SPLIT_STEP:
-                # the step was too long for max_newton damped steps (real 5k-vertex WKS pairs at the plan's
-                # spread-to-permutation transition: 100 steps from 2.5e7 to 2.5e8, normalized): reach beta
-                # through the geometric midpoint
+                # the step was too long for max_newton damped steps (as on real 5k-vertex WKS pairs at the
+                # plan's spread-to-permutation transition): reach beta through the geometric midpoint
                 n_tangent = _refresh_tangent(eng, beta_prev)
                 targets[:0] = [math.sqrt(beta_prev * beta), beta]
                 continue
-            # no shorter step left (U was off by 12 % on a cell-pooled TOSCA pair at beta 2.5e14, while the
-            # previous beta was within 1e-7 of the optimum): end at the last solved beta
+            # no shorter step left (a failed step can leave U far off while the previous beta was within the
+            # tolerance of the optimum; the docs' Results page): end at the last solved beta
             failed_beta = beta
             all_newton_ok = False
             beta = beta_prev

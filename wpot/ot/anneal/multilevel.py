@@ -1,11 +1,11 @@
 """A multilevel V-cycle around the device loop's FSAI preconditioner (`wpot.ot.anneal.resident`).
 
 Why: at high beta the sparse Schur approximation P is nearly the weighted Laplacian of one connected graph
-(its off-diagonal row sums 0.97 of the diagonal, the graph 50-80 edges deep at N = 600), so its inverse couples
-unknowns far apart, and FSAI's factor (`wpot.ot.anneal.resident.FSAI_ROW` entries a row) is local. On the same Schur
-systems, taken from annealing runs (random R^8 points), CG needed 15-16 iterations with FSAI where it needed 4-6
-with P's exact factors at N = 600, and 24 against 6-7 at N = 1,500; reordering P first changed nothing. The
-V-cycle below needed 7-8 and 10-11.
+(its off-diagonal row sums nearly its diagonal, the graph many edges deep), so its inverse couples unknowns far
+apart, and FSAI's factor (`wpot.ot.anneal.resident.FSAI_ROW` entries a row) is local. On Schur systems taken from
+annealing runs, CG with FSAI alone needed several times the iterations it needed with P's exact factors, more so
+as N grows, and reordering P first did not help; the V-cycle below comes close to the exact factors (the docs'
+Results page).
 
 Hierarchy, built on the host with each full build of the preconditioner from one read of P:
 
@@ -47,8 +47,8 @@ MIN_SHRINK = 0.8
 #: damping of the Jacobi smoother on the coarse levels
 JACOBI_WEIGHT = 0.7
 #: damping of the FSAI smoother on P: the V-cycle is SPD when the damped smoother F satisfies
-#: 0 < eig(F P) < 2, and FSAI's eig(F P) reached 1.76 on the systems of the module docstring (CG counts with
-#: 0.85 equalled or beat 1.0's there)
+#: 0 < eig(F P) < 2, and FSAI's eig(F P) came close to 2 on the systems of the module docstring (where 0.85
+#: needed no more CG iterations than 1.0; the docs' Results page)
 FSAI_WEIGHT = 0.85
 #: the dense inverse's largest size (one device thread computes it, O(n^3)); coarse_size may not exceed it
 MAX_DENSE = 256

@@ -1,15 +1,19 @@
-"""The Newton step on the device: no host round trip per CG iteration (issue 19).
+"""The device Newton loop (``newton_loop="device"``, the default on a GPU): no host round trip per CG iteration.
 
-`wpot.ot.anneal.newton.Engine` runs its Newton steps in one of two loops (``SolverOptions.newton_loop``):
+`wpot.ot.anneal.newton.Engine` runs its Newton steps through one of two `wpot.ot.anneal.schur.NewtonSolver`
+strategies, picked from ``SolverOptions.newton_loop`` when it is built:
 
-* "host": the length-N vectors go to the host, where the CG recurrences and the SuperLU preconditioner
-  run; every CG iteration writes and reads a vector (24-29 transfers per Newton step).
-* "device" (this module): every vector stays on the device. An evaluation reduces the marginal
+* "host" (`wpot.ot.anneal.host.HostSolver`): the length-N vectors go to the host, where the CG recurrences
+  and the SuperLU preconditioner run; every CG iteration writes and reads a vector.
+* "device" (`DeviceSolver`, this module): every vector stays on the device. An evaluation reduces the marginal
   residuals and U into a few scalars in a kernel; the right-hand side, the preconditioner, CG and the
   back-substitution are kernels; the fraction-to-zero step and the trial point read the step length from
   the device. The host reads one small array per trial point (`DeviceLoop.scal`: the evaluation's sums and
   the last solve's CG count, residual and step limit), so a Newton step whose first trial is accepted
   costs one synchronisation.
+
+`DeviceLoop` holds the loop's device buffers and runs its kernels; `DeviceSolver` drives it for the engine
+(the preconditioner's reuse, refit and rebuild rules, the line search's first step).
 
 CG runs under ``wp.capture_while``: on a GPU with conditional graph nodes (CUDA 12.4+) the whole loop is
 one captured graph that stops itself on the device; on the CPU the condition is read from host memory
@@ -22,9 +26,9 @@ assembled on the device by `sparse_schur_rows` / `sparse_schur_cols` into a Warp
 approximately inverted by Warp's FSAI (factorized sparse approximate inverse, M^-1 = G^T G, built row by
 row on the device; applying it is two sparse products, no triangular solve), by default inside a multilevel
 V-cycle over aggregates of P's unknowns (`wpot.ot.anneal.multilevel`, ``SolverOptions.device_preconditioner``):
-FSAI is local, and at high beta P's inverse couples far-apart unknowns. Over whole solves with both loops'
-reuse rules (`benchmarks/ot_speed.py`, N = 1,000 / 3,400, annealing) CG needs 1.3 / 1.5x the iterations of the
-host loop's SuperLU factors of P with the V-cycle, 2.3 / 2.7x with FSAI alone (the README has the figures).
+FSAI is local, and at high beta P's inverse couples far-apart unknowns. CG then needs more iterations than
+with the host loop's SuperLU factors of P, fewer with the V-cycle than with FSAI alone (the Results page of
+the documentation has the figures).
 When the host loop would refactorize, the device loop first refits: P's new values on the last build's
 pattern (`bsr_set_from_triplets(..., topology="masked")`), FSAI refitted on its supports (`FSAI.update`) and the
 V-cycle's coarse levels recomputed from P: kernels only, no host read (`Timers.n_refit`). A full build
@@ -32,15 +36,17 @@ V-cycle's coarse levels recomputed from P: kernels only, no host read (`Timers.n
 selects them), which synchronises 3 times inside Warp (`BUILD_SYNCS`: P's entry count and the selection's
 ready flag, 2 reads counted on the CPU build, and a stream synchronisation on CUDA, where FSAI's eager set-up
 would read 5 times), and the V-cycle's aggregation reads P once (through `Engine.to_host`, so counted in
-``Timers.n_d2h``). It runs first, again when a refit does not serve (`wpot.ot.anneal.newton.REFIT_SLOWDOWN`), and at
-least every `FULL_BUILD_EVERY` rebuilds.
+``Timers.n_d2h``). It runs first, again when a refit does not serve (`REFIT_SLOWDOWN`), and at least every
+`FULL_BUILD_EVERY` rebuilds.
 
 The balanced gauge dy(last) = 0 is kept by a zero right-hand side and matvec output there and an identity
 row in P; the partial rank-one term of S (-a a^T / sum a) is applied in the matvec and left out of P.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import math
+import time
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import warp as wp
@@ -49,6 +55,7 @@ from warp.optim.linear import FSAI
 
 from wpot.ot.anneal.linear import SINGULAR_SHIFT
 from wpot.ot.anneal.multilevel import Multilevel, multilevel_bytes
+from wpot.ot.anneal.schur import LIMIT_FRACTION, REFRESH_EXTRA_CG, SchurSolver, step_alpha
 from wpot.ot.anneal.state import DualSums, Point
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -56,24 +63,26 @@ if TYPE_CHECKING:  # pragma: no cover
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-__all__ = ["BUILD_SYNCS", "DeviceLoop", "FSAI_ROW", "device_loop_bytes"]
+__all__ = ["BUILD_SYNCS", "DeviceLoop", "DeviceSolver", "FSAI_ROW", "device_loop_bytes"]
 
-#: scalar entries per row of the FSAI factor G (CG iterations against SuperLU's exact factors of the same P,
-#: fresh each solve, over whole annealing runs at N = 300 / 1,000: 32 needs 1.5 / 1.9x, 8 needs 2.4 / 3.8x,
-#: Jacobi 10-15x)
+#: scalar entries per row of the FSAI factor G (more entries: fewer CG iterations, a costlier build and apply)
 FSAI_ROW = 32
 
 #: synchronisations of one full preconditioner build inside Warp: FSAI's constructor reads P's entry count
 #: and its first update the ready flag of the support selection (2 reads counted on the CPU build;
-#: tests/test_ot_resident.py bounds them), and the constructor synchronises the stream on CUDA
+#: tests/ot/test_ot_resident.py bounds them), and the constructor synchronises the stream on CUDA
 BUILD_SYNCS = 3
 #: at least every this many rebuilds of the preconditioner is a full one (a new pattern): a refit on an old
 #: pattern can serve far worse than a fresh build without exceeding the reuse rule (the interior point on
-#: unequal masses). Measured on --mass-spread 1.5, N = 500 (benchmarks/ot_speed.py), CG iterations / full
-#: builds for ipm and annealing: refits only 18,213 / 2, 7,369 / 8; every 4th 5,415 / 15, 6,964 / 16;
-#: every 6th 5,275 / 11, 7,148 / 13; every 8th 5,931 / 7, 7,071 / 9; no refits 5,049 / 41, 6,609 / 53. At
-#: N = 1,000, uniform masses: every 6th 456 / 4 and 654 / 6, refits only 491 / 4 and 676 / 5
+#: unequal masses)
 FULL_BUILD_EVERY = 6
+#: a stale preconditioner is refitted on its last pattern (no host read) while CG with the refit needs at
+#: most this many times the count of its last full build (+ `wpot.ot.anneal.schur.REFRESH_EXTRA_CG`);
+#: otherwise the next rebuild is a full one (`BUILD_SYNCS` synchronisations inside Warp)
+REFIT_SLOWDOWN = 2.0
+#: a Newton line search starts at this multiple of the last accepted step of its call (at most the full step),
+#: since each halving costs an evaluation and a read; 1.0 would let no step grow
+STEP_GROWTH = 1.5
 
 # slots of `DeviceLoop.scal`: the evaluation's sums (zeroed by each evaluation) ...
 _G2, _L1, _U, _XPHI, _AY = 0, 1, 2, 3, 4
@@ -411,14 +420,8 @@ def step_limit(d_b: wp.array(dtype=wp.float64), s_piv: wp.array(dtype=wp.float64
         wp.atomic_min(scal, _LIMIT, s / -db)
 
 
-#: the Newton step stops this fraction of the way to the step limit (`step_limit`), in ``scal[LIMIT_SLOT]``
-LIMIT_FRACTION = 0.9
+#: the slot of `DeviceLoop.scal` that holds the step limit of `step_limit` (read by `Engine.trial_from`)
 LIMIT_SLOT = _LIMIT
-
-
-def step_alpha(limit: float) -> float:
-    """The Newton step's first trial length for a step limit (what `Engine.trial_from` computes from it)."""
-    return min(1.0, LIMIT_FRACTION * limit)
 
 
 def device_loop_bytes(n_r: int, n_c: int, kk: int, kc: int, multilevel: bool = True) -> int:
@@ -619,8 +622,9 @@ class DeviceLoop:
         else:
             self.M.matvec(self.r, self.z, self.z, 1.0, 0.0)
 
-    def solve(self, rtol: float, max_iter: int) -> None:
-        """CG on S dy = rhs (rhs in ``r``) from dy = 0, into the engine's ``dy_a``; no host read (see the
+    def solve(self, rtol: float, max_iter: int, launches: list) -> None:
+        """CG on S dy = rhs (rhs in ``r``) from dy = 0, into the engine's ``dy_a``, with the Schur matvec's
+        recorded ``launches`` (`wpot.ot.anneal.schur.SchurSolver.matvec_launches`); no host read (see the
         module docstring). Its count, residual and convergence land in ``scal``."""
         e, p, d = self.e, self.e.p, self.e.p.device
         self.n_solves += 1
@@ -632,7 +636,7 @@ class DeviceLoop:
         wp.launch(norm_dot, dim=p.n_c, inputs=[self.r, self.z, self.cg, _NB2, _RZ], device=d)
         wp.copy(e.v, self.z)
         wp.launch(cg_go, dim=1, inputs=[self.cg, self.cond, self.scal], device=d)
-        self._launches = e.matvec_launches()
+        self._launches = launches
         if self.captured:
             # one graph per preconditioner and matvec (a refit changes only their arrays' contents)
             if self._graph is None or self._graph_for[0] is not self.M or self._graph_for[1] is not self._launches:
@@ -667,3 +671,131 @@ class DeviceLoop:
         wp.launch(cg_direction, dim=p.n_c, inputs=[self.cg, self.z, e.v], device=d)
         wp.launch(cg_condition, dim=1, inputs=[self.cg, self.it, max_iter, self.cond, self.scal], device=d)
         wp.launch(cg_shift, dim=1, inputs=[self.cg], device=d)
+
+
+class DeviceSolver(SchurSolver):
+    """The `wpot.ot.anneal.schur.NewtonSolver` of the device loop: drives a `DeviceLoop` (``dev``) for its
+    engine (see the module docstring)."""
+
+    def __init__(self, eng: Engine):
+        super().__init__(eng)
+        self.dev = DeviceLoop(eng)
+        self._free_pending = None  # (point, reads of ``dev.scal``) of the last `free_sums`
+
+    # ------------------------------------------------------------------ evaluation
+    def point(self, lam, y, full: bool) -> Point:
+        """The `Point` at the last evaluation (`DeviceLoop.point`: one read; U and the gap sum always come)."""
+        return self.dev.point(lam, y)
+
+    def free_sums(self, lam, y, pt: Point) -> None:
+        """Sum g and ``pt``'s `DualSums` into the device's scalars; they come with the next read of them
+        (`free_values`), and until then ``pt.f_sum`` is NaN."""
+        self.dev.free_sums(lam, y, pt.x)
+        pt.f_sum, pt.sums = math.nan, None
+        self._free_pending = (pt, self.dev.n_reads)
+
+    def free_values(self, pt: Point) -> Point:
+        """``pt`` with sum g and its `DualSums` after `free_sums` (the last one, at ``pt``): from the first
+        read of the device's scalars since then, or from one now."""
+        if not math.isnan(pt.f_sum):
+            return pt
+        at, reads = self._free_pending
+        if at is not pt:
+            raise RuntimeError("free_values: the last free_pass was not at this point")
+        if self.dev.n_reads == reads:
+            self.dev.read()
+        pt.f_sum, pt.sums = self.dev.free_values()
+        return pt
+
+    def read_scalars(self, arr: wp.array) -> np.ndarray:
+        """``arr`` (a small device array) to the host in one read with the device's scalars (the last
+        directions' CG counts)."""
+        return self.dev.read(arr)
+
+    # ------------------------------------------------------------------ the Newton step
+    def step_start(self, beta: float, pt: Point, rtol: float,
+                   min_x: float) -> tuple[Callable[[], tuple[int, bool]], float]:
+        """The Newton direction at the last evaluation (its residuals are on the device) and its step limit
+        (`step_limit`, rows with beta s > ``min_x``) left on the device; the length is NaN here."""
+        counts = self.direction_later(Point(None, None, 0.0, 0.0), rtol)
+        self.dev.step_limit(beta, min_x)
+        return counts, math.nan
+
+    def first_factor(self, last: float) -> float:
+        """`STEP_GROWTH` x the last accepted fraction of this call's line search, at most 1."""
+        return min(1.0, STEP_GROWTH * last)
+
+    def trial(self, factor: float, limit: float) -> None:
+        """The trial duals at ``factor`` x min(1, `LIMIT_FRACTION` x the step limit on the device) (no read)."""
+        self.e.trial_from(self.dev.scal, LIMIT_SLOT, LIMIT_FRACTION, factor)
+
+    def step_length(self, limit: float) -> float:
+        """The first trial's step length, from the step limit that came with the last read."""
+        return step_alpha(self.dev.limit())
+
+    # ------------------------------------------------------------------ the Newton direction
+    def direction_later(self, pt: Point, rtol: float | None = None) -> Callable[[], tuple[int, bool]]:
+        """`solve` (no read); the returned function gives its (linear iterations, converged) from the next
+        read of the device's scalars (an evaluation, `read_scalars`), or reads them. It must be called before
+        the second direction after this one."""
+        fresh = self.solve(pt, rtol)
+        dev, t = self.dev, self.e.t
+        reads, solves = dev.n_reads, dev.n_solves
+
+        def result() -> tuple[int, bool]:
+            back = dev.n_solves - solves
+            if back > 1:
+                raise RuntimeError("direction_later: two more directions were solved before this one's counts "
+                                   "were read")
+            if dev.n_reads == reads:
+                dev.read()
+            n_lin, ok = dev.cg_result(back)
+            t.n_matvec += n_lin
+            self._after_solve(fresh, n_lin, ok)
+            return n_lin, ok
+        return result
+
+    def solve(self, pt: Point, rtol: float | None) -> str | bool:
+        """The Newton direction with no host read: right-hand side, preconditioner (when it is rebuilt), CG
+        and back-substitution as kernels; CG's count and convergence land in ``dev.scal``. Returns how the
+        preconditioner was rebuilt ("build", "refit"), or False when it was reused."""
+        e, p, o, t, dev = self.e, self.e.p, self.e.o, self.e.t, self.dev
+        t0 = time.perf_counter()
+        self._select_weights()
+        dev.set_residual(pt)
+        wp.launch(add_vec, dim=p.n_r, inputs=[e.row_w, e.b, e.e1], device=p.device)
+        fresh = self._M is None or self._M_fresh_needed
+        self._prep(dev.g1, fresh)
+        wp.launch(schur_rhs, dim=p.n_c, inputs=[dev.g2, e.wtg, dev.gauge, dev.r], device=p.device)
+        t.prep += time.perf_counter() - t0
+        if fresh:
+            t0 = time.perf_counter()
+            self._col_topk()
+            if dev.rebuild_preconditioner():
+                t.n_factor += 1
+                t.n_build_sync += BUILD_SYNCS
+                fresh = "build"
+            else:
+                t.n_refit += 1
+                fresh = "refit"
+            self._M = dev.M
+            self._M_fresh_needed = False
+            t.precond += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        dev.solve(o.cg_rtol if rtol is None else max(rtol, o.cg_rtol), o.cg_max_iter, self.matvec_launches())
+        t.cg += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self._recover(dev.g1)
+        t.other += time.perf_counter() - t0
+        return fresh
+
+    def _after_solve(self, fresh: str | bool, n_lin: int, ok: bool) -> None:
+        """The reuse rule (`wpot.ot.anneal.schur.SchurSolver._after_solve`), and after a refit: a refit that
+        failed or needed more than `REFIT_SLOWDOWN` x the last full build's count (+ `REFRESH_EXTRA_CG`) is
+        replaced by a full build at the next point, and the refits stop until then."""
+        if fresh == "refit":
+            if not ok or n_lin > REFIT_SLOWDOWN * self._M_iters + REFRESH_EXTRA_CG:
+                self.dev.refit_ok = False
+                self._M_fresh_needed = True
+        else:
+            super()._after_solve(fresh, n_lin, ok)

@@ -10,11 +10,10 @@ import math
 
 import numpy as np
 
-#: default multiplicative step of beta. Measured (benchmarks/ot_speed.py, N=500 and 1000, uniform masses): with
-#: the 1/beta extrapolation of the duals, 10 needs 2-6 Newton steps per beta, except at the one or two betas
-#: where the plan goes from spread out to a near-permutation (damped steps: 27+12 at N=500, 31+17 at N=1000),
-#: and fewer Newton steps in all than sqrt(10) or 10**0.25 (the paper's and the authors' code's values;
-#: N=500: 64 vs 82 vs 110).
+#: default multiplicative step of beta. With the 1/beta extrapolation of the duals, 10 needs a few Newton steps
+#: per beta, except at the one or two betas where the plan goes from spread out to a near-permutation (damped
+#: steps), and fewer Newton steps in all than sqrt(10) or 10**0.25 (the paper's and the authors' code's values;
+#: benchmarks/ot_speed.py, figures on the docs' Results page).
 DEFAULT_STEP = 10.0
 #: default first beta, in units of N1*N2 / max(C): the plan is then close to uniform and Newton from
 #: the uniform start converges in a few steps

@@ -1,6 +1,6 @@
-"""The annealing's state records, shared by the Newton engine (`wpot.ot.anneal.newton`) and its
-device-resident loop (`wpot.ot.anneal.resident`): a point's values, the dual sums, a dual snapshot and the
-engine's timers and work counts."""
+"""The annealing's state records, shared by the Newton engine (`wpot.ot.anneal.newton`) and its host and
+device Newton loops (`wpot.ot.anneal.host`, `wpot.ot.anneal.resident`): a point's values, the dual sums, a dual
+snapshot and the engine's timers and work counts."""
 from __future__ import annotations
 
 import math

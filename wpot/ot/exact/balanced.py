@@ -54,10 +54,11 @@ PRICE_K = 8
 #: an entry prices out when its reduced cost is below -PRICE_TOL (costs divided by max C), or below
 #: -ROUNDING_MARGIN times the largest |reduced cost| on the LP's own support where that is more: the network
 #: simplex's duals are exact only to their rounding, which grows with the problem (its support's reduced costs
-#: reach -4e-12 at N = 10,000 and -3e-11 at N = 50,000), and support entries listed again crowd new ones out
+#: fall below -PRICE_TOL at large N; the docs' Results page), and support entries listed again crowd new ones out
 PRICE_TOL = 1e-11
 ROUNDING_MARGIN = 4.0
-#: network simplex iterations allowed per LP (POT's default of 1e5 stops early from N ~ 3,400)
+#: network simplex iterations allowed per LP (POT's default of 1e5 stops early on problems of a few thousand
+#: points a side)
 _LP_MAX_ITER = 10**9
 _BIG = 1.0e300
 #: `price_rows_gram` recomputes an entry exactly where its reduced cost's lower bound is below this (normalized
@@ -285,7 +286,7 @@ class ColumnGeneration:
     """The column-generation state of one problem: the support and the device arrays of the pricing pass
     (the restricted problem on the support is the run's: `ExactRun`, `wpot.ot.exact.partial.PartialRun`).
     ``cost`` from `prepare_cost`. ``gram``: run the passes of a matrix-free
-    Euclidean cost on the CPU through BLAS (`wpot.ot.gram`; the same results, ~13x faster at D = 100): None
+    Euclidean cost on the CPU through BLAS (`wpot.ot.gram`; the same results, much faster): None
     (the default) where it applies, True, False, or the `GramBlocks` of the cost's features to use."""
 
     def __init__(self, cost: CostInput, device: str, *, gram: bool | GramBlocks | None = None):

@@ -32,10 +32,9 @@ The interior-point method factorizes a matrix with the bipartite graph of S, who
 graph's cycles: a forest (the optimal plan's support is one) fills nothing, and for random points in R^100
 each row's and column's two cheapest entries already form a graph that separates badly. So S is kept close to
 the optimal face: one candidate a row and a column to start, `PRICE_K` a row per round, and the entries far
-from the face pruned (step 3). At 5,000 points a side in R^100 a solve on each row's and column's 2 cheapest
-entries takes 4.1 s, on the 6,100 entries of the optimal face 0.16 s; at 20,000 a side the whole solve takes
-42 s and 0.40 GB in 6 rounds this way, 143 s and 0.72 GB with 2 + 2 candidates, 8 a round and no pruning.
-Timings: the README's tables (`benchmarks/table6.py`, `benchmarks/scale.py`).
+from the face pruned (step 3): a solve on the optimal face is far faster than on each row's and column's 2
+cheapest entries, and the whole solve takes less time and memory than with more candidates and no pruning.
+Timings: the docs' Results page (`benchmarks/table6.py`, `benchmarks/scale.py`).
 """
 from __future__ import annotations
 
@@ -55,8 +54,8 @@ from wpot.ot.result import BetaStep, OTResult
 __all__ = ["INIT_K", "PRICE_K", "PRUNE_R", "PartialRun", "restricted_qp"]
 
 #: candidates a row and a column in the first support. The interior-point method's factorization grows with
-#: the support's cycles (LD-SIFT at 3,400 x 3,400: 2.2 s a solve on 2 candidates a row, 4.5 s on 4, 9.5 s on
-#: 8), and the rounds bring in what the first support lacks
+#: the support's cycles (a QP solve's time roughly doubles with each doubling of the candidates a row; the
+#: docs' Results page), and the rounds bring in what the first support lacks
 INIT_K = 1
 #: most negative entries a row that join the support in each pricing round (the balanced solver's network
 #: simplex takes 8, `wpot.ot.exact.balanced.PRICE_K`; here each one may close a cycle of the factorized graph)
@@ -227,14 +226,14 @@ def least_of_each(rows: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 #: peak bytes per support entry of a QP solve (the KKT matrix, its LDL factor and the method's vectors):
-#: the largest growth of the resident set over `restricted_qp` measured, 1,459 (LD-SIFT, 3,400 x 3,400, 10,819
-#: entries; WKS: 824), with a margin
+#: the largest growth of the resident set over `restricted_qp` measured (LD-SIFT and WKS at 3,400 x 3,400; the
+#: docs' Results page), with a margin
 _QP_BYTES_PER_ENTRY = 1536
 
 
 def qp_bytes(n1: int, n2: int) -> int:
     """Peak bytes of the partial column generation's QP solves apart from C and the plan, for a support of the
     first candidates (`INIT_K` a row and a column) and one full round of `PRICE_K` a row (the rounds after the
-    first support add 0.1-0.8 entries a row, measured at 3,400 x 3,400)."""
+    first support add less than one entry a row)."""
     entries = INIT_K * (n1 + n2) + PRICE_K * n1
     return _QP_BYTES_PER_ENTRY * entries + 64 * (n1 + n2)
