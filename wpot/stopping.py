@@ -1,0 +1,192 @@
+"""Stopping cleanly on Ctrl-C (SIGINT) and SIGTERM (what ``timeout``, systemd and SLURM send).
+
+The ``wpot`` command runs under `stop_on_signals` (`wpot.cli.main`):
+
+* the first SIGINT or SIGTERM writes ``wpot: stopping on ...`` to standard error at once and raises
+  `Interrupted` (a `KeyboardInterrupt`) in the main thread. What runs unwinds: `wpot.run_all_vs_all` stops its
+  workers without waiting for the pairs they are computing (it kills its process pool's processes; a local Dask
+  cluster's workers are closed at once) and keeps every pair stored so far; the command then says what was
+  stopped and what was kept, and exits with 128 + the signal's number (130 for SIGINT, 143 for SIGTERM);
+* a second one (either signal) while that happens stops at once (`hard_stop`): every process this one started is
+  killed (SIGKILL) and the process exits without waiting for anything.
+
+Nothing stored is lost either way: the run store commits each pair in one SQLite transaction (WAL), so a stop at
+any moment keeps every committed pair and no part of another.
+
+Workers leave the decision to the coordinator, since a Ctrl-C in a terminal (and SIGTERM from ``timeout`` or
+SLURM) reaches every process of the group:
+
+* process-pool workers (`pool_worker_setup`, the pool's initializer) ignore SIGINT and exit on their own when
+  their parent is gone (`exit_with_parent`: a thread that polls ``os.getppid()``), so a coordinator killed with
+  SIGKILL leaves no worker behind. They keep SIGTERM's default (exit): `concurrent.futures` stops a broken pool's
+  workers with it;
+* a local Dask cluster's workers (`dask_setup`, run as each worker's preload) ignore SIGINT and SIGTERM, so that
+  their nanny does not restart a worker that a signal to the group killed while the coordinator closes the
+  cluster; Dask stops them when their parent process ends.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any, Iterator
+
+__all__ = ["Interrupted", "dask_setup", "exit_code", "exit_with_parent", "hard_stop", "kill_children",
+           "pool_worker_setup", "signal_words", "stop_on_signals", "stopped_message"]
+
+#: the signals that stop a command
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def signal_words(signum: int) -> str:
+    """How a message names a signal: ``"Ctrl-C (SIGINT)"``, ``"SIGTERM"``."""
+    if signum == signal.SIGINT:
+        return "Ctrl-C (SIGINT)"
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class Interrupted(KeyboardInterrupt):
+    """A command or run stopped by a signal (a `KeyboardInterrupt`, so that ``except Exception`` never swallows it).
+
+    Attributes
+    ----------
+    signum : the signal (`signal.SIGINT` for a plain Ctrl-C)
+    detail : what was stopped and what was kept ("" when nothing needs saying), e.g. from `wpot.run_all_vs_all`:
+        ``"its 2 worker processes were stopped ...; 7 of 15 pairs are stored in run/; rerun ... to resume"``
+    exit_code : 128 + signum (130 for SIGINT, 143 for SIGTERM), the shell's convention
+    """
+
+    def __init__(self, signum: int = signal.SIGINT, detail: str = "") -> None:
+        super().__init__(signal_words(signum) + (f": {detail}" if detail else ""))
+        self.signum = int(signum)
+        self.detail = detail
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+def exit_code(exc: BaseException) -> int:
+    """The exit code for a command stopped by ``exc``: 128 + its signal; 130 for a plain `KeyboardInterrupt`."""
+    return int(getattr(exc, "exit_code", 128 + signal.SIGINT))
+
+
+def stopped_message(exc: BaseException, command: str) -> str:
+    """The line a command prints when ``exc`` stopped it: ``"wpot: compare stopped by Ctrl-C (SIGINT)"``, and
+    for a run what was stopped and kept (`Interrupted.detail`)."""
+    words = signal_words(getattr(exc, "signum", signal.SIGINT))
+    detail = getattr(exc, "detail", "")
+    return f"wpot: {command} stopped by {words}" + (f": {detail}" if detail else "")
+
+
+def _say(text: str) -> None:
+    """One line on standard error, written with `os.write` (safe inside a signal handler, which may run while
+    the main thread is itself writing to ``sys.stderr``); on a terminal it starts on a line of its own."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, ValueError, OSError):
+        fd = 2
+    try:
+        lead = "\n" if os.isatty(fd) else ""
+        os.write(fd, f"{lead}{text}\n".encode("utf-8", "replace"))
+    except OSError:
+        pass
+
+
+def kill_children(timeout: float = 2.0) -> int:
+    """SIGKILL every descendant of this process (workers, a local Dask cluster's worker processes, ...); wait up to
+    ``timeout`` seconds for them to end. Returns how many were alive."""
+    import psutil
+
+    try:
+        children = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return 0
+    for c in children:
+        with contextlib.suppress(psutil.Error):
+            c.kill()
+    psutil.wait_procs(children, timeout=timeout)
+    return len(children)
+
+
+def hard_stop(signum: int, note: str = "") -> None:
+    """Stop at once (a second signal): say so, SIGKILL every process this one started, `os._exit` with
+    128 + signum. Nothing waits: no worker, thread, cluster or exit handler."""
+    _say(f"wpot: stopped at once by a second {signal_words(signum)}" + (f"; {note}" if note else ""))
+    try:
+        kill_children(timeout=1.0)
+    finally:
+        os._exit(128 + signum)
+
+
+@contextlib.contextmanager
+def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[None]:
+    """Turn SIGINT and SIGTERM into a clean stop for the block (see the module docstring).
+
+    The first signal writes ``wpot: stopping on <signal>[: doing]; <how to stop at once>`` to standard error and
+    raises `Interrupted` in the main thread; a second one calls `hard_stop` (with ``after_hard_stop``, what the
+    message adds). Outside the main thread (where Python takes no signal handlers) the block runs unchanged. The
+    previous handlers come back when the block ends."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    first: list[int] = []
+
+    def handle(signum: int, frame: Any) -> None:
+        if first:
+            hard_stop(signum, after_hard_stop)
+        first.append(signum)
+        again = "press Ctrl-C again" if signum == signal.SIGINT else f"a second {signal_words(signum)}"
+        _say(f"wpot: stopping on {signal_words(signum)}" + (f": {doing}" if doing else "") + f"; {again} stops at once")
+        raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, handle) for s in SIGNALS}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+# ------------------------------------------------------------------------------------------------ workers
+def exit_with_parent(interval: float = 0.5) -> threading.Thread:
+    """Start a daemon thread that ends this process (`os._exit`) when its parent is gone (``os.getppid()``
+    changes: the process was handed to init or a subreaper), checked every ``interval`` seconds. A worker whose
+    coordinator was killed (SIGKILL, the OOM killer) then exits instead of waiting for tasks forever."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    t = threading.Thread(target=watch, name="wpot-exit-with-parent", daemon=True)
+    t.start()
+    return t
+
+
+def pool_worker_setup() -> None:
+    """The initializer of `wpot.run_all_vs_all`'s process-pool workers: ignore SIGINT (the coordinator decides
+    when to stop, and stops them), exit when the coordinator is gone (`exit_with_parent`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent()
+
+
+def dask_setup(worker: Any) -> None:
+    """Dask's preload hook (``LocalCluster(preload=["wpot.stopping"])``), run in each worker process's main
+    thread when it starts: ignore SIGINT and SIGTERM (the coordinator closes the cluster when it stops), and say
+    nothing about the tasks it cancels."""
+    import logging
+
+    if threading.current_thread() is threading.main_thread():
+        for s in SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+    # that logger's one warning is about a cancelled task, which a stopped run cancels by the dozen
+    logging.getLogger("distributed.worker.state_machine").setLevel(logging.ERROR)
