@@ -132,7 +132,8 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[N
     The first signal writes ``wpot: stopping on <signal>[: doing]; <how to stop at once>`` to standard error and
     raises `Interrupted` in the main thread; a second one calls `hard_stop` (with ``after_hard_stop``, what the
     message adds). Outside the main thread (where Python takes no signal handlers) the block runs unchanged. The
-    previous handlers come back when the block ends."""
+    previous handlers come back when the block ends, unless a signal stopped it: then a later one (while the
+    interpreter ends, after the command said it stopped) exits at once, with the first one's code."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -146,12 +147,15 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[N
         _say(f"wpot: stopping on {signal_words(signum)}" + (f": {doing}" if doing else "") + f"; {again} stops at once")
         raise Interrupted(signum)
 
+    def exiting(signum: int, frame: Any) -> None:  # the stop was said; the interpreter is ending
+        os._exit(128 + first[0])
+
     previous = {s: signal.signal(s, handle) for s in SIGNALS}
     try:
         yield
     finally:
         for s, h in previous.items():
-            signal.signal(s, h)
+            signal.signal(s, exiting if first else h)
 
 
 # ------------------------------------------------------------------------------------------------ workers

@@ -23,6 +23,12 @@ ends), and a second run on the same folder raises `RunLockedError` at once rathe
 A store that SQLite cannot read (truncated, overwritten) raises `CorruptRunError` naming the file; it is
 never read as an empty or partial run.
 
+A run stopped by Ctrl-C (a `KeyboardInterrupt`; under the ``wpot`` command also SIGTERM, see `wpot.stopping`)
+stops at once: its own process pool's workers are killed, a local Dask cluster's workers closed, and the pairs
+they were computing dropped, rather than waited for; every committed pair stays, and it raises
+`wpot.stopping.Interrupted` saying what was stopped and how many pairs are stored. The workers ignore SIGINT (a
+terminal's Ctrl-C reaches the whole process group; the coordinator decides) and exit when the coordinator is gone.
+
 Execution is pluggable: ``jobs=1`` runs pairs inline; ``jobs>1`` uses a `ProcessPoolExecutor` (spawned
 processes, safe with CUDA); any `concurrent.futures.Executor` can be passed instead, e.g. a Dask
 cluster's ``client.get_executor()``. Workers receive self-contained tasks (mesh path or arrays, settings,
@@ -125,6 +131,8 @@ def run_all_vs_all(
     RunLockedError : another process is running on ``out`` (one coordinator per run folder: `run_lock`)
     RunMismatchError : ``out`` holds a run with other parameters or shapes, or a shape file changed since
     CorruptRunError : ``out/wpot.sqlite`` is damaged
+    Interrupted : (a `KeyboardInterrupt`) Ctrl-C or a signal stopped the run; its workers were stopped at once
+        and every stored pair is kept (see the module docstring)
 
     The inputs are read and checked first, so a refused input leaves no run folder behind; the run folder's
     lock (`run_lock`) is then held for the rest of the run.
