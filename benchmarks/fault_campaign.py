@@ -301,17 +301,20 @@ def signal_campaign(a: argparse.Namespace, camp: Campaign, rng: random.Random) -
     print(f"signal campaign: SIGINT once, SIGINT twice (1-2 s apart), SIGTERM to the run's process group at a random "
           f"moment of the run (uniform from its start to an uninterrupted run's wall time), then rerun; seed {a.seed}; "
           f"dataset: 6 meshes of 60-74 vertices, 15 pairs; {' '.join(SETTINGS)}")
-    head = ("mode", "signal", "tries", "hung (no exit in 30 s)", "seconds to exit (median / max)", "exit codes",
-            "processes left after 10 s", "store consistent", "resumed bit-identical", "pairs committed twice")
+    head = ("mode", "signal", "tries", "finished before the signal", "hung (no exit in 30 s)",
+            "seconds to exit (median / max)", "exit codes", "a traceback printed", "processes left after 10 s",
+            "store consistent", "resumed bit-identical", "pairs committed twice")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for mode, case, stops, consistent, resumed, dup in rows:
-        secs = [st.seconds for st in stops]
+        hit = [st for st in stops if st.sent]  # the others had finished when their moment came
+        secs = [st.seconds for st in hit] or [float("nan")]
         codes = ", ".join(f"{c} x{n}" if n > 1 else str(c) for c, n in
                           sorted(collections.Counter("hung" if st.returncode is None else st.returncode
-                                                     for st in stops).items(), key=str))
-        print(f"| {mode} | {case} | {len(stops)} | {sum(st.returncode is None for st in stops)} | "
-              f"{statistics.median(secs):.1f} / {max(secs):.1f} | {codes} | {sum(len(st.left) for st in stops)} | "
+                                                     for st in hit).items(), key=str)) or "-"
+        print(f"| {mode} | {case} | {len(stops)} | {len(stops) - len(hit)} | {sum(st.returncode is None for st in hit)} | "
+              f"{statistics.median(secs):.1f} / {max(secs):.1f} | {codes} | {sum('Traceback' in st.stderr for st in hit)} | "
+              f"{sum(len(st.left) for st in stops)} | "
               f"{consistent}/{len(stops)} | {resumed}/{len(stops)} | {dup} |")
     return ok_all
 

@@ -433,17 +433,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wpot.progress import Progress
     from wpot.stopping import exit_code, stop_on_signals, stopped_message
 
-    args = build_parser().parse_args(argv)
-    args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
-    run = args.command == "all-vs-all"
+    args = None
     try:
-        with warnings.catch_warnings(), stop_on_signals(
-                doing="the stored pairs are kept, the pairs in flight dropped" if run else "",
-                after_hard_stop="the stored pairs are kept; rerun the same command to resume the run" if run else ""):
-            warnings.showwarning = _warning_printer(args.reporter)
-            args.func(args)
+        with stop_on_signals() as stopping:  # from the start: building the parser takes a second or two
+            args = build_parser().parse_args(argv)
+            args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
+            if args.command == "all-vs-all":
+                stopping.doing = "the stored pairs are kept, the pairs in flight dropped"
+                stopping.after_hard_stop = "the stored pairs are kept; rerun the same command to resume the run"
+            with warnings.catch_warnings():
+                warnings.showwarning = _warning_printer(args.reporter)
+                args.func(args)
     except KeyboardInterrupt as exc:  # the first Ctrl-C or SIGTERM (a second one exits at once)
-        print(stopped_message(exc, args.command), file=sys.stderr)
+        print(stopped_message(exc, getattr(args, "command", None)), file=sys.stderr)
         return exit_code(exc)
     except (CliError, OSError, ValueError) as exc:
         if os.environ.get("WPOT_DEBUG"):

@@ -27,6 +27,7 @@ SLURM) reaches every process of the group:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -34,8 +35,9 @@ import threading
 import time
 from typing import Any, Iterator
 
-__all__ = ["Interrupted", "dask_setup", "exit_code", "exit_with_parent", "hard_stop", "kill_children",
-           "pool_worker_setup", "signal_words", "stop_on_signals", "stopped_message"]
+__all__ = ["GRACE", "Interrupted", "Stopping", "check_stop", "dask_setup", "deferred_stop", "exit_code",
+           "exit_with_parent", "hard_stop", "kill_children", "pool_worker_setup", "signal_words", "stop_on_signals",
+           "stopped_message"]
 
 #: the signals that stop a command
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -77,12 +79,12 @@ def exit_code(exc: BaseException) -> int:
     return int(getattr(exc, "exit_code", 128 + signal.SIGINT))
 
 
-def stopped_message(exc: BaseException, command: str) -> str:
+def stopped_message(exc: BaseException, command: str | None) -> str:
     """The line a command prints when ``exc`` stopped it: ``"wpot: compare stopped by Ctrl-C (SIGINT)"``, and
-    for a run what was stopped and kept (`Interrupted.detail`)."""
+    for a run what was stopped and kept (`Interrupted.detail`). ``command`` None: stopped before it was known."""
     words = signal_words(getattr(exc, "signum", signal.SIGINT))
     detail = getattr(exc, "detail", "")
-    return f"wpot: {command} stopped by {words}" + (f": {detail}" if detail else "")
+    return f"wpot: {command + ' ' if command else ''}stopped by {words}" + (f": {detail}" if detail else "")
 
 
 def _say(text: str) -> None:
@@ -115,47 +117,112 @@ def kill_children(timeout: float = 2.0) -> int:
     return len(children)
 
 
-def hard_stop(signum: int, note: str = "") -> None:
-    """Stop at once (a second signal): say so, SIGKILL every process this one started, `os._exit` with
-    128 + signum. Nothing waits: no worker, thread, cluster or exit handler."""
-    _say(f"wpot: stopped at once by a second {signal_words(signum)}" + (f"; {note}" if note else ""))
+def hard_stop(signum: int, note: str = "", *, second: bool = True) -> None:
+    """Stop at once (a second signal, or a first one whose stop takes too long): say so, SIGKILL every process this
+    one started, `os._exit` with 128 + signum. Nothing waits: no worker, thread, cluster or exit handler."""
+    _say(f"wpot: stopped at once by {'a second ' if second else ''}{signal_words(signum)}" + (f"; {note}" if note else ""))
     try:
         kill_children(timeout=1.0)
     finally:
         os._exit(128 + signum)
 
 
-@contextlib.contextmanager
-def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[None]:
-    """Turn SIGINT and SIGTERM into a clean stop for the block (see the module docstring).
+#: seconds a first signal's clean stop may take before the process stops at once (`hard_stop`); under the
+#: 10 s in which SIGTERM must have ended every process of a run
+GRACE = 6.0
 
-    The first signal writes ``wpot: stopping on <signal>[: doing]; <how to stop at once>`` to standard error and
-    raises `Interrupted` in the main thread; a second one calls `hard_stop` (with ``after_hard_stop``, what the
-    message adds). Outside the main thread (where Python takes no signal handlers) the block runs unchanged. The
-    previous handlers come back when the block ends, unless a signal stopped it: then a later one (while the
-    interpreter ends, after the command said it stopped) exits at once, with the first one's code."""
-    if threading.current_thread() is not threading.main_thread():
+
+@dataclasses.dataclass
+class Stopping:
+    """The state of `stop_on_signals`: what its messages say (set while the block runs, once the command is
+    known), and the signal that asked for a stop (None until one came)."""
+
+    doing: str = ""  # after "wpot: stopping on <signal>:", what the stop does
+    after_hard_stop: str = ""  # what the message of a second signal adds
+    signum: int | None = None
+    deferred: int = 0  # depth of `deferred_stop` blocks
+
+
+#: the active `stop_on_signals` (None outside one)
+_active: Stopping | None = None
+
+
+def check_stop() -> None:
+    """Raise `Interrupted` when a signal asked for a stop under `stop_on_signals`.
+
+    The first signal raises `Interrupted` where the main thread is; a library that catches ``BaseException``
+    there (trimesh does, around its optional imports) swallows it and the work would go on. The run's loops call
+    this between steps, so that the stop happens anyway; `GRACE` is the last resort."""
+    if _active is not None and _active.signum is not None and not _active.deferred:
+        raise Interrupted(_active.signum)
+
+
+@contextlib.contextmanager
+def deferred_stop() -> Iterator[None]:
+    """A block that a first signal does not break into (starting a Dask cluster, which a stop half-way through
+    leaves in pieces): the signal is said at once and raised (`Interrupted`) when the block ends, also when the
+    block fails after it (the signal may have reached what the block starts). A second signal still stops at
+    once."""
+    if _active is None:
         yield
         return
-    first: list[int] = []
-
-    def handle(signum: int, frame: Any) -> None:
-        if first:
-            hard_stop(signum, after_hard_stop)
-        first.append(signum)
-        again = "press Ctrl-C again" if signum == signal.SIGINT else f"a second {signal_words(signum)}"
-        _say(f"wpot: stopping on {signal_words(signum)}" + (f": {doing}" if doing else "") + f"; {again} stops at once")
-        raise Interrupted(signum)
-
-    def exiting(signum: int, frame: Any) -> None:  # the stop was said; the interpreter is ending
-        os._exit(128 + first[0])
-
-    previous = {s: signal.signal(s, handle) for s in SIGNALS}
+    state = _active
+    state.deferred += 1
     try:
         yield
+    except Exception:  # a failure after a stop was asked is the stop's (the signal also reached the cluster's
+        if state.signum is None:  # workers while they started)
+            raise
+        state.deferred -= 1
+        raise Interrupted(state.signum) from None
+    state.deferred -= 1
+    check_stop()
+
+
+@contextlib.contextmanager
+def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[Stopping]:
+    """Turn SIGINT and SIGTERM into a clean stop for the block (see the module docstring); yields the `Stopping`
+    whose words the messages use.
+
+    The first signal writes ``wpot: stopping on <signal>[: doing]; <how to stop at once>`` to standard error and
+    raises `Interrupted` in the main thread (at the end of a `deferred_stop` block when in one; again at the next
+    `check_stop` if something swallowed it); when the process has not ended `GRACE` seconds later, or a second
+    signal comes, it stops at once (`hard_stop`, with ``after_hard_stop`` added to its message). Outside the
+    main thread (where Python takes no signal handlers) the block runs unchanged. The previous handlers come back
+    when the block ends, unless a signal stopped it: then a later one (while the interpreter ends, after the
+    command said it stopped) exits at once, with the first one's code."""
+    global _active
+    state = Stopping(doing, after_hard_stop)
+    if threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def handle(signum: int, frame: Any) -> None:
+        if state.signum is not None:
+            hard_stop(signum, state.after_hard_stop)
+        state.signum = signum
+        again = "press Ctrl-C again" if signum == signal.SIGINT else f"a second {signal_words(signum)}"
+        _say(f"wpot: stopping on {signal_words(signum)}" + (f": {state.doing}" if state.doing else "")
+             + f"; {again} stops at once")
+        late = threading.Timer(GRACE, hard_stop, (signum, f"the stop took over {GRACE:g} s"
+                                                   + (f"; {state.after_hard_stop}" if state.after_hard_stop else "")),
+                               {"second": False})
+        late.daemon = True
+        late.start()
+        if not state.deferred:
+            raise Interrupted(signum)
+
+    def exiting(signum: int, frame: Any) -> None:  # the stop was said; the interpreter is ending
+        os._exit(128 + state.signum)
+
+    previous = {s: signal.signal(s, handle) for s in SIGNALS}
+    outer, _active = _active, state
+    try:
+        yield state
     finally:
+        _active = outer
         for s, h in previous.items():
-            signal.signal(s, exiting if first else h)
+            signal.signal(s, exiting if state.signum is not None else h)
 
 
 # ------------------------------------------------------------------------------------------------ workers

@@ -72,7 +72,7 @@ from wpot.mesh import Mesh, repair_mesh, repair_mode, repair_setting
 from wpot.runs.shapes import discover_shapes, warn_repeated_shapes
 from wpot.runs.store import RunMismatchError, RunStore, run_lock
 from wpot.runs.workers import dask_executor, fit_input_of, pair_task, shape_task, signatures_of
-from wpot.stopping import Interrupted, pool_worker_setup
+from wpot.stopping import Interrupted, check_stop, pool_worker_setup
 
 __all__ = ["run_all_vs_all"]
 
@@ -219,6 +219,7 @@ def _read_inputs(shapes: Any, out: str | Path, *, labels: Any, config: Any, sign
     bar = reporter.bar(len(specs), "reading meshes", "mesh")
     try:
         for s in specs:
+            check_stop()
             m = s.load(warn=mode == "none")
             if mode != "none":
                 m, _, what = repair_mesh(m, mode)
@@ -338,6 +339,7 @@ def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -
                 yield pending.pop(f), f
             return
         while True:
+            check_stop()
             cap = limit()
             while not exhausted and len(pending) < cap:
                 try:
@@ -364,6 +366,7 @@ def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str,
     bar = progress.bar(len(arglist), what, "shape")
 
     def take(k: int, told: tuple[Any, list[tuple[type, str]]]) -> Any:
+        check_stop()
         value, said = told
         for category, message in said:
             warnings.warn(f"{names[k]}: {message}", category, stacklevel=3)
@@ -389,6 +392,7 @@ def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: An
 
     def handle(i: int, j: int, fut_or_rec: Any) -> None:
         nonlocal n_new
+        check_stop()
         try:
             rec = fut_or_rec.result() if isinstance(fut_or_rec, cf.Future) else fut_or_rec
         except Exception as exc:  # a failing pair is recorded and the run goes on
@@ -404,6 +408,7 @@ def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: An
             for i, j in todo:
                 if max_pairs is not None and n_new >= max_pairs:
                     break
+                check_stop()
                 try:
                     rec = pair_task(i, j, task_specs[i], task_specs[j], config)
                 except Exception as exc:

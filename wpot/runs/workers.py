@@ -248,35 +248,40 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
             f"running on a Dask cluster (scheduler={scheduler!r}) needs Dask's distributed package: "
             "pip install 'wpot[cluster]' (or 'dask[distributed]')"
         ) from exc
-    cluster = None
+    cluster = executor = None
     with contextlib.ExitStack() as stack:
-        if is_client:
-            client = scheduler
-        elif scheduler == "local":
-            cluster = stack.enter_context(
-                LocalCluster(
-                    n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                    dashboard_address="127.0.0.1:0",  # a free port (8787 may be taken)
-                    preload=["wpot.stopping"],  # its dask_setup: the workers ignore SIGINT and SIGTERM
-                )
-            )
-            client = stack.enter_context(Client(cluster))
-        else:
-            client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
-        executor = DaskExecutor(client)
-        if cluster is not None:
-            executor.stop_words = "the local Dask cluster's workers were stopped and the pairs they were computing dropped"
         try:
+            if is_client:
+                client = scheduler
+            elif scheduler == "local":
+                from wpot.stopping import deferred_stop
+
+                with deferred_stop():  # a signal stops the run once the cluster is up (and in the stack, to close)
+                    cluster = stack.enter_context(
+                        LocalCluster(
+                            n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                            dashboard_address="127.0.0.1:0",  # a free port (8787 may be taken)
+                            preload=["wpot.stopping"],  # its dask_setup: the workers ignore SIGINT and SIGTERM
+                        )
+                    )
+                    client = stack.enter_context(Client(cluster))
+            else:
+                client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
+            executor = DaskExecutor(client)
+            if cluster is not None:
+                executor.stop_words = "the local Dask cluster's workers were stopped and the pairs they were computing dropped"
             yield executor
         except KeyboardInterrupt:  # a signal stopped the run: its pairs in flight are dropped
-            executor.shutdown(wait=False, cancel_futures=True)
+            if executor is not None:
+                executor.shutdown(wait=False, cancel_futures=True)
             if cluster is not None:
                 with _quiet_dask():
                     _stop_local_workers(cluster)
                     stack.close()  # the client, then the cluster
             raise
         finally:
-            executor.shutdown(wait=False, cancel_futures=True)
+            if executor is not None:
+                executor.shutdown(wait=False, cancel_futures=True)
 
 
 @contextlib.contextmanager
