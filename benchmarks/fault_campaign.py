@@ -287,6 +287,7 @@ def signal_campaign(a: argparse.Namespace, camp: Campaign, rng: random.Random) -
                 st = signal_run(camp.command(mode, run), run, signals, after=rng.uniform(0.0, t_ref),
                                 gap=rng.uniform(1.0, 2.0))
                 stops.append(st)
+                run.with_name(run.name + ".stderr").write_text(st.stderr)  # kept with --work
                 consistent += store_consistent(run) and stored_pairs(run) >= st.pairs_before
                 rc, err = camp.finish(mode, run, None)  # the rerun resumes
                 if rc == 0:

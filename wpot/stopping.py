@@ -8,7 +8,12 @@ The ``wpot`` command runs under `stop_on_signals` (`wpot.cli.main`):
   cluster's workers are closed at once) and keeps every pair stored so far; the command then says what was
   stopped and what was kept, and exits with 128 + the signal's number (130 for SIGINT, 143 for SIGTERM);
 * a second one (either signal) while that happens stops at once (`hard_stop`): every process this one started is
-  killed (SIGKILL) and the process exits without waiting for anything.
+  killed (SIGKILL) and the process exits without waiting for anything. So does a first one whose stop has not
+  ended `GRACE` seconds later, so that no stop hangs;
+* a library that catches ``BaseException`` where the signal lands (trimesh does, around its imports) swallows
+  the `Interrupted`; the run's loops call `check_stop` between steps, which raises it again. A block that must
+  not be broken into (starting a local Dask cluster) runs under `deferred_stop`: the signal is said at once and
+  raised when the block ends.
 
 Nothing stored is lost either way: the run store commits each pair in one SQLite transaction (WAL), so a stop at
 any moment keeps every committed pair and no part of another.
@@ -37,7 +42,7 @@ from typing import Any, Iterator
 
 __all__ = ["GRACE", "Interrupted", "Stopping", "check_stop", "dask_setup", "deferred_stop", "exit_code",
            "exit_with_parent", "hard_stop", "kill_children", "pool_worker_setup", "signal_words", "stop_on_signals",
-           "stopped_message"]
+           "stopped_message", "worker_context"]
 
 #: the signals that stop a command
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -241,6 +246,57 @@ def exit_with_parent(interval: float = 0.5) -> threading.Thread:
     t = threading.Thread(target=watch, name="wpot-exit-with-parent", daemon=True)
     t.start()
     return t
+
+
+@contextlib.contextmanager
+def _sigint_ignored_by_children() -> Iterator[None]:
+    """Processes started in the block (in the main thread) inherit SIGINT ignored, which Python keeps: a Ctrl-C
+    that reaches them while they start (importing, before `pool_worker_setup` runs) leaves them alone. This
+    process's own SIGINT is blocked meanwhile and handled after the block (Linux keeps a blocked signal pending
+    even while its action is to ignore it); one that a native thread of this process (BLAS) takes in those few
+    milliseconds is lost."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _process_class() -> type:
+    import multiprocessing.context
+
+    class WorkerProcess(multiprocessing.context.SpawnProcess):
+        """A spawned process that starts with SIGINT ignored (`_sigint_ignored_by_children`)."""
+
+        def start(self) -> None:
+            with _sigint_ignored_by_children():
+                super().start()
+
+    WorkerProcess.__qualname__ = WorkerProcess.__name__ = "_WorkerProcess"
+    return WorkerProcess
+
+
+def __getattr__(name: str) -> Any:  # the process class, made when first asked for (multiprocessing is not
+    if name == "_WorkerProcess":  # imported by ``wpot.stopping`` itself); a spawned child unpickles it by name
+        cls = globals()["_WorkerProcess"] = _process_class()
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def worker_context() -> Any:
+    """The multiprocessing context of `wpot.run_all_vs_all`'s process pool: spawn (safe with CUDA), its processes
+    started with SIGINT ignored, so that a Ctrl-C never interrupts a worker, also while it starts."""
+    import multiprocessing.context
+
+    class Context(multiprocessing.context.SpawnContext):
+        Process = __getattr__("_WorkerProcess")
+
+    return Context()
 
 
 def pool_worker_setup() -> None:

@@ -72,7 +72,7 @@ from wpot.mesh import Mesh, repair_mesh, repair_mode, repair_setting
 from wpot.runs.shapes import discover_shapes, warn_repeated_shapes
 from wpot.runs.store import RunMismatchError, RunStore, run_lock
 from wpot.runs.workers import dask_executor, fit_input_of, pair_task, shape_task, signatures_of
-from wpot.stopping import Interrupted, check_stop, pool_worker_setup
+from wpot.stopping import Interrupted, check_stop, pool_worker_setup, worker_context
 
 __all__ = ["run_all_vs_all"]
 
@@ -257,12 +257,11 @@ def _open_store(out: Path, run: _Inputs, repair: bool | str) -> RunStore:
 
 def _process_pool(jobs: int | None) -> cf.ProcessPoolExecutor | None:
     """The run's own pool of ``jobs`` spawned worker processes (None: every core), or None for ``jobs=1``
-    (inline). Its workers ignore Ctrl-C and exit with the coordinator (`wpot.stopping.pool_worker_setup`)."""
+    (inline). Its workers ignore Ctrl-C from their start and exit with the coordinator (`wpot.stopping`'s
+    `worker_context` and `pool_worker_setup`)."""
     if jobs is not None and jobs <= 1:
         return None
-    import multiprocessing as mp
-
-    return cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"),
+    return cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=worker_context(),
                                   initializer=pool_worker_setup)
 
 
