@@ -430,12 +430,13 @@ def _warning_printer(reporter: Any) -> Any:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``wpot`` command; returns the exit code (0 success, 2 bad input; stopped by a signal: 128 + its
     number, 130 for Ctrl-C, 143 for SIGTERM, see `wpot.stopping`)."""
-    from wpot.progress import Progress
     from wpot.stopping import exit_code, stop_on_signals, stopped_message
 
     args = None
     try:
         with stop_on_signals() as stopping:  # from the start: building the parser takes a second or two
+            from wpot.progress import Progress
+
             args = build_parser().parse_args(argv)
             args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
             if args.command == "all-vs-all":

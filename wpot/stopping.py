@@ -132,9 +132,9 @@ def hard_stop(signum: int, note: str = "", *, second: bool = True) -> None:
         os._exit(128 + signum)
 
 
-#: seconds a first signal's clean stop may take before the process stops at once (`hard_stop`); under the
-#: 10 s in which SIGTERM must have ended every process of a run
-GRACE = 6.0
+#: seconds a first signal's clean stop may take before the process stops at once (`hard_stop`): a first Ctrl-C
+#: ends the process within about 5 s whatever happens (a clean stop takes 0.5-2 s)
+GRACE = 4.0
 
 
 @dataclasses.dataclass
@@ -146,6 +146,7 @@ class Stopping:
     after_hard_stop: str = ""  # what the message of a second signal adds
     signum: int | None = None
     deferred: int = 0  # depth of `deferred_stop` blocks
+    late: threading.Timer | None = None  # the `GRACE` timer, started by the first signal
 
 
 #: the active `stop_on_signals` (None outside one)
@@ -204,16 +205,18 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[S
 
     def handle(signum: int, frame: Any) -> None:
         if state.signum is not None:
-            hard_stop(signum, state.after_hard_stop)
+            hard_stop(signum, state.after_hard_stop)  # does not return
+            return
         state.signum = signum
         again = "press Ctrl-C again" if signum == signal.SIGINT else f"a second {signal_words(signum)}"
         _say(f"wpot: stopping on {signal_words(signum)}" + (f": {state.doing}" if state.doing else "")
              + f"; {again} stops at once")
-        late = threading.Timer(GRACE, hard_stop, (signum, f"the stop took over {GRACE:g} s"
+        late = threading.Timer(GRACE, lambda *a, **k: hard_stop(*a, **k), (signum, f"the stop took over {GRACE:g} s"
                                                    + (f"; {state.after_hard_stop}" if state.after_hard_stop else "")),
                                {"second": False})
         late.daemon = True
         late.start()
+        state.late = late
         if not state.deferred:
             raise Interrupted(signum)
 

@@ -249,13 +249,17 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
             "pip install 'wpot[cluster]' (or 'dask[distributed]')"
         ) from exc
     cluster = executor = None
+    started: set = set()  # the clusters that this call started (a start that a signal broke leaves one behind)
     with contextlib.ExitStack() as stack:
         try:
             if is_client:
                 client = scheduler
             elif scheduler == "local":
+                from distributed.deploy.spec import SpecCluster
+
                 from wpot.stopping import deferred_stop
 
+                started = set(SpecCluster._instances)
                 with deferred_stop():  # a signal stops the run once the cluster is up (and in the stack, to close)
                     cluster = stack.enter_context(
                         LocalCluster(
@@ -278,6 +282,9 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
                 with _quiet_dask():
                     _stop_local_workers(cluster)
                     stack.close()  # the client, then the cluster
+            elif scheduler == "local":
+                with _quiet_dask():
+                    _abandon_broken_clusters(started)
             raise
         finally:
             if executor is not None:
@@ -298,6 +305,16 @@ def _quiet_dask() -> Iterator[None]:
     finally:
         for lg, level in zip(loggers, levels):
             lg.setLevel(level)
+
+
+def _abandon_broken_clusters(before: set) -> None:
+    """The `LocalCluster` whose start a signal broke (the clusters not in ``before``): its workers closed now, and
+    Dask's exit handler told to leave it (it would wait up to 10 s on a cluster that never started)."""
+    from distributed.deploy.spec import SpecCluster
+
+    for cluster in set(SpecCluster._instances) - before:
+        _stop_local_workers(cluster)
+        cluster.shutdown_on_close = False
 
 
 def _stop_local_workers(cluster: Any, timeout: float = 0.5) -> None:
