@@ -115,3 +115,11 @@ def test_the_process_pool_workers_start_with_sigint_ignored():
     with cf.ProcessPoolExecutor(max_workers=1, mp_context=worker_context()) as pool:
         assert pool.submit(signal.getsignal, signal.SIGINT).result(timeout=60) == signal.SIG_IGN
     assert signal.getsignal(signal.SIGINT) is before  # this process's own handler is back
+
+
+def test_a_signal_ignored_from_the_start_stays_ignored(hard_stops):
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job of a script, as bash starts it
+    with stop_on_signals() as state:
+        _signal(signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    assert state.signum is None and hard_stops == []

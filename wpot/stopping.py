@@ -194,7 +194,8 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[S
     raises `Interrupted` in the main thread (at the end of a `deferred_stop` block when in one; again at the next
     `check_stop` if something swallowed it); when the process has not ended `GRACE` seconds later, or a second
     signal comes, it stops at once (`hard_stop`, with ``after_hard_stop`` added to its message). Outside the
-    main thread (where Python takes no signal handlers) the block runs unchanged. The previous handlers come back
+    main thread (where Python takes no signal handlers) the block runs unchanged, and a signal that this process
+    ignores (a background job of a script ignores SIGINT) stays ignored. The previous handlers come back
     when the block ends, unless a signal stopped it: then a later one (while the interpreter ends, after the
     command said it stopped) exits at once, with the first one's code."""
     global _active
@@ -223,7 +224,8 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[S
     def exiting(signum: int, frame: Any) -> None:  # the stop was said; the interpreter is ending
         os._exit(128 + state.signum)
 
-    previous = {s: signal.signal(s, handle) for s in SIGNALS}
+    # a signal ignored from the start stays ignored (a background job of a script, nohup): as Python does for SIGINT
+    previous = {s: signal.signal(s, handle) for s in SIGNALS if signal.getsignal(s) != signal.SIG_IGN}
     outer, _active = _active, state
     try:
         yield state
