@@ -12,8 +12,15 @@ import time
 import pytest
 
 from wpot import stopping
-from wpot.stopping import (Interrupted, check_stop, deferred_stop, exit_code, stop_on_signals, stopped_message,
-                           worker_context)
+from wpot.stopping import (
+    Interrupted,
+    check_stop,
+    deferred_stop,
+    exit_code,
+    stop_on_signals,
+    stopped_message,
+    worker_context,
+)
 
 
 @pytest.fixture

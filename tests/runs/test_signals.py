@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import make_dataset
 
 from benchmarks.fault_campaign import signal_run, store_consistent
-from helpers import make_dataset
 from wpot.runs.loop import run_all_vs_all
 from wpot.runs.store import RunStore
 

@@ -326,7 +326,5 @@ def _stop_local_workers(cluster: Any, timeout: float = 0.5) -> None:
         await asyncio.gather(*(w.close(timeout=timeout, reason="wpot-interrupted") for w in list(cluster.workers.values())),
                              return_exceptions=True)
 
-    try:
+    with contextlib.suppress(Exception):  # the cluster is closed next in any case (its processes end with this one)
         cluster.sync(close_all)
-    except Exception:  # the cluster is closed next in any case (and its processes end with this one)
-        pass
