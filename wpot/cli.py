@@ -494,18 +494,26 @@ def _warning_printer(reporter: Any) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``wpot`` command; returns the exit code (0 success, 2 bad input, 130 interrupted)."""
-    from wpot.progress import Progress
+    """Run the ``wpot`` command; returns the exit code (0 success, 2 bad input; stopped by a signal: 128 + its
+    number, 130 for Ctrl-C, 143 for SIGTERM, see `wpot.stopping`)."""
+    from wpot.stopping import exit_code, stop_on_signals, stopped_message
 
-    args = build_parser().parse_args(argv)
-    args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
+    args = None
     try:
-        with warnings.catch_warnings():
-            warnings.showwarning = _warning_printer(args.reporter)
-            args.func(args)
-    except KeyboardInterrupt:
-        print("wpot: interrupted (a run resumes where it stopped when rerun with the same command)", file=sys.stderr)
-        return 130
+        with stop_on_signals() as stopping:  # from the start: building the parser takes a second or two
+            from wpot.progress import Progress
+
+            args = build_parser().parse_args(argv)
+            args.reporter = Progress(enabled=progress_enabled(getattr(args, "progress", None), sys.stderr))
+            if args.command == "all-vs-all":
+                stopping.doing = "the stored pairs are kept, the pairs in flight dropped"
+                stopping.after_hard_stop = "the stored pairs are kept; rerun the same command to resume the run"
+            with warnings.catch_warnings():
+                warnings.showwarning = _warning_printer(args.reporter)
+                args.func(args)
+    except KeyboardInterrupt as exc:  # the first Ctrl-C or SIGTERM (a second one exits at once)
+        print(stopped_message(exc, getattr(args, "command", None)), file=sys.stderr)
+        return exit_code(exc)
     except (CliError, OSError, ValueError) as exc:
         if os.environ.get("WPOT_DEBUG"):
             raise

@@ -1,6 +1,7 @@
 """Dataset runs: every pair of a dataset compared, stored as it finishes, resumable.
 
 - `wpot.runs.store`: the SQLite run store (`RunStore`), its key and lock;
+- `wpot.runs.matrices`: its distances read back (D(inf), D(beta), exports);
 - `wpot.runs.shapes`: the shapes of a run (folders and list files);
 - `wpot.runs.workers`: what a worker does (processes and Dask), and its device;
 - `wpot.runs.loop`: the run itself (`run_all_vs_all`);
@@ -12,7 +13,7 @@ import importlib
 from types import ModuleType
 
 #: the submodules, imported when first read as attributes (``wpot.runs.<name>``)
-_MODULES = ("history", "loop", "report", "shapes", "store", "workers")
+_MODULES = ("history", "loop", "matrices", "report", "shapes", "store", "workers")
 
 
 def __getattr__(name: str) -> ModuleType:

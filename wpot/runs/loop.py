@@ -23,6 +23,12 @@ ends), and a second run on the same folder raises `RunLockedError` at once rathe
 A store that SQLite cannot read (truncated, overwritten) raises `CorruptRunError` naming the file; it is
 never read as an empty or partial run.
 
+A run stopped by Ctrl-C (a `KeyboardInterrupt`; under the ``wpot`` command also SIGTERM, see `wpot.stopping`)
+stops at once: its own process pool's workers are killed, a local Dask cluster's workers closed, and the pairs
+they were computing dropped, rather than waited for; every committed pair stays, and it raises
+`wpot.stopping.Interrupted` saying what was stopped and how many pairs are stored. The workers ignore SIGINT (a
+terminal's Ctrl-C reaches the whole process group; the coordinator decides) and exit when the coordinator is gone.
+
 Execution is pluggable: ``jobs=1`` runs pairs inline; ``jobs>1`` uses a `ProcessPoolExecutor` (spawned
 processes, safe with CUDA); any `concurrent.futures.Executor` can be passed instead, e.g. a Dask
 cluster's ``client.get_executor()``. Workers receive self-contained tasks (mesh path or arrays, settings,
@@ -55,16 +61,18 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import dataclasses
 import os
+import signal
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping, Sequence
-
 
 from wpot.mesh import Mesh, repair_mesh, repair_mode, repair_setting
 from wpot.runs.shapes import discover_shapes, warn_repeated_shapes
 from wpot.runs.store import RunMismatchError, RunStore, run_lock
 from wpot.runs.workers import dask_executor, fit_input_of, pair_task, shape_task, signatures_of
+from wpot.stopping import Interrupted, check_stop, pool_worker_setup, worker_context
 
 __all__ = ["run_all_vs_all"]
 
@@ -123,12 +131,12 @@ def run_all_vs_all(
     RunLockedError : another process is running on ``out`` (one coordinator per run folder: `run_lock`)
     RunMismatchError : ``out`` holds a run with other parameters or shapes, or a shape file changed since
     CorruptRunError : ``out/wpot.sqlite`` is damaged
+    Interrupted : (a `KeyboardInterrupt`) Ctrl-C or a signal stopped the run; its workers were stopped at once
+        and every stored pair is kept (see the module docstring)
 
     The inputs are read and checked first, so a refused input leaves no run folder behind; the run folder's
     lock (`run_lock`) is then held for the rest of the run.
     """
-    from wpot.comparison import check_mesh_size, fit_phase
-    from wpot.config import ComparisonConfig
     from wpot.progress import as_progress
 
     if scheduler is not None:
@@ -142,6 +150,60 @@ def run_all_vs_all(
             )
     mode = repair_mode(repair)
     reporter = as_progress(progress)
+    run = _read_inputs(shapes, out, labels=labels, config=config, signature=signature, transport=transport,
+                       mode=mode, reporter=reporter, comparer_options=comparer_options)
+    out = Path(out)
+    with run_lock(out):
+        store = _open_store(out, run, repair)
+        todo = [t for t in store.tasks() if t not in store.done()]
+        if not todo:
+            return store
+        own_pool = _process_pool(jobs) if executor is None else None
+        interrupted = False
+        try:
+            _compute(store, own_pool or executor, todo, run, device, reporter, max_pairs)
+        except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM under the wpot command (wpot.stopping)
+            interrupted = True
+            raise _stopped(exc, store, own_pool, executor) from None
+        finally:
+            if own_pool is not None:
+                own_pool.shutdown(wait=not interrupted, cancel_futures=True)
+        return store
+
+
+@dataclasses.dataclass
+class _Inputs:
+    """A run's inputs, every file read and checked before any work (`_read_inputs`)."""
+
+    specs: list[Any]  # the shapes' `ShapeSpec`s, in order
+    meshes: list[Mesh]  # their meshes (repaired when the run repairs them)
+    repairs: dict[str, str]  # shape name -> what the repair removed
+    config: Any  # the `ComparisonConfig`
+    params: dict[str, Any]  # its run key (`ComparisonConfig.run_key`), stored with the run
+    cache_dir: str
+    mode: str  # the repair mode (`repair_mode`)
+
+    @property
+    def shape_rows(self) -> list[tuple[str, str | None, str, int]]:
+        return [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(self.specs, self.meshes)]
+
+    @property
+    def labels(self) -> dict[int, dict[str, str]]:
+        return {k: dict(s.labels or {}) for k, s in enumerate(self.specs)}
+
+    @property
+    def task_specs(self) -> list[Any]:
+        """What a task is given for each shape: (path, fingerprint), or the mesh itself when it has no file."""
+        return [(s.path, m.fingerprint) if s.path is not None else m for s, m in zip(self.specs, self.meshes)]
+
+
+def _read_inputs(shapes: Any, out: str | Path, *, labels: Any, config: Any, signature: str, transport: str,
+                 mode: str, reporter: Any, comparer_options: dict[str, Any]) -> _Inputs:
+    """The shapes, labels and configuration of a run, read and checked up front: fail before any work (and
+    before the run folder is created)."""
+    from wpot.comparison import check_mesh_size
+    from wpot.config import ComparisonConfig
+
     if labels is not None and not isinstance(labels, (str, Path)):
         raise TypeError(f"labels must be a CSV path, got {type(labels).__name__}")
     specs = discover_shapes(shapes, labels=labels)
@@ -153,11 +215,11 @@ def run_all_vs_all(
         raise TypeError("give either config or the comparison keywords (signature, transport, ...), not both")
     params = config.run_key()
 
-    # every file read and checked up front: fail before any work
     meshes, repairs = [], {}
     bar = reporter.bar(len(specs), "reading meshes", "mesh")
     try:
         for s in specs:
+            check_stop()
             m = s.load(warn=mode == "none")
             if mode != "none":
                 m, _, what = repair_mesh(m, mode)
@@ -169,60 +231,93 @@ def run_all_vs_all(
             bar.update()
     finally:
         bar.close()
-    shape_rows = [(s.name, s.path, m.fingerprint, m.n_vertices) for s, m in zip(specs, meshes)]
     warn_repeated_shapes([s.name for s in specs], [m.fingerprint for m in meshes])
-    lab = {k: dict(s.labels or {}) for k, s in enumerate(specs)}
-
-    with run_lock(out):
-        store = RunStore(out, create=True)
-        stored_repair = store.get("repair", False)
-        stored_mode = repair_mode(stored_repair)
-        try:
-            store.initialize(params, shape_rows, lab)
-        except RunMismatchError as exc:
-            if exc.differences or stored_mode == mode:
-                raise
-            raise RunMismatchError(f"{exc} The run was made with repair={stored_repair!r}; rerun with "
-                                   f"repair={stored_repair!r} to resume it.", folder=out,
-                                   differences=[("repair", stored_repair, repair_setting(mode))]) from None
-        store.set("repair", repair_setting(mode))
-        if mode != "none":
-            store.set("repairs", repairs)
-        todo = [t for t in store.tasks() if t not in store.done()]
-        if not todo:
-            return store
-
-        own_pool = None
-        if executor is None and (jobs is None or jobs > 1):
-            import multiprocessing as mp
-
-            own_pool = cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=mp.get_context("spawn"))
-            executor = own_pool
-        task_specs = [(s.path, m.fingerprint) if s.path is not None else m for s, m in zip(specs, meshes)]
-        try:
-            # what every task needs to rebuild the comparer: the configuration, the signature's fitted state
-            # (paper §3.2: one WKS energy grid for the whole dataset, stored with the run), the shared caches
-            task_config = {"config": config.to_dict(), "state": store.signature_state(), "cache_dir": cache_dir,
-                           "device": device, "repair": mode}
-            from wpot.signatures import get_signature
-
-            stage = get_signature(config.signature)(config.signature_options)
-            if stage.needs_fit and task_config["state"] is None:
-                inputs = _map(executor, shape_task, [(fit_input_of, sp, task_config) for sp in task_specs],
-                              fit_phase(stage), reporter, [s.name for s in specs])
-                stage.fit_from(inputs)
-                task_config["state"] = stage.state()
-                store.set_signature_state(task_config["state"])
-            needed = sorted({i for t in todo for i in t})
-            _map(executor, shape_task, [(signatures_of, task_specs[i], task_config) for i in needed], "signatures",
-                 reporter, [specs[i].name for i in needed])
-            _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
-        finally:
-            if own_pool is not None:
-                own_pool.shutdown(wait=True, cancel_futures=True)
-        return store
+    return _Inputs(specs, meshes, repairs, config, params, cache_dir, mode)
 
 
+def _open_store(out: Path, run: _Inputs, repair: bool | str) -> RunStore:
+    """The run folder's store, with the run recorded (a new run) or checked against it (a resumed one)."""
+    mode = run.mode
+    store = RunStore(out, create=True)
+    stored_repair = store.get("repair", False)
+    stored_mode = repair_mode(stored_repair)
+    try:
+        store.initialize(run.params, run.shape_rows, run.labels)
+    except RunMismatchError as exc:
+        if exc.differences or stored_mode == mode:
+            raise
+        raise RunMismatchError(f"{exc} The run was made with repair={stored_repair!r}; rerun with "
+                               f"repair={stored_repair!r} to resume it.", folder=out,
+                               differences=[("repair", stored_repair, repair_setting(mode))]) from None
+    store.set("repair", repair_setting(mode))
+    if mode != "none":
+        store.set("repairs", run.repairs)
+    return store
+
+
+def _process_pool(jobs: int | None) -> cf.ProcessPoolExecutor | None:
+    """The run's own pool of ``jobs`` spawned worker processes (None: every core), or None for ``jobs=1``
+    (inline). Its workers ignore Ctrl-C from their start and exit with the coordinator (`wpot.stopping`'s
+    `worker_context` and `pool_worker_setup`)."""
+    if jobs is not None and jobs <= 1:
+        return None
+    return cf.ProcessPoolExecutor(max_workers=jobs or os.cpu_count(), mp_context=worker_context(),
+                                  initializer=pool_worker_setup)
+
+
+def _compute(store: RunStore, executor: cf.Executor | None, todo: list[tuple[int, int]], run: _Inputs,
+             device: str | None, reporter: Any, max_pairs: int | None) -> None:
+    """The run's work: fit the signature to the dataset when it needs it (once per run: paper §3.2, one WKS energy
+    grid for the whole dataset, stored with the run), every needed shape's signatures, then the pairs."""
+    from wpot.comparison import fit_phase
+    from wpot.signatures import get_signature
+
+    specs, task_specs = run.specs, run.task_specs
+    # what every task needs to rebuild the comparer: the configuration, the signature's fitted state, the caches
+    task_config = {"config": run.config.to_dict(), "state": store.signature_state(), "cache_dir": run.cache_dir,
+                   "device": device, "repair": run.mode}
+    stage = get_signature(run.config.signature)(run.config.signature_options)
+    if stage.needs_fit and task_config["state"] is None:
+        inputs = _map(executor, shape_task, [(fit_input_of, sp, task_config) for sp in task_specs],
+                      fit_phase(stage), reporter, [s.name for s in specs])
+        stage.fit_from(inputs)
+        task_config["state"] = stage.state()
+        store.set_signature_state(task_config["state"])
+    needed = sorted({i for t in todo for i in t})
+    _map(executor, shape_task, [(signatures_of, task_specs[i], task_config) for i in needed], "signatures",
+         reporter, [specs[i].name for i in needed])
+    _run_pairs(store, executor, todo, task_specs, task_config, reporter, max_pairs)
+
+
+def _stopped(exc: KeyboardInterrupt, store: RunStore, pool: cf.ProcessPoolExecutor | None,
+             executor: cf.Executor | None) -> Interrupted:
+    """Stop a run that a signal interrupted, at once: kill the run's own worker processes (the pairs they were
+    computing are dropped; waiting for them could take minutes), close the store. Returns the `Interrupted` to
+    raise, saying what was stopped and what is kept."""
+    if pool is not None:
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        # shut down first: the pool's manager thread then drops the cancelled futures before it sees its
+        # workers die (Python 3.11's fails on a cancelled future when a worker dies)
+        pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.kill()
+        for p in procs:
+            p.join(timeout=5)
+        how = f"its {len(procs)} worker processes were stopped and the pairs they were computing dropped"
+    elif executor is None:
+        how = "the pair being computed was dropped"
+    else:
+        how = getattr(executor, "stop_words", "the pairs in flight were cancelled and dropped")
+    try:
+        n_done, n_total = len(store.done()), len(store.tasks())
+        kept = f"{n_done} of {n_total} pairs stored in {store.folder}"
+    except Exception:  # the store cannot be read now: say nothing about it
+        kept = f"the pairs stored in {store.folder} are kept"
+    finally:
+        store.close()
+    detail = f"{how}; {kept}; rerun the same command to resume the run"
+    return Interrupted(getattr(exc, "signum", signal.SIGINT), detail)
 
 
 def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -> Iterator[tuple[Any, cf.Future]]:
@@ -243,6 +338,7 @@ def _completed(executor: cf.Executor, calls: Iterable[tuple[Any, Any, tuple]]) -
                 yield pending.pop(f), f
             return
         while True:
+            check_stop()
             cap = limit()
             while not exhausted and len(pending) < cap:
                 try:
@@ -269,6 +365,7 @@ def _map(executor: cf.Executor | None, fn: Any, arglist: list[tuple], what: str,
     bar = progress.bar(len(arglist), what, "shape")
 
     def take(k: int, told: tuple[Any, list[tuple[type, str]]]) -> Any:
+        check_stop()
         value, said = told
         for category, message in said:
             warnings.warn(f"{names[k]}: {message}", category, stacklevel=3)
@@ -294,6 +391,7 @@ def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: An
 
     def handle(i: int, j: int, fut_or_rec: Any) -> None:
         nonlocal n_new
+        check_stop()
         try:
             rec = fut_or_rec.result() if isinstance(fut_or_rec, cf.Future) else fut_or_rec
         except Exception as exc:  # a failing pair is recorded and the run goes on
@@ -309,6 +407,7 @@ def _run_pairs(store: RunStore, executor, todo, task_specs, config, progress: An
             for i, j in todo:
                 if max_pairs is not None and n_new >= max_pairs:
                     break
+                check_stop()
                 try:
                     rec = pair_task(i, j, task_specs[i], task_specs[j], config)
                 except Exception as exc:

@@ -197,6 +197,10 @@ class DaskExecutor(cf.Executor):
     with `run_all_vs_all`, but then every pair is submitted at once.
     """
 
+    #: what `run_all_vs_all` says about the pairs in flight when a signal stops it (`dask_executor` sets it for
+    #: a local cluster, whose workers it stops)
+    stop_words = "the pairs in flight were cancelled on the Dask cluster and dropped"
+
     def __init__(self, client: Any) -> None:
         self.client = client
         self._inner = client.get_executor(pure=False)
@@ -244,21 +248,83 @@ def dask_executor(scheduler: Any, *, n_workers: int | None = None, connect_timeo
             f"running on a Dask cluster (scheduler={scheduler!r}) needs Dask's distributed package: "
             "pip install 'wpot[cluster]' (or 'dask[distributed]')"
         ) from exc
+    cluster = executor = None
+    started: set = set()  # the clusters that this call started (a start that a signal broke leaves one behind)
     with contextlib.ExitStack() as stack:
-        if is_client:
-            client = scheduler
-        elif scheduler == "local":
-            cluster = stack.enter_context(
-                LocalCluster(
-                    n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                    dashboard_address="127.0.0.1:0",  # a free port (8787 may be taken)
-                )
-            )
-            client = stack.enter_context(Client(cluster))
-        else:
-            client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
-        executor = DaskExecutor(client)
         try:
+            if is_client:
+                client = scheduler
+            elif scheduler == "local":
+                from distributed.deploy.spec import SpecCluster
+
+                from wpot.stopping import deferred_stop
+
+                started = set(SpecCluster._instances)
+                with deferred_stop():  # a signal stops the run once the cluster is up (and in the stack, to close)
+                    cluster = stack.enter_context(
+                        LocalCluster(
+                            n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                            dashboard_address="127.0.0.1:0",  # a free port (8787 may be taken)
+                            preload=["wpot.stopping"],  # its dask_setup: the workers ignore SIGINT and SIGTERM
+                        )
+                    )
+                    client = stack.enter_context(Client(cluster))
+            else:
+                client = stack.enter_context(Client(scheduler, timeout=connect_timeout))
+            executor = DaskExecutor(client)
+            if cluster is not None:
+                executor.stop_words = "the local Dask cluster's workers were stopped and the pairs they were computing dropped"
             yield executor
+        except KeyboardInterrupt:  # a signal stopped the run: its pairs in flight are dropped
+            if executor is not None:
+                executor.shutdown(wait=False, cancel_futures=True)
+            if cluster is not None:
+                with _quiet_dask():
+                    _stop_local_workers(cluster)
+                    stack.close()  # the client, then the cluster
+            elif scheduler == "local":
+                with _quiet_dask():
+                    _abandon_broken_clusters(started)
+            raise
         finally:
-            executor.shutdown(wait=False, cancel_futures=True)
+            if executor is not None:
+                executor.shutdown(wait=False, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """Dask's warnings about workers it kills, and about tasks cancelled, kept quiet for the block."""
+    import logging
+
+    loggers = [logging.getLogger(n) for n in ("distributed", "tornado")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
+def _abandon_broken_clusters(before: set) -> None:
+    """The `LocalCluster` whose start a signal broke (the clusters not in ``before``): its workers closed now, and
+    Dask's exit handler told to leave it (it would wait up to 10 s on a cluster that never started)."""
+    from distributed.deploy.spec import SpecCluster
+
+    for cluster in set(SpecCluster._instances) - before:
+        _stop_local_workers(cluster)
+        cluster.shutdown_on_close = False
+
+
+def _stop_local_workers(cluster: Any, timeout: float = 0.5) -> None:
+    """Close a `LocalCluster`'s workers now (a signal stopped the run): each nanny asks its worker to stop and
+    kills it after ``timeout`` seconds, rather than after the 4 s Dask's close allows a worker busy with a pair."""
+    import asyncio
+
+    async def close_all() -> None:
+        await asyncio.gather(*(w.close(timeout=timeout, reason="wpot-interrupted") for w in list(cluster.workers.values())),
+                             return_exceptions=True)
+
+    with contextlib.suppress(Exception):  # the cluster is closed next in any case (its processes end with this one)
+        cluster.sync(close_all)
