@@ -973,6 +973,10 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     if lib.suffix.lower() in MESH_EXTENSIONS:
         raise CliError(f"the library must be a folder of meshes or a list of them, got the single mesh {a.library}")
     shapes = list_shapes(lib if lib.is_dir() else read_mesh_list(lib), labels=a.labels)
+    classes = sorted(set(map(str, shapes.labels["class"])))
+    if len(classes) < 2:
+        raise CliError(f"the library {a.library} holds one class ({classes[0]!r}; classes come from the file names "
+                       "or --labels): a part's class can only be looked up among two or more")
     part = _load(a.part, "part", folder="the part is one mesh file (the library, a folder, comes second)").mesh
     config = ComparisonConfig(signature=a.signature, signature_options=signature_options_from_args(a.signature, a))
     reporter = _progress(a)

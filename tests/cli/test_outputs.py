@@ -289,3 +289,16 @@ def test_report_figures_share_one_class_order_and_mark_a_one_shape_class(odd_run
     text = (tmp_path / "report.md").read_text()
     assert "| leave-one-out 1-NN, level `family` (one group) | not scored: every shape is in one group |" in text
     assert "without the 1 group of one shape, which it cannot get right)" in text
+
+
+def test_retrieve_refuses_a_library_of_one_class_before_any_work(capsys, tmp_path):
+    from wpot.examples import example_mesh
+    from wpot.io import save_mesh
+
+    (tmp_path / "lib").mkdir()
+    for k in range(2):
+        save_mesh(example_mesh(60 + 7 * k, seed=k), tmp_path / "lib" / f"blob{k + 1}.off")
+    save_mesh(example_mesh(50, seed=5), tmp_path / "part.off")
+    code, out, err = cli(capsys, "retrieve", tmp_path / "part.off", tmp_path / "lib", "--device", "cpu", "--progress")
+    assert code == 2 and "holds one class ('blob';" in err and "--labels" in err, err
+    assert "reading meshes" not in err  # refused before the library is read
