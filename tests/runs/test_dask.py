@@ -75,8 +75,10 @@ def cluster():
     import dask
     from distributed import Client, LocalCluster
 
-    # a task may kill its worker once and be retried; the second death marks it bad (KilledWorker)
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+    # a task may be in two worker deaths and be retried; the third marks it bad (KilledWorker). Two, not one: a
+    # pair killed once can be queued on the worker that the poisoned pair kills next, and then it is in two deaths
+    # without a fault of its own (seen under load)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 2}):
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0") as lc:
             with Client(lc) as client:
                 yield lc, client
@@ -163,8 +165,8 @@ def test_killed_worker_loses_only_its_pair_and_the_cli_runs_on_the_cluster(clust
     assert int(row["worker"].split("@")[0].rsplit(":", 1)[1]) in killed[1:]
     assert row["worker"].endswith("@cpu")  # the worker's own device choice: no GPU here
 
-    # pair (1, 3) killed a worker at each of its 2 attempts (allowed-failures = 1): recorded, the run went on
-    assert len(_pids(marks / "pair-1-3.pids")) == 2
+    # pair (1, 3) killed a worker at each of its 3 attempts (allowed-failures = 2): recorded, the run went on
+    assert len(_pids(marks / "pair-1-3.pids")) == 3
     fails = store.failures()
     assert [(i, j) for i, j, _ in fails] == [(1, 3)] and "KilledWorker" in fails[0][2]
     assert store.done() == set(store.tasks()) - {(1, 3)}

@@ -87,7 +87,8 @@ def test_a_signalled_run_stops_within_5_s_leaves_no_process_and_resumes_bit_for_
     assert f"wpot: stopping on {words}" in st.stderr  # said at once, before any clean-up
     assert st.seconds < 5.0, (st.seconds, st.stderr)
     if st.sent == 1 or "stopped at once" not in st.stderr:  # the first signal's clean stop
-        assert st.returncode == 128 + first, st.stderr
+        # (a second signal that lands while the stopped interpreter exits ends it by that signal: stopped all the same)
+        assert st.returncode == 128 + first or (st.sent == 2 and st.returncode == -sigs[1]), st.stderr
         assert f"wpot: all-vs-all stopped by {words}" in st.stderr
         assert "rerun the same command to resume" in st.stderr and "Traceback" not in st.stderr
     else:  # the second one came while it stopped: at once, with the second's code
