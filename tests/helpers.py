@@ -123,3 +123,31 @@ class Coordinates(Signature):
 
     def __call__(self, mesh):
         return np.asarray(mesh.vertices, dtype=np.float64) * self.options.scale
+
+
+def cli(capsys, *args) -> tuple[int, str, str]:
+    """Run the `wpot` command in this process: exit code, stdout, stderr (without Warp's own start-up notices)."""
+    from wpot.cli import main
+
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    strip = lambda text: "\n".join(ln for ln in text.splitlines() if not ln.startswith("Warp "))
+    return code, strip(out), strip(err)
+
+
+def one_line_error(code: int, err: str) -> str:
+    """The command's one-line error (exit code 2), or a failed assertion."""
+    lines = [ln for ln in err.splitlines() if ln.startswith("wpot: error:")]
+    assert code == 2 and len(lines) == 1, (code, err)
+    return lines[0]
+
+
+class Clock:
+    """A clock that advances one second per reading: every progress stage takes 1.0 s."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        self.t += 1.0
+        return self.t

@@ -3,18 +3,10 @@ from __future__ import annotations
 
 import io
 
+from helpers import Clock
 from wpot.progress import LineBar, Progress
 
 
-class Clock:
-    """Advances one second per reading."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        self.t += 1.0
-        return self.t
 
 
 class Terminal(io.StringIO):

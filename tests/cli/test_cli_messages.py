@@ -13,39 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import make_dataset
+from helpers import Clock, cli, make_dataset, one_line_error
 
 FAST = ["--n-eigen", "30", "--n-energies", "30"]
 
 
-def cli(capsys, *args: str) -> tuple[int, str, str]:
-    """Run the command in this process: exit code, stdout, stderr (without Warp's own start-up notices)."""
-    from wpot.cli import main
-
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    strip = lambda text: "\n".join(ln for ln in text.splitlines() if not ln.startswith("Warp "))
-    return code, strip(out), strip(err)
 
 
-def one_line_error(code: int, err: str) -> str:
-    """The command's one-line error (exit code 2), or a failed assertion."""
-    lines = [ln for ln in err.splitlines() if ln.startswith("wpot: error:")]
-    assert code == 2 and len(lines) == 1, (code, err)
-    return lines[0]
 
 
-@pytest.fixture(scope="module")
-def pair(tmp_path_factory) -> tuple[Path, Path]:
-    """Two 300-vertex triangulations of one surface, as files."""
-    from wpot.examples import example_pair
-    from wpot.io import save_mesh
-
-    folder = tmp_path_factory.mktemp("pair")
-    p = example_pair(300, seed=0, n_target=300)
-    save_mesh(p.source, folder / "a.off")
-    save_mesh(p.target, folder / "b.off")
-    return folder / "a.off", folder / "b.off"
 
 
 @pytest.fixture(scope="module")
@@ -80,15 +56,6 @@ def defective_copy(src: Path, dst: Path) -> int:
 
 
 # ------------------------------------------------------------------------------------------- 1. progress
-class Clock:
-    """A clock that advances one second per reading: every stage takes 1.0 s."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        self.t += 1.0
-        return self.t
 
 
 def test_a_comparison_reports_each_step_with_its_time(pair):

@@ -11,36 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import FAST_CLI
+from helpers import FAST_CLI, cli, one_line_error
 
 
-def cli(capsys, *args) -> tuple[int, str, str]:
-    """Run the command in this process: exit code, stdout, stderr (without Warp's own start-up notices)."""
-    from wpot.cli import main
-
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    strip = lambda text: "\n".join(ln for ln in text.splitlines() if not ln.startswith("Warp "))
-    return code, strip(out), strip(err)
 
 
-def one_line_error(code: int, err: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.startswith("wpot: error:")]
-    assert code == 2 and len(lines) == 1, (code, err)
-    return lines[0]
 
 
-@pytest.fixture(scope="module")
-def pair(tmp_path_factory) -> tuple[Path, Path]:
-    """Two 300-vertex triangulations of one surface, as files."""
-    from wpot.examples import example_pair
-    from wpot.io import save_mesh
-
-    folder = tmp_path_factory.mktemp("pair")
-    p = example_pair(300, seed=0, n_target=300)
-    save_mesh(p.source, folder / "a.off")
-    save_mesh(p.target, folder / "b.off")
-    return folder / "a.off", folder / "b.off"
 
 
 # ------------------------------------------------------------------------------- compare --out and --force
