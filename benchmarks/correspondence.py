@@ -77,12 +77,16 @@ FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
 #: candidates, the least stretched of those oriented about as well as the better, chosen at k = 100 and refined
 #: on to k = 200; sampled rounds)
-ZOOMOUT_SUFFIX = "+zoomout-orient-fmap-tie-k200"
+ZOOMOUT_SUFFIX = "+zoomout-fmap-energy"
+#: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
+PLAIN_SUFFIX = "+zoomout-plain"
+#: the datasets the benchmark knows: folder under ``--data``
+DATASETS = {"tosca": "tosca_isometric_5k", "faust": "faust_5k"}
 NORMS = ("sqrt_area", "shrec19")
 
 
-def _tosca(default: Path) -> Path:
-    return default if default.is_dir() else Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca_isometric_5k"
+def _data_root() -> Path:
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def wpot_tag(signature: str, transport: str, max_vertices: int | None, scale_invariant: bool = False,
@@ -163,14 +167,15 @@ class ZoomOutMatcher:
     """wpot's correspondence refined by `wpot.zoomout` (defaults: k = 10, 15, ..., 200), on the full meshes; its
     time per pair is wpot's plus the refinement's."""
 
-    def __init__(self, base: WpotMatcher) -> None:
+    def __init__(self, base: WpotMatcher, *, orient: bool = True) -> None:
         from wpot.maps.zoomout import ZOOMOUT_K_END, ZOOMOUT_SAMPLES
 
         self.base = base
-        self.tag = base.tag + ZOOMOUT_SUFFIX
+        self.tag = base.tag + (ZOOMOUT_SUFFIX if orient else PLAIN_SUFFIX)
         self.setup_seconds: dict[str, float] = {}
-        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": True,
+        self.options = {"k_start": 10, "k_end": ZOOMOUT_K_END, "step": 5, "orient": orient,
                         "samples": ZOOMOUT_SAMPLES}
+
 
     def settings(self) -> dict:
         return {**self.base.settings(), "zoomout": self.options}
@@ -180,9 +185,10 @@ class ZoomOutMatcher:
 
         pred, dt, info = self.base.match_cached(x, y)
         t0 = time.perf_counter()
-        refined = zoomout(self.base.meshes[x], self.base.meshes[y], pred, **self.options)
+        res = zoomout(self.base.meshes[x], self.base.meshes[y], pred, **self.options)
         dz = time.perf_counter() - t0
-        return refined, dt + dz, {**info, "zoomout_seconds": dz}
+        return res.map, dt + dz, {**info, "zoomout_seconds": dz, "orientation_confidence": res.orientation_confidence,
+                                  "candidate": res.candidate, "energies": res.energies}
 
 
 class FmapsMatcher:
@@ -273,7 +279,8 @@ def _curves(store: Store, recs: list[dict], norm: str, tmax: float, n: int = 501
     return thr, np.mean(curves, axis=0), np.array(aucs)
 
 
-def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, tags: set | None = None) -> None:
+def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, tags: set | None = None,
+           dataset: str = "tosca") -> None:
     """Table and figure over the pairs every method has finished (within ``keep`` when given), for the
     method tags in ``tags`` (all stored methods when None)."""
     from wpot.datasets import class_label
@@ -290,7 +297,7 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, ta
         return
     methods = sorted(by_method, key=lambda m: (m != FMAPS_TAG, m))
     common = set.intersection(*(set(v) for v in by_method.values()))
-    lines = [f"# Correspondence on TOSCA test pairs ({len(common)} pairs common to all methods)\n",
+    lines = [f"# Correspondence on {DATASETS[dataset]} test pairs ({len(common)} pairs common to all methods)\n",
              f"AUC = mean over pairs of the mean cumulative curve over [0, {tmax['sqrt_area']}] of d/sqrt(area(Y)) "
              f"(paper) and over [0, {tmax['shrec19']}] of d/max geodesic (SHREC'19 code). Geodesics: heat method. "
              "Errors at the 5,000 template points of each pair. Time: seconds per pair, per-shape set-up excluded "
@@ -366,11 +373,11 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, ta
     (out / "results.md").write_text(md)
     (out / "summary.json").write_text(json.dumps({"pairs": len(common), "tmax": tmax, "methods": summary}, indent=1))
     log(md)
-    figure(curves, out / "correspondence.png", len(common))
+    figure(curves, out / "correspondence.png", len(common), DATASETS[dataset])
     log(f"figure: {out / 'correspondence.png'}")
 
 
-def figure(curves: dict, path: Path, n_pairs: int) -> None:
+def figure(curves: dict, path: Path, n_pairs: int, dataset: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -381,7 +388,7 @@ def figure(curves: dict, path: Path, n_pairs: int) -> None:
     labels = {"sqrt_area": "geodesic error / √area(Y)  (paper)", "shrec19": "geodesic error / max geodesic  (SHREC'19 code)"}
     for ax, norm in zip(axes, NORMS):
         cs = {f"{m} (AUC {a:.3f})": (t, c) for m, (t, c, a) in curves[norm].items()}
-        plot_cumulative_errors(cs, ax=ax, xlabel=labels[norm], title=f"TOSCA test pairs ({n_pairs})")
+        plot_cumulative_errors(cs, ax=ax, xlabel=labels[norm], title=f"{dataset} test pairs ({n_pairs})")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
@@ -410,10 +417,15 @@ def code_version() -> str:
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tosca", type=Path, default=_tosca(Path("/work/shared/data/tosca_isometric_5k")))
-    ap.add_argument("--out", type=Path, required=True, help="results folder (outside the repository)")
-    ap.add_argument("--methods", nargs="+", default=["wpot", "fmaps"], choices=["wpot", "wpot-zoomout", "fmaps"],
-                    help="wpot-zoomout: wpot's map refined by wpot.zoomout (default: wpot fmaps)")
+    ap.add_argument("--data", type=Path, default=_data_root(),
+                    help="the folder holding the datasets (default: ../shared/data beside the repository)")
+    ap.add_argument("--dataset", nargs="+", default=["tosca"], choices=sorted(DATASETS),
+                    help="tosca: tosca_isometric_5k's 284 test pairs; faust: faust_5k's 300 (one table each)")
+    ap.add_argument("--out", type=Path, required=True,
+                    help="results folder (outside the repository); one subfolder per dataset")
+    ap.add_argument("--methods", nargs="+", default=["wpot", "fmaps"], choices=["wpot", "wpot-zoomout", "wpot-zoomout-plain", "fmaps"],
+                    help="wpot-zoomout: wpot's map refined by wpot.zoomout; wpot-zoomout-plain: the same with "
+                    "orient=False (default: wpot fmaps)")
     ap.add_argument("--limit", type=int, default=None,
                     help="only K pairs, evenly spaced over test_pairs.txt (the report then covers those K only)")
     ap.add_argument("--max-vertices", type=int, default=500, help="wpot's farthest-point sample size (0: none)")
@@ -435,27 +447,30 @@ def main(argv=None) -> int:
 
     from wpot.evaluate import DEFAULT_MAX_THRESHOLD
 
-    out, log = results_folder(a.out)
-
     tmax = {"sqrt_area": a.sqrt_area_max or DEFAULT_MAX_THRESHOLD["sqrt_area"],
             "shrec19": a.shrec_max or DEFAULT_MAX_THRESHOLD["shrec19"]}
-    store = Store(out)
-    if not a.report_only:
-        run(a, out, store, log)
-    keep = None
-    if a.limit is not None:  # report the selected pairs only
-        from wpot.datasets import read_test_pairs
+    for name in a.dataset:
+        a.tosca = a.data / DATASETS[name]
+        if not (a.tosca / "test_pairs.txt").is_file():
+            ap.error(f"--dataset {name}: {a.tosca} has no test_pairs.txt (set --data)")
+        out, log = results_folder(a.out / name)
+        store = Store(out)
+        if not a.report_only:
+            run(a, out, store, log)
+        keep = None
+        if a.limit is not None:  # report the selected pairs only
+            from wpot.datasets import read_test_pairs
 
-        keep = set(select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit))
-    tags = None if a.report_all else {method_tags(a)[m] for m in a.methods}
-    report(store, out, tmax, log, keep, tags)
+            keep = set(select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit))
+        tags = None if a.report_all else {method_tags(a)[m] for m in a.methods}
+        report(store, out, tmax, log, keep, tags, dataset=name)
     return 0
 
 
 def method_tags(a) -> dict[str, str]:
     """The store's method tag for each ``--methods`` name at these settings."""
     w = wpot_tag(a.signature, a.transport, a.max_vertices or None, a.scale_invariant, a.pooling)
-    return {"wpot": w, "wpot-zoomout": w + ZOOMOUT_SUFFIX, "fmaps": FMAPS_TAG}
+    return {"wpot": w, "wpot-zoomout": w + ZOOMOUT_SUFFIX, "wpot-zoomout-plain": w + PLAIN_SUFFIX, "fmaps": FMAPS_TAG}
 
 
 def run(a, out: Path, store: Store, log) -> None:
@@ -477,12 +492,14 @@ def run(a, out: Path, store: Store, log) -> None:
     matchers = {}
     if "fmaps" in a.methods:
         matchers["fmaps"] = FmapsMatcher(meshes)
-    if "wpot" in a.methods or "wpot-zoomout" in a.methods:
+    if any(m.startswith("wpot") for m in a.methods):
         base = WpotMatcher(meshes, signature=a.signature, transport=a.transport, max_vertices=maxv,
                            n_eigen=a.n_eigen, n_energies=a.n_energies, scale_invariant=a.scale_invariant,
                            device=a.device, log=log, pooling=a.pooling)
         if "wpot" in a.methods:
             matchers["wpot"] = base
+        if "wpot-zoomout-plain" in a.methods:
+            matchers["wpot-zoomout-plain"] = ZoomOutMatcher(base, orient=False)
         if "wpot-zoomout" in a.methods:
             matchers["wpot-zoomout"] = ZoomOutMatcher(base)
     for k, mt in matchers.items():

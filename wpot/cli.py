@@ -104,15 +104,24 @@ def _add_zoomout(p: argparse.ArgumentParser) -> None:
                    "correspondence_zoomout and drawn in the picture")
 
 
-def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> np.ndarray | None:
-    """The ZoomOut refinement of ``c.correspondence`` when ``--zoomout`` was given (printing how much moved)."""
+def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> Any:
+    """The `wpot.maps.zoomout.ZoomOutResult` of ``c.correspondence`` when ``--zoomout`` was given (printing how
+    much moved and how sure its left/right choice is), else None."""
     if not a.zoomout:
         return None
-    from wpot.maps.zoomout import zoomout
+    from wpot.maps.zoomout import ORIENTATION_DOUBT, zoomout
 
-    refined = zoomout(ma, mb, c.correspondence)
-    print(f"ZoomOut: {np.mean(refined != c.correspondence):.1%} of A's vertices changed their match")
-    return refined
+    res = zoomout(ma, mb, c.correspondence)
+    print(f"ZoomOut: {np.mean(res.map != c.correspondence):.1%} of A's vertices changed their match")
+    conf = res.orientation_confidence
+    if np.isnan(conf):
+        print("ZoomOut: left and right were not weighed (a mesh has several components or no readable outside); "
+              "the map may be mirrored")
+    else:
+        doubt = (f"below {ORIENTATION_DOUBT}: another left/right choice fits nearly as well, check the map"
+                 if conf < ORIENTATION_DOUBT else f"at least {ORIENTATION_DOUBT}: trusted")
+        print(f"ZoomOut: orientation confidence {conf:.2f} ({doubt})")
+    return res
 
 
 def _add_locate(p: argparse.ArgumentParser) -> None:
@@ -693,8 +702,9 @@ def _registration_json(r: Any) -> dict[str, Any] | None:
 
 
 def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str, Any] | None = None,
-                     refined: np.ndarray | None = None, located: _Located | None = None) -> list[Path]:
-    """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined`` is given, and
+                     refined: Any = None, located: _Located | None = None) -> list[Path]:
+    """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined``, a
+    `wpot.maps.zoomout.ZoomOutResult`, is given, its orientation confidence in the json; and
     ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located`` (`_locate`) is) and
     correspondence.png (`_save_picture`).
 
@@ -715,6 +725,9 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         "registration": _registration_json(c.registration),
         **(extra or {}),
     }
+    if refined is not None:
+        conf = refined.orientation_confidence
+        info["zoomout_orientation_confidence"] = None if np.isnan(conf) else conf
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
 
@@ -727,7 +740,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     def on_input(corr: np.ndarray) -> np.ndarray:
         return per_input(a, b.to_input(corr).astype(np.int64), -1)
 
-    arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined)}
+    arrays = {} if refined is None else {"correspondence_zoomout": on_input(refined.map)}
     if located is not None:
         arrays.update(correspondence_locate=on_input(located.map.correspondence),
                       confidence_locate=per_input(a, located.map.confidence, np.nan),
@@ -739,7 +752,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     np.savez(files[1], correspondence=on_input(c.correspondence), matched=matched, matched_weight=c.matched_weight,
              mass1=c.mass1, mass2=c.mass2, confidence=per_input(a, c.confidence, np.nan),
              region=per_input(b, c.region(), False), **arrays)
-    _save_picture(c, a.mesh, b.mesh, files[2], refined, located)
+    _save_picture(c, a.mesh, b.mesh, files[2], None if refined is None else refined.map, located)
     return files
 
 
@@ -853,7 +866,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
              "signature_state": state, "repair": repair_setting(repair)}
     refined = _zoomout(a, src.mesh, tgt.mesh, c)
     if refined is not None:
-        extra["median_error_edge_lengths_zoomout"] = median_error(refined, "after ZoomOut")
+        extra["median_error_edge_lengths_zoomout"] = median_error(refined.map, "after ZoomOut")
     files = _save_comparison(c, src, tgt, Path(a.out), extra, refined=refined)
     if c.registration is not None:
         rel = c.registration.rotation @ pair.rotation.T

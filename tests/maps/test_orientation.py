@@ -13,7 +13,8 @@ from wpot.mesh import Mesh
 from wpot.maps.orientation import OrientationWarning, orientation_score
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.mesh import winding
-from wpot.maps.zoomout import ZOOMOUT_K_SELECT, zoomout
+from wpot.maps.fmap import FMAP_K
+from wpot.maps.zoomout import ORIENTATION_DOUBT, zoomout
 from helpers import mirror_symmetric
 
 #: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
@@ -111,45 +112,81 @@ def test_detects_the_reflection_of_a_mirror_symmetric_shape():
     assert reflection_symmetry(Mesh(np.c_[m.vertices[:, :2], np.zeros(200)], m.faces), cache=False) is None
 
 
-def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
+def _planted_mirror(seed: int = 2):
+    """Two triangulations of a mirror-symmetric surface, the true map, and a start map 70 % on the mirror side
+    (what WKS transport gives on many human pairs)."""
     a = mirror_symmetric(900, seed=0)
     b = mirror_symmetric(1100, seed=5)  # another triangulation of the same surface
     truth = _nearest(b.vertices, a.vertices)
     mirror = _nearest(b.vertices, a.vertices * np.array([-1.0, 1.0, 1.0]))
-    scale = np.sqrt(b.area)
+    start = np.where(np.random.default_rng(seed).random(a.n_vertices) < 0.7, mirror, truth)
+    return a, b, truth, mirror, start
 
-    def error(t):
-        return np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / scale
 
-    # a start map on the mirror side (what WKS transport gives in a third of TOSCA's pairs)
-    rng = np.random.default_rng(2)
-    start = np.where(rng.random(a.n_vertices) < 0.7, mirror, truth)
+def _error(b: Mesh, t: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area))
+
+
+def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
+    a, b, truth, mirror, start = _planted_mirror()
     plain = zoomout(a, b, start, k_end=40, orient=False)
-    assert error(plain) > 0.1  # settled on the mirror side
+    assert _error(b, plain.map, truth) > 0.1  # settled on the mirror side
+    assert np.isnan(plain.orientation_confidence) and plain.candidate == "given"
     oriented = zoomout(a, b, start, k_end=40)
-    assert error(oriented) < 0.03
-    assert orientation_score(a, b, oriented) > 0.5 > -0.5 > orientation_score(a, b, plain)
+    assert _error(b, oriented.map, truth) < 0.03
+    assert orientation_score(a, b, oriented.map) > 0.5 > -0.5 > orientation_score(a, b, plain.map)
+    # the mirror of the chosen map fits the energy far worse: the choice is trusted
+    assert oriented.energies[f"{oriented.candidate}_mirror"] > 2 * oriented.energies[oriented.candidate]
+    assert oriented.orientation_confidence > ORIENTATION_DOUBT
+    np.testing.assert_array_equal(np.asarray(oriented), oriented.map)
     # keep_orientation leaves a map that already keeps orientation untouched
-    t, score, flipped = keep_orientation(a, b, oriented)
-    assert not flipped and np.array_equal(t, oriented) and score > 0.5
+    t, score, flipped = keep_orientation(a, b, oriented.map)
+    assert not flipped and np.array_equal(t, oriented.map) and score > 0.5
 
 
-def test_zoomout_chooses_at_k_select_and_refines_only_the_chosen_map_on_to_k_end():
-    # the candidates are compared at ZOOMOUT_K_SELECT; beyond it the chosen one alone goes on, so the result is
-    # plain ZoomOut continued from the map chosen there, and keeps its orientation
-    a = mirror_symmetric(900, seed=0)
-    b = mirror_symmetric(1100, seed=5)
-    truth = _nearest(b.vertices, a.vertices)
-    mirror = _nearest(b.vertices, a.vertices * np.array([-1.0, 1.0, 1.0]))
-    start = np.where(np.random.default_rng(2).random(a.n_vertices) < 0.7, mirror, truth)
+def test_a_fully_mirrored_start_is_detected_and_its_mirror_image_scores_as_the_true_map():
+    # the planted mirror: the start map is the exact mirror image. Its refinement (the "given" candidate) is
+    # mirrored, its energy is the mirror energy of the true map, and the descriptor candidate wins
+    a, b, truth, mirror, _ = _planted_mirror()
+    res = zoomout(a, b, mirror, k_end=40)
+    assert res.candidate == "descriptors" and _error(b, res.map, truth) < 0.03
+    e = res.energies
+    assert e["given"] > 2 * e["descriptors"]
+    assert e["given_mirror"] < 0.5 * e["given"]  # reversing the orientation term of a mirrored map mends it
+    assert e["given_mirror"] == pytest.approx(e["descriptors"], rel=0.5)
+
+
+def test_zoomout_chooses_at_the_functional_map_resolution_and_refines_only_the_chosen_map_on():
+    # the candidates are compared at FMAP_K; beyond it the chosen one alone goes on, so the result is plain
+    # ZoomOut continued from the map chosen there, and keeps its orientation
+    a, b, truth, _, start = _planted_mirror()
     opts = dict(n_eigen=150, samples=400)
-    chosen = zoomout(a, b, start, k_end=ZOOMOUT_K_SELECT, **opts)
+    chosen = zoomout(a, b, start, k_end=FMAP_K, **opts)
     final = zoomout(a, b, start, k_end=150, **opts)
-    continued = zoomout(a, b, chosen, k_start=ZOOMOUT_K_SELECT + 5, k_end=150, orient=False, **opts)
-    np.testing.assert_array_equal(final, continued)
-    assert not np.array_equal(final, chosen)  # the last rounds did move it
-    err = np.linalg.norm(b.vertices[final] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area)
-    assert err < 0.03 and orientation_score(a, b, final) > 0.5
+    assert final.candidate == chosen.candidate
+    continued = zoomout(a, b, chosen.map, k_start=FMAP_K + 5, k_end=150, orient=False, **opts)
+    np.testing.assert_array_equal(final.map, continued.map)
+    assert not np.array_equal(final.map, chosen.map)  # the last rounds did move it
+    assert _error(b, final.map, truth) < 0.03 and orientation_score(a, b, final.map) > 0.5
+
+
+def test_zoomout_result_does_not_depend_on_vertex_order_or_rigid_motion():
+    a, b, truth, _, start = _planted_mirror()
+    ref = zoomout(a, b, start, k_end=60, samples=None)
+    # a rigid motion of B (rotation and translation) and a mirror-free relabelling of A's vertices
+    rot = Rotation.from_euler("xyz", [0.4, -1.1, 2.0]).as_matrix()
+    moved = Mesh(b.vertices @ rot.T + np.array([3.0, -1.0, 0.5]), b.faces)
+    res = zoomout(a, moved, start, k_end=60, samples=None)
+    assert res.candidate == ref.candidate
+    assert np.mean(res.map == ref.map) > 0.99
+    assert res.orientation_confidence == pytest.approx(ref.orientation_confidence, abs=1e-6)
+    perm = np.random.default_rng(4).permutation(a.n_vertices)
+    inv = np.argsort(perm)
+    relabelled = Mesh(a.vertices[perm], inv[a.faces])
+    res = zoomout(relabelled, b, start[perm], k_end=60, samples=None)
+    assert res.candidate == ref.candidate
+    assert np.mean(res.map == ref.map[perm]) > 0.99
+    assert res.orientation_confidence == pytest.approx(ref.orientation_confidence, abs=1e-6)
 
 
 def test_a_part_mapped_onto_the_mirror_side_is_sent_back_through_the_wholes_symmetry():
@@ -176,9 +213,10 @@ def test_zoomout_rescues_a_map_wrong_beyond_mirroring():
     def error(t):
         return np.linalg.norm(b.vertices[t] - b.vertices[truth], axis=1).mean() / np.sqrt(b.area)
 
-    assert error(zoomout(a, b, start, k_end=40, orient=False)) > 0.2
+    assert error(zoomout(a, b, start, k_end=40, orient=False).map) > 0.2
     oriented = zoomout(a, b, start, k_end=40, samples=400)
-    assert error(oriented) < 0.03 and orientation_score(a, b, oriented) > 0.5
+    assert oriented.candidate == "descriptors"
+    assert error(oriented.map) < 0.03 and orientation_score(a, b, oriented.map) > 0.5
 
 
 def test_orient_argument_is_checked():

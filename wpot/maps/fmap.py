@@ -30,7 +30,8 @@ from wpot.cost import nearest_rows
 from wpot.mesh import Mesh, winding
 from wpot.spectral import laplace_beltrami
 
-__all__ = ["SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS"]
+__all__ = ["FmapEnergy", "SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
+           "FMAP_WEIGHTS"]
 
 #: default spectral resolution of the fitted functional map
 FMAP_K = 30
@@ -155,19 +156,15 @@ def _commutator_normal(xs: np.ndarray, qs: np.ndarray) -> np.ndarray:
     return h - kron_sum(xs, qs) - kron_sum(xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))
 
 
-def functional_map(
-    ops_a: SpectralOperators,
-    ops_b: SpectralOperators,
-    desc_a: np.ndarray,
-    desc_b: np.ndarray,
-    *,
-    w_descr: float = 1.0,
-    w_lap: float = 0.1,
-    w_dcomm: float = 1.0,
-    w_orient: float = 1.0,
-) -> np.ndarray:
-    """The functional map (k, k) from B's coefficients to A's that best carries the descriptors over (see the
-    module docstring for the four terms).
+#: the terms' default weights (pyfmaps' quickstart): descriptors, Laplacian commutativity, descriptor
+#: commutativity, orientation
+FMAP_WEIGHTS = {"descr": 1.0, "lap": 0.1, "dcomm": 1.0, "orient": 1.0}
+
+
+class FmapEnergy:
+    """The four terms of the module docstring for one pair of shapes, prepared once: `fit` gives their
+    least-squares minimizer, `terms` their values at any functional map (e.g. that of a point map, to tell
+    which of several maps the descriptors and the orientation support best).
 
     Parameters
     ----------
@@ -176,36 +173,81 @@ def functional_map(
         (e.g. WKS on one shared energy grid)
     w_descr, w_lap, w_dcomm, w_orient : the terms' weights (nonnegative; w_orient = 0 drops the orientation
         term and then needs no readable outside)
+    """
+
+    def __init__(self, ops_a: SpectralOperators, ops_b: SpectralOperators, desc_a: np.ndarray, desc_b: np.ndarray,
+                 *, w_descr: float = FMAP_WEIGHTS["descr"], w_lap: float = FMAP_WEIGHTS["lap"],
+                 w_dcomm: float = FMAP_WEIGHTS["dcomm"], w_orient: float = FMAP_WEIGHTS["orient"]) -> None:
+        k = ops_a.phi.shape[1]
+        if ops_b.phi.shape[1] != k:
+            raise ValueError(f"the two shapes' operators have different k: {k} and {ops_b.phi.shape[1]}")
+        if desc_a.ndim != 2 or desc_b.ndim != 2 or desc_a.shape[1] != desc_b.shape[1]:
+            raise ValueError(f"desc_a and desc_b must be (N_A, p) and (N_B, p), got {desc_a.shape} and {desc_b.shape}")
+        self.weights = {"descr": w_descr, "lap": w_lap, "dcomm": w_dcomm, "orient": w_orient}
+        for name, w in self.weights.items():
+            if not np.isfinite(w) or w < 0:
+                raise ValueError(f"w_{name} must be a finite number >= 0, got {w!r}")
+        self.k, self.p = k, desc_a.shape[1]
+        self.ops_a, self.ops_b = ops_a, ops_b
+        a, b = ops_a.coefficients(desc_a), ops_b.coefficients(desc_b)
+        s = np.maximum(0.5 * (np.linalg.norm(a, axis=0) + np.linalg.norm(b, axis=0)), 1e-300)
+        self.a, self.b = a / s, b / s
+        scale = max(float(ops_a.evals[-1]), float(ops_b.evals[-1]), 1e-300)
+        #: operator pairs (X_f for B, Q_f for A), each term ``Σ_f ‖C X_f − Q_f C‖²``
+        self.pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {
+            "lap": (np.diag(ops_b.evals / scale)[None], np.diag(ops_a.evals / scale)[None])}
+        if w_dcomm:
+            self.pairs["dcomm"] = _normalized(ops_b.multiplication(desc_b), ops_a.multiplication(desc_a))
+        if w_orient:
+            self.pairs["orient"] = _normalized(ops_b.orientation(desc_b), ops_a.orientation(desc_a))
+
+    def _scale(self, name: str) -> float:
+        return self.weights[name] / (1.0 if name == "lap" else self.p)
+
+    def fit(self) -> np.ndarray:
+        """(k, k) float64 C, the least-squares minimizer of the weighted terms (unique: the descriptor term
+        alone is positive definite when the p ≥ k descriptors span B's basis)."""
+        k = self.k
+        # ‖C B − A‖²: normal matrix (B Bᵀ) ⊗ I, right-hand side vec(A Bᵀ)
+        h = self._scale("descr") * np.kron(self.b @ self.b.T, np.eye(k))
+        rhs = self._scale("descr") * (self.a @ self.b.T).reshape(-1, order="F")
+        for name, (xs, qs) in self.pairs.items():
+            if self.weights[name]:
+                h += self._scale(name) * _commutator_normal(xs, qs)
+        h += 1e-12 * np.trace(h) / h.shape[0] * np.eye(h.shape[0])  # guards a rank-deficient descriptor set
+        return np.linalg.solve(h, rhs).reshape(k, k, order="F")
+
+    def terms(self, fmap: np.ndarray) -> dict[str, float]:
+        """Each term's weighted value at the (k, k) functional map ``fmap``, by name (``descr``, ``lap``,
+        ``dcomm``, ``orient``), and ``orient_reversed``: the orientation term of a map that reverses orientation
+        (``Σ_f ‖C O_B^f + O_A^f C‖²``), as far from zero for a map that keeps it as ``orient`` is for a mirror."""
+        c = np.asarray(fmap, dtype=np.float64)
+        out = {"descr": self._scale("descr") * float(np.sum((c @ self.b - self.a) ** 2))}
+        for name, (xs, qs) in self.pairs.items():
+            cx, qc = np.matmul(c[None], xs), np.matmul(qs, c[None])
+            out[name] = self._scale(name) * float(np.sum((cx - qc) ** 2))
+            if name == "orient":
+                out["orient_reversed"] = self._scale(name) * float(np.sum((cx + qc) ** 2))
+        return out
+
+
+def functional_map(
+    ops_a: SpectralOperators,
+    ops_b: SpectralOperators,
+    desc_a: np.ndarray,
+    desc_b: np.ndarray,
+    *,
+    w_descr: float = FMAP_WEIGHTS["descr"],
+    w_lap: float = FMAP_WEIGHTS["lap"],
+    w_dcomm: float = FMAP_WEIGHTS["dcomm"],
+    w_orient: float = FMAP_WEIGHTS["orient"],
+) -> np.ndarray:
+    """The functional map (k, k) from B's coefficients to A's that best carries the descriptors over (see the
+    module docstring for the four terms, and `FmapEnergy` for the parameters).
 
     Returns
     -------
-    (k, k) float64 C, the least-squares minimizer (unique: the descriptor term alone is positive definite when
-    the p ≥ k descriptors span B's basis).
+    (k, k) float64 C, the least-squares minimizer (`FmapEnergy.fit`).
     """
-    k = ops_a.phi.shape[1]
-    if ops_b.phi.shape[1] != k:
-        raise ValueError(f"the two shapes' operators have different k: {k} and {ops_b.phi.shape[1]}")
-    if desc_a.ndim != 2 or desc_b.ndim != 2 or desc_a.shape[1] != desc_b.shape[1]:
-        raise ValueError(f"desc_a and desc_b must be (N_A, p) and (N_B, p), got {desc_a.shape} and {desc_b.shape}")
-    for name, w in (("w_descr", w_descr), ("w_lap", w_lap), ("w_dcomm", w_dcomm), ("w_orient", w_orient)):
-        if not np.isfinite(w) or w < 0:
-            raise ValueError(f"{name} must be a finite number >= 0, got {w!r}")
-    p = desc_a.shape[1]
-    a, b = ops_a.coefficients(desc_a), ops_b.coefficients(desc_b)
-    s = np.maximum(0.5 * (np.linalg.norm(a, axis=0) + np.linalg.norm(b, axis=0)), 1e-300)
-    a, b = a / s, b / s
-    eye = np.eye(k)
-    # ‖C B − A‖²: normal matrix (B Bᵀ) ⊗ I, right-hand side vec(A Bᵀ)
-    h = (w_descr / p) * np.kron(b @ b.T, eye)
-    rhs = (w_descr / p) * (a @ b.T).reshape(-1, order="F")
-    scale = max(float(ops_a.evals[-1]), float(ops_b.evals[-1]), 1e-300)
-    if w_lap:
-        h += w_lap * _commutator_normal(np.diag(ops_b.evals / scale)[None], np.diag(ops_a.evals / scale)[None])
-    if w_dcomm:
-        h += (w_dcomm / p) * _commutator_normal(*_normalized(ops_b.multiplication(desc_b),
-                                                               ops_a.multiplication(desc_a)))
-    if w_orient:
-        h += (w_orient / p) * _commutator_normal(*_normalized(ops_b.orientation(desc_b),
-                                                                ops_a.orientation(desc_a)))
-    h += 1e-12 * np.trace(h) / h.shape[0] * np.eye(h.shape[0])  # guards a rank-deficient descriptor set
-    return np.linalg.solve(h, rhs).reshape(k, k, order="F")
+    return FmapEnergy(ops_a, ops_b, desc_a, desc_b, w_descr=w_descr, w_lap=w_lap, w_dcomm=w_dcomm,
+                      w_orient=w_orient).fit()

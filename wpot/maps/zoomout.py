@@ -29,54 +29,78 @@ Laplace–Beltrami spectra match. Nor is it meant for a part against a whole, wh
 
 Left and right: ZoomOut alone cannot tell them apart. WKS maps mix the two sides of a symmetric body, and
 ZoomOut makes them consistent with one side, sometimes the mirror one, or the mirror one on a symmetric part
-only (both legs). So by default (``orient=True``) two candidates are refined, and of those oriented about as
-well as the better one (`wpot.maps.orientation.orientation_score`, read extrinsically, within `ORIENTATION_TIE`)
-the one that stretches the surface least is returned (a limb sent onto the other one with a half turn keeps
-orientation, but tears the map at its root):
+only (both legs); on a near-cylindrical body (a human) it can also settle on a half turn, left and right and
+front and back exchanged, which keeps orientation and is still wrong. So by default (``orient=True``) two
+candidates are brought to the functional-map resolution k = `wpot.maps.fmap.FMAP_K`:
 
-1. the given map, refined; the parts found mirrored are sent through the shape's left/right symmetry and
-   refined again (`wpot.maps.symmetry.keep_orientation`);
-2. the point map of a functional map fitted from WKS descriptors with an orientation-aware term
-   (`wpot.maps.fmap`, k = 30), refined from k = 30. It does not use the given map, so it also rescues a map that
-   is wrong beyond mirroring; the given map wins where the descriptors alone mislead.
+1. the given map, refined by ZoomOut from k_start;
+2. the point map of the functional map fitted from WKS descriptors with the orientation term
+   (`wpot.maps.fmap`). It does not use the given map, so it also rescues a map that is wrong beyond mirroring.
 
-Both are refined to k = `ZOOMOUT_K_SELECT` and compared there; the chosen one goes on to k_end.
+Each is scored by the energy that functional map minimizes (`wpot.maps.fmap.FmapEnergy`: descriptors,
+Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the functional
+map of the candidate's point map; the lower one goes on to k_end. The same energy gives the result's
+orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
+terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
+mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
+that of its mirror and of a candidate on another side.
 
-Each candidate's rounds before the last map only ``samples`` farthest-point samples of each mesh onto each
-other (the functional map fitted to them by least squares); the last resolution maps every vertex. The docs'
-Results page (Correspondence) has the effect of both.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot._validate import boolean, vertex_map
-from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, SpectralOperators, functional_map, point_map
-from wpot.maps.orientation import orientation_score
-from wpot.maps.symmetry import keep_orientation
+from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FmapEnergy, SpectralOperators, point_map
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.mesh import Mesh, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
-__all__ = ["zoomout", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_K_SELECT", "ZOOMOUT_SAMPLES",
-           "ORIENTATION_TIE"]
+__all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
+           "AGREEMENT", "ORIENTATION_DOUBT"]
 
-#: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..100 by
-#: 5, then on to 200) was chosen on TOSCA test pairs: a finer step or another start scored lower, and refining the
-#: oriented map chosen at `ZOOMOUT_K_SELECT` on to 200 instead of stopping there gains a little AUC for a little
-#: more time a pair (the docs' Results page)
+#: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
+#: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
 ZOOMOUT_K_END = 200
-#: with ``orient``, the resolution to which `zoomout`'s candidates are refined and at which one is chosen
-#: (the chosen one then goes on to k_end): the orientation and stretch scores were tuned there, and refining
-#: one map instead of three beyond it keeps the cost of the higher resolutions down
-ZOOMOUT_K_SELECT = 100
-#: orientation scores within this of the best count as a tie between `zoomout`'s candidates, which the
-#: stretch then decides: good maps of one TOSCA pair spread over a range of scores, and a map mirrored on a
-#: limb or half the body (its score pulled towards 0 or below) falls more than this behind (the docs' Results
-#: page)
-ORIENTATION_TIE = 0.15
+#: a map whose `ZoomOutResult.orientation_confidence` is below this should be checked for left/right (chosen on
+#: FAUST pairs outside its test list, reported on the TOSCA and FAUST test pairs: the docs' Results page)
+ORIENTATION_DOUBT = 0.3
+#: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
+#: are on different sides (`ZoomOutResult.orientation_confidence`)
+AGREEMENT = 0.1
+
+
+@dataclass(frozen=True)
+class ZoomOutResult:
+    """A refined vertex map (`zoomout`), and how sure its left/right choice is.
+
+    Attributes
+    ----------
+    map : (N_A,) int64, for each vertex of A a vertex of B
+    orientation_confidence : in [0, 1]: ``1 − E / E_other`` with E the chosen candidate's energy
+        (`wpot.maps.fmap.FmapEnergy`, at k = `wpot.maps.fmap.FMAP_K`) and E_other the lowest energy of a map on
+        another side: its own mirror image (E with the orientation term reversed) or the other candidate when
+        the two disagree (their images at the median vertex more than `AGREEMENT` sqrt(area(B)) apart). Near 0:
+        another side fits about as well, doubt the map. NaN when the orientation could not be weighed
+        (``orient=False``, several connected components, or a surface with no readable outside)
+    candidate : the candidate chosen, ``"given"`` (the map passed in, refined) or ``"descriptors"`` (the
+        orientation-aware functional map's); ``"given"`` when there was no choice
+    energies : each candidate's energy, by name, and its mirror image's (``"<name>_mirror"``)
+    """
+
+    map: np.ndarray
+    orientation_confidence: float = float("nan")
+    candidate: str = "given"
+    energies: dict = field(default_factory=dict)
+
+    def __array__(self, dtype=None, copy=None):
+        return self.map if dtype is None else self.map.astype(dtype)
+
+
 def zoomout(
     mesh_a: Mesh,
     mesh_b: Mesh,
@@ -88,7 +112,7 @@ def zoomout(
     n_eigen: int | None = None,
     orient: bool = True,
     samples: int | None = ZOOMOUT_SAMPLES,
-) -> np.ndarray:
+) -> ZoomOutResult:
     """Refine a vertex map from A to B by ZoomOut (spectral upsampling of its functional map).
 
     Parameters
@@ -101,19 +125,18 @@ def zoomout(
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default `spectrum_size`
         of each mesh (500 from 5,000 vertices up: WKS's, so that the spectrum a WKS comparison computed
         serves); the oriented candidate's WKS descriptors use them all
-    orient : keep left and right apart (default): refine two candidates to k = min(k_end, `ZOOMOUT_K_SELECT`)
-        and go on to k_end with the one that, of those oriented about as well as the better one, stretches the
-        surface least (the module docstring). The candidates: the given map, with the parts
-        where it reverses orientation (`wpot.maps.orientation.local_orientation`) sent through A's left/right
-        symmetry (or B's; `wpot.maps.symmetry.keep_orientation`), and the map of an orientation-aware functional
-        map fitted from WKS descriptors (`wpot.maps.fmap`; only for two connected surfaces with a readable outside).
-        False: the plain ZoomOut of the given map, which settles on either side
+    orient : keep left and right apart (default): bring two candidates to k = `wpot.maps.fmap.FMAP_K`, the
+        given map refined and the map of an orientation-aware functional map fitted from WKS descriptors (only
+        for two connected surfaces with a readable outside), and go on to k_end with the one of lower
+        functional-map energy (the module docstring). False: the plain ZoomOut of the given map, which settles
+        on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
 
     Returns
     -------
-    (N_A,) int64: the refined map, for each vertex of A a vertex of B.
+    `ZoomOutResult`: the refined map (N_A,) int64 (also ``np.asarray(result)``), its orientation confidence,
+    and which candidate was chosen.
 
     Raises
     ------
@@ -144,40 +167,36 @@ def zoomout(
     refine = Refiner(mesh_a, mesh_b, n_eigen, samples)
 
     if not orient:
-        return refine(t, k_start, k_end, step)
-    k_sel = min(k_end, max(k_start, ZOOMOUT_K_SELECT))
-    out = refine(t, k_start, k_sel, step)
-    # 1. the parts of the map found mirrored are sent through A's (or B's) symmetry, and ZoomOut runs again at
-    # half the rounds (step doubled) to mend the seams: nearly the full second run's accuracy in less time
-    # (the docs' Results page)
-    out, score, _ = keep_orientation(mesh_a, mesh_b, out, refine=lambda init: refine(init, k_start, k_sel, 2 * step))
-    # 2. a second candidate that does not depend on the given map: the functional map fitted with the
-    # orientation term, refined from its resolution
-    start = _oriented_start(mesh_a, mesh_b, n_eigen, k_sel)
-    if start is not None:
-        alt = refine(start[0], start[1], k_sel, step)
-        # of the candidates oriented about as well as the best one, the least stretched (a limb mapped onto the
-        # other one with a half turn keeps orientation but tears at its root)
-        cands = [(out, score), (alt, orientation_score(mesh_a, mesh_b, alt))]
-        best = max(sc for _, sc in cands)
-        out = min((t for t, sc in cands if sc >= best - ORIENTATION_TIE), key=lambda t: _stretch(mesh_a, mesh_b, t))
-    # the chosen map on to the final resolution
-    return out if k_end == k_sel else refine(out, min(k_sel + step, k_end), k_end, step)
+        return ZoomOutResult(refine(t, k_start, k_end, step))
+    problem = _oriented_problem(mesh_a, mesh_b, n_eigen, k_end)
+    if problem is None:
+        return ZoomOutResult(refine(t, k_start, k_end, step))
+    k_sel = problem.k
+    cands = {"given": refine(t, k_start, k_sel, step) if k_start <= k_sel else t,
+             "descriptors": point_map(problem.ops_a.phi, problem.ops_b.phi, problem.fit())}
+    terms = {n: problem.terms(problem.ops_a.pinv @ problem.ops_b.phi[c]) for n, c in cands.items()}
+    energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
+    # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
+    mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
+    chosen = min(cands, key=lambda n: (energies[n], n != "given"))
+    others = [mirrors[chosen]] + [energies[n] for n in cands
+                                  if n != chosen and _disagree(mesh_b, cands[n], cands[chosen])]
+    confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
+    k_next = min(k_sel + step, k_end) if k_start <= k_sel else k_start
+    out = cands[chosen] if k_end == k_sel else refine(cands[chosen], k_next, k_end, step)
+    return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}})
 
 
-def _stretch(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray) -> float:
-    """How much a vertex map A -> B stretches A's edges: the mean length of the edges' images over the mean
-    edge length, each over the square root of its mesh's area (about 1 for a smooth map between two
-    similar samplings; a map torn along a seam sends some edges across the shape)."""
-    e = mesh_a.edges
-    image = np.linalg.norm(mesh_b.vertices[t[e[:, 0]]] - mesh_b.vertices[t[e[:, 1]]], axis=1).mean()
-    return float(image / np.sqrt(mesh_b.area)) / float(mesh_a.edge_lengths.mean() / np.sqrt(mesh_a.area))
+def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
+    """Whether two maps into B send the median vertex more than `AGREEMENT` sqrt(area(B)) apart."""
+    gap = np.linalg.norm(mesh_b.vertices[t1] - mesh_b.vertices[t2], axis=1)
+    return bool(np.median(gap) > AGREEMENT * np.sqrt(mesh_b.area))
 
 
-def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> tuple[np.ndarray, int] | None:
-    """The point map (N_A,) of the functional map fitted from WKS descriptors with the orientation term
-    (`wpot.maps.fmap`, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)), and that k; None when it cannot be fitted: a mesh of
-    several components, or one whose outside cannot be read (an open or flat surface)."""
+def _oriented_problem(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> FmapEnergy | None:
+    """The orientation-aware functional-map energy between A and B (`wpot.maps.fmap.FmapEnergy`, WKS
+    descriptors, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)); None when it cannot be built: a mesh of several
+    components, or one whose outside cannot be read (an open or flat surface)."""
 
     meshes = (mesh_a, mesh_b)
     if any(m.n_components != 1 or winding(m) == 0 for m in meshes):
@@ -188,6 +207,4 @@ def _oriented_start(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int)
     grid = wks_energies(specs, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
     desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in specs]
     ops = [SpectralOperators(m, s, k) for m, s in zip(meshes, specs)]
-    return point_map(ops[0].phi, ops[1].phi, functional_map(*ops, *desc)), k
-
-
+    return FmapEnergy(*ops, *desc)
