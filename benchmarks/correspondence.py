@@ -77,7 +77,7 @@ FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
 #: candidates, the least stretched of those oriented about as well as the better, chosen at k = 100 and refined
 #: on to k = 200; sampled rounds)
-ZOOMOUT_SUFFIX = "+zoomout-fmap-energy"
+ZOOMOUT_SUFFIX = "+zoomout-fmap-energy-e100"
 #: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
 PLAIN_SUFFIX = "+zoomout-plain"
 #: the datasets the benchmark knows: folder under ``--data``
@@ -283,8 +283,6 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, ta
            dataset: str = "tosca") -> None:
     """Table and figure over the pairs every method has finished (within ``keep`` when given), for the
     method tags in ``tags`` (all stored methods when None)."""
-    from wpot.datasets import class_label
-
     by_method: dict[str, dict] = {}
     for r in store.records:
         if keep is not None and (r["source"], r["target"]) not in keep:
@@ -337,7 +335,9 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, ta
             f"{row['mean_shrec19']:.4f} | {row['flip_points']:.1%} | {row['flip_pairs']:.1%} | "
             f"{row['sec_median']:.1f} ({row['sec_mean']:.1f}) | {row['not_converged']} |")
     lines.append("\n± is the spread (std) of the per-pair AUC over pairs, not the error of the mean.\n")
+    lines += orientation_section(by_method, common, out, DATASETS[dataset])
     # per class (sqrt_area AUC)
+    class_label = group_of(dataset)
     classes = sorted({class_label(y) for _, y in common})
     lines.append("\n## AUC √area [0,%g] per class\n" % tmax["sqrt_area"])
     lines.append("| class | pairs | " + " | ".join(methods) + " |")
@@ -375,6 +375,81 @@ def report(store: Store, out: Path, tmax: dict, log, keep: set | None = None, ta
     log(md)
     figure(curves, out / "correspondence.png", len(common), DATASETS[dataset])
     log(f"figure: {out / 'correspondence.png'}")
+
+
+def group_of(dataset: str):
+    """A shape's group in the per-class table: TOSCA's class, FAUST's person (number div 10)."""
+    from wpot.datasets import class_label
+
+    if dataset == "faust":
+        return lambda name: f"person {int(name.rsplit('_', 1)[-1]) // 10}"
+    return class_label
+
+
+def orientation_section(by_method: dict, common: set, out: Path, dataset: str) -> list[str]:
+    """The left/right decision of `wpot.zoomout` (its stored energies and orientation confidence) against the
+    ground truth: how often a pair is mirrored overall and above the confidence threshold, the decision signal's
+    two distributions (energy of the maps on the true side, of those on the mirror side; one of each per pair: the
+    chosen map and its mirror image) drawn to ``orientation.png``, and the time against plain ZoomOut."""
+    from wpot.maps.zoomout import ORIENTATION_DOUBT
+
+    lines = []
+    for m in sorted(by_method):
+        if not m.endswith(ZOOMOUT_SUFFIX):
+            continue
+        recs = [by_method[m][k] for k in sorted(common)]
+        recs = [r for r in recs if "energies" in r.get("info", {})]
+        if not recs:
+            continue
+        conf = np.array([np.nan if r["info"]["orientation_confidence"] is None else r["info"]["orientation_confidence"]
+                         for r in recs], dtype=float)
+        flipped = np.array([bool(r["flip"]["map_flipped"]) for r in recs])
+        true_e, mirror_e = [], []
+        for r, f in zip(recs, flipped):
+            e = r["info"]["energies"]
+            chosen, mirror = e[r["info"]["candidate"]], e[r["info"]["candidate"] + "_mirror"]
+            (mirror_e if f else true_e).append(chosen)
+            (true_e if f else mirror_e).append(mirror)
+        trusted = conf >= ORIENTATION_DOUBT
+        top90 = conf >= np.nanquantile(conf, 0.1)
+        lines += [f"\n## Left and right: {m}\n",
+                  "| pairs | mirrored | confidence < %g | mirrored among the rest | mirrored among the top 90 %% of "
+                  "confidence | chosen: given / descriptors |" % ORIENTATION_DOUBT, "|---|---|---|---|---|---|",
+                  f"| {len(recs)} | {flipped.sum()} ({flipped.mean():.1%}) | {(~trusted).sum()} | "
+                  f"{flipped[trusted].sum()} of {trusted.sum()} | {flipped[top90].sum()} of {top90.sum()} | "
+                  f"{sum(r['info']['candidate'] == 'given' for r in recs)} / "
+                  f"{sum(r['info']['candidate'] == 'descriptors' for r in recs)} |"]
+        plain = by_method.get(m[:-len(ZOOMOUT_SUFFIX)] + PLAIN_SUFFIX, {})
+        ratio = [r["info"]["zoomout_seconds"] / plain[(r["source"], r["target"])]["info"]["zoomout_seconds"]
+                 for r in recs if (r["source"], r["target"]) in plain]
+        if ratio:
+            lines.append(f"\nTime of the oriented refinement over plain ZoomOut (orient=False) on the same pair: "
+                         f"median {np.median(ratio):.2f}x, 90th percentile {np.quantile(ratio, 0.9):.2f}x "
+                         f"({len(ratio)} pairs).\n")
+        lines.append(f"Decision signal: `orientation.png` ({len(true_e)} true-side and {len(mirror_e)} mirror-side "
+                     f"energies; largest true-side {max(true_e):.2f}, smallest mirror-side {min(mirror_e):.2f}).\n")
+        orientation_figure(np.array(true_e), np.array(mirror_e), out / "orientation.png", dataset, len(recs))
+    return lines
+
+
+def orientation_figure(true_e: np.ndarray, mirror_e: np.ndarray, path: Path, dataset: str, n_pairs: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    bins = np.geomspace(max(min(true_e.min(), mirror_e.min()), 1e-3), max(true_e.max(), mirror_e.max()), 40)
+    ax.hist(true_e, bins=bins, alpha=0.6, label="maps on the true side")
+    ax.hist(mirror_e, bins=bins, alpha=0.6, label="maps on the mirror side")
+    ax.set_xscale("log")
+    ax.set_xlabel("functional-map energy at k = 30 (descriptors, commutativity, orientation)")
+    ax.set_ylabel("maps")
+    ax.set_title(f"{dataset}: the left/right decision signal ({n_pairs} pairs)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
 
 
 def figure(curves: dict, path: Path, n_pairs: int, dataset: str) -> None:

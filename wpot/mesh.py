@@ -112,14 +112,19 @@ def validate(vertices: np.ndarray, faces: np.ndarray, *, warn: bool = True, name
     nm = m.nonmanifold_edges
     if len(nm):
         problems.append(f"{len(nm)} non-manifold edges (shared by 3+ triangles, e.g. {nm[0].tolist()})")
+    wound = m.misoriented_faces
+    if wound.size:
+        problems.append(f"{wound.size} triangles wound against their neighbours (faces {_listed(wound)}), so its "
+                        "outside and left from right cannot be read")
     ncomp = m.n_components
     if ncomp > 1:
         sizes = np.bincount(m.component_labels[m.referenced])
         problems.append(f"{ncomp} connected components (vertex counts {sorted(sizes.tolist(), reverse=True)[:_MAX_LISTED]})")
     if problems:
-        fixable = degenerate.size or isolated.size or ncomp > 1
+        fixable = degenerate.size or isolated.size or ncomp > 1 or wound.size
         advice = (
-            " Mesh.cleaned() removes zero-area triangles and unreferenced vertices "
+            " Mesh.cleaned() removes zero-area triangles and unreferenced vertices, rewinds the triangles wound "
+            "against their neighbours "
             "(keep_largest_component=True drops the smaller components) and returns the index map."
             if fixable
             else ""
@@ -295,6 +300,36 @@ class Mesh:
         und, counts = self._edge_face_count
         return _ro(und[counts > 2])
 
+    @cached_property
+    def misoriented_faces(self) -> np.ndarray:
+        """(K,) int64 faces wound against their neighbours: the fewest (by area) whose flip makes the winding of
+        each connected surface consistent (every edge shared by two triangles traversed once each way). Empty
+        for a consistently wound mesh; a non-orientable surface (a Möbius band) keeps the faces it cannot fix.
+        Edges of three or more triangles do not take part."""
+        f = self._faces
+        n_f = len(f)
+        half = self._half_edges  # (3F, 2): face k's edges at rows k, F + k, 2F + k
+        face = np.tile(np.arange(n_f), 3)
+        n = np.int64(max(self.n_vertices, 1))
+        lo, hi = np.minimum(half[:, 0], half[:, 1]), np.maximum(half[:, 0], half[:, 1])
+        key = lo * n + hi
+        order = np.argsort(key, kind="stable")
+        _, first, counts = np.unique(key[order], return_index=True, return_counts=True)
+        pairs = first[counts == 2]
+        a, b = order[pairs], order[pairs + 1]
+        fa, fb = face[a], face[b]
+        # two faces agree when they traverse their shared edge in opposite directions
+        agree = (half[a, 0] < half[a, 1]) != (half[b, 0] < half[b, 1])
+        # node k: face k as it is; node F + k: face k flipped; an agreeing pair links like states, else unlike
+        rows = np.r_[fa, fa + n_f]
+        cols = np.r_[np.where(agree, fb, fb + n_f), np.where(agree, fb + n_f, fb)]
+        graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * n_f, 2 * n_f))
+        n_lab, lab = connected_components(graph, directed=False)
+        keep, flip = lab[:n_f], lab[n_f:]
+        # choosing the states of label c costs the area of the faces flipped in them
+        cost = np.bincount(flip, weights=self.face_areas + 1e-300, minlength=n_lab)
+        return _ro(np.nonzero((keep != flip) & (cost[flip] < cost[keep]))[0].astype(np.int64))
+
     def _edge_matrix(self, values: np.ndarray) -> sp.csr_matrix:
         """(N, N) symmetric CSR matrix with ``values[k]`` at both (i, j) and (j, i) of edge k, indices sorted."""
         e = self.edges
@@ -395,7 +430,8 @@ class Mesh:
         """Repair the defects that `validate` warns about, and say how vertices moved.
 
         Removes zero-area and duplicate triangles, then unreferenced vertices; optionally keeps only
-        the largest connected component. Non-manifold edges are reported, not repaired.
+        the largest connected component; rewinds the triangles wound against their neighbours
+        (`misoriented_faces`). Non-manifold edges are reported, not repaired.
 
         Returns
         -------
@@ -420,6 +456,10 @@ class Mesh:
             counts = np.bincount(labels[used])
             used &= labels == np.argmax(counts)
             f = f[used[f].all(axis=1)]
+        wound = Mesh._unchecked(self._vertices, f).misoriented_faces
+        if wound.size:
+            f = f.copy()
+            f[wound] = f[wound][:, [0, 2, 1]]
         return _reindex(self._vertices, f, used, self.name)
 
 
@@ -501,8 +541,8 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
     Returns
     -------
     mesh, index_map : as `Mesh.cleaned` (``index_map[i]`` is the input index of the repaired mesh's vertex i)
-    removed : what was removed, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"`` or ``"2 smaller
-        components (58 vertices)"``; "" when nothing was
+    removed : what was removed or mended, e.g. ``"1 zero-area triangle, 2 unreferenced vertices"``, ``"2 smaller
+        components (58 vertices)"`` or ``"3 triangles rewound"``; "" when nothing was
     """
     mode = repair_mode(mode)
     if mode == "none":
@@ -518,6 +558,9 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
         (mesh.n_vertices - fixed.n_vertices, "unreferenced vertex", "unreferenced vertices"),
     ]
     removed = [f"{n} {one if n == 1 else many}" for n, one, many in counts if n > 0]
+    n_wound = int(mesh.misoriented_faces.size)  # `Mesh.cleaned` rewound them
+    if n_wound:
+        removed.append(f"{n_wound} triangle{'s' if n_wound > 1 else ''} rewound")
     if mode == "largest" and fixed.n_components > 1:
         n_pieces, n_before = fixed.n_components - 1, fixed.n_vertices
         fixed, inner = fixed.cleaned(keep_largest_component=True)

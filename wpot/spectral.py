@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -148,6 +148,16 @@ class Spectrum:
             solver=self.solver, fingerprint=self.fingerprint, seconds=self.seconds, from_cache=self.from_cache,
             normalized=bool(normalized),
         )
+
+    def first(self, k: int) -> "Spectrum":
+        """The first ``k`` eigenpairs (all of them when there are fewer): the spectrum a smaller solve gives,
+        e.g. for descriptors meant for a coarse basis. Returns ``self`` when nothing is dropped."""
+        k = int(k)
+        if k < 1:
+            raise ValueError(f"k must be a positive integer, got {k}")
+        if k >= self.k:
+            return self
+        return replace(self, evals=self.evals[:k], evecs=self.evecs[:, :k], n_zero=min(self.n_zero, k))
 
     @property
     def nonzero_evals(self) -> np.ndarray:

@@ -48,15 +48,17 @@ that of its mirror and of a candidate on another side.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot._validate import boolean, vertex_map
-from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FmapEnergy, SpectralOperators, point_map
+from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
-from wpot.mesh import Mesh, winding
+from wpot.maps.orientation import OrientationWarning
+from wpot.mesh import Mesh, named, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
@@ -187,6 +189,19 @@ def zoomout(
     return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}})
 
 
+def _unreadable(mesh: Mesh) -> str:
+    """Why the orientation of ``mesh`` cannot be read ("" when it can)."""
+    if mesh.n_components != 1:
+        return (f"has {mesh.n_components} connected components (Mesh.cleaned(keep_largest_component=True) keeps "
+                "the largest)")
+    wound = mesh.misoriented_faces.size
+    if wound:
+        return f"has {wound} triangles wound against their neighbours (Mesh.cleaned() rewinds them)"
+    if winding(mesh) == 0:
+        return "encloses no volume to tell its outside from its inside (an open or flat surface)"
+    return ""
+
+
 def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
     """Whether two maps into B send the median vertex more than `AGREEMENT` sqrt(area(B)) apart."""
     gap = np.linalg.norm(mesh_b.vertices[t1] - mesh_b.vertices[t2], axis=1)
@@ -199,12 +214,19 @@ def _oriented_problem(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: in
     components, or one whose outside cannot be read (an open or flat surface)."""
 
     meshes = (mesh_a, mesh_b)
-    if any(m.n_components != 1 or winding(m) == 0 for m in meshes):
-        return None
+    for side, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
+        why = _unreadable(m)
+        if why:
+            warnings.warn(named(m.name, f"{side} {why}, so zoomout cannot weigh left against right: the map is plain "
+                                "ZoomOut's, which may be mirrored (orientation_confidence NaN)"),
+                          OrientationWarning, stacklevel=3)
+            return None
     k = min(FMAP_K, k_end)
     specs = [spectral_basis(m, n_eigen) for m in meshes]
-    # scale-invariant WKS on one grid for both shapes, every second energy of a grid twice as fine (pyfmaps')
-    grid = wks_energies(specs, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
-    desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in specs]
+    # scale-invariant WKS on one grid for both shapes, from the first FMAP_SPECTRUM eigenpairs, every second
+    # energy of a grid twice as fine (pyfmaps')
+    low = [s.first(FMAP_SPECTRUM) for s in specs]
+    grid = wks_energies(low, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
+    desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in low]
     ops = [SpectralOperators(m, s, k) for m, s in zip(meshes, specs)]
     return FmapEnergy(*ops, *desc)
