@@ -302,33 +302,10 @@ class Mesh:
 
     @cached_property
     def misoriented_faces(self) -> np.ndarray:
-        """(K,) int64 faces wound against their neighbours: the fewest (by area) whose flip makes the winding of
-        each connected surface consistent (every edge shared by two triangles traversed once each way). Empty
-        for a consistently wound mesh; a non-orientable surface (a Möbius band) keeps the faces it cannot fix.
-        Edges of three or more triangles do not take part."""
-        f = self._faces
-        n_f = len(f)
-        half = self._half_edges  # (3F, 2): face k's edges at rows k, F + k, 2F + k
-        face = np.tile(np.arange(n_f), 3)
-        n = np.int64(max(self.n_vertices, 1))
-        lo, hi = np.minimum(half[:, 0], half[:, 1]), np.maximum(half[:, 0], half[:, 1])
-        key = lo * n + hi
-        order = np.argsort(key, kind="stable")
-        _, first, counts = np.unique(key[order], return_index=True, return_counts=True)
-        pairs = first[counts == 2]
-        a, b = order[pairs], order[pairs + 1]
-        fa, fb = face[a], face[b]
-        # two faces agree when they traverse their shared edge in opposite directions
-        agree = (half[a, 0] < half[a, 1]) != (half[b, 0] < half[b, 1])
-        # node k: face k as it is; node F + k: face k flipped; an agreeing pair links like states, else unlike
-        rows = np.r_[fa, fa + n_f]
-        cols = np.r_[np.where(agree, fb, fb + n_f), np.where(agree, fb + n_f, fb)]
-        graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * n_f, 2 * n_f))
-        n_lab, lab = connected_components(graph, directed=False)
-        keep, flip = lab[:n_f], lab[n_f:]
-        # choosing the states of label c costs the area of the faces flipped in them
-        cost = np.bincount(flip, weights=self.face_areas + 1e-300, minlength=n_lab)
-        return _ro(np.nonzero((keep != flip) & (cost[flip] < cost[keep]))[0].astype(np.int64))
+        """(K,) int64 faces wound against their neighbours: the fewest (by area) whose flip makes each surface's
+        winding consistent (every edge of two triangles traversed once each way; edges of three or more do not
+        take part). Empty for a consistently wound mesh; a Möbius band keeps the faces it cannot fix."""
+        return _ro(_misoriented(self._half_edges, self.face_areas, self.n_vertices))
 
     def _edge_matrix(self, values: np.ndarray) -> sp.csr_matrix:
         """(N, N) symmetric CSR matrix with ``values[k]`` at both (i, j) and (j, i) of edge k, indices sorted."""
@@ -461,6 +438,31 @@ class Mesh:
             f = f.copy()
             f[wound] = f[wound][:, [0, 2, 1]]
         return _reindex(self._vertices, f, used, self.name)
+
+
+def _misoriented(half: np.ndarray, areas: np.ndarray, n_vertices: int) -> np.ndarray:
+    """`Mesh.misoriented_faces` from the (3F, 2) half-edges (face k's edges at rows k, F + k, 2F + k) and the (F,)
+    face areas."""
+    n_f = len(areas)
+    face = np.tile(np.arange(n_f), 3)
+    n = np.int64(max(n_vertices, 1))
+    lo, hi = np.minimum(half[:, 0], half[:, 1]), np.maximum(half[:, 0], half[:, 1])
+    order = np.argsort(lo * n + hi, kind="stable")
+    _, first, counts = np.unique((lo * n + hi)[order], return_index=True, return_counts=True)
+    pairs = first[counts == 2]
+    a, b = order[pairs], order[pairs + 1]
+    fa, fb = face[a], face[b]
+    # two faces agree when they traverse their shared edge in opposite directions
+    agree = (half[a, 0] < half[a, 1]) != (half[b, 0] < half[b, 1])
+    # node k: face k as it is; node F + k: face k flipped; an agreeing pair links like states, else unlike
+    rows = np.r_[fa, fa + n_f]
+    cols = np.r_[np.where(agree, fb, fb + n_f), np.where(agree, fb + n_f, fb)]
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * n_f, 2 * n_f))
+    n_lab, lab = connected_components(graph, directed=False)
+    keep, flip = lab[:n_f], lab[n_f:]
+    # choosing the states of label c costs the area of the faces flipped in them
+    cost = np.bincount(flip, weights=areas + 1e-300, minlength=n_lab)
+    return np.nonzero((keep != flip) & (cost[flip] < cost[keep]))[0].astype(np.int64)
 
 
 def named(name: str | None, message: str) -> str:

@@ -1,0 +1,147 @@
+"""Correspondence speed on large meshes: wpot's comparison plus oriented ZoomOut (`wpot.zoomout`), beside plain
+ZoomOut (``orient=False``) and pyfmaps (WKS functional map + ZoomOut, `correspondence.FMAPS_SETTINGS`) on the same
+pair, at about 10,000 and 60,000 vertices.
+
+The meshes: two FAUST shapes (``faust_5k``, two people in two poses), each midpoint-subdivided (4x the faces) and,
+where that overshoots, simplified to the target vertex count by quadric decimation (``fast-simplification``, in
+the ``bench`` extra): independent triangulations of the two shapes at the size asked. For each size it times
+
+* **cold**: the Laplace-Beltrami spectra (computed, not read from a cache), the comparison and the refinement;
+* **warm**: the comparison and the refinement with the spectra cached (the usual case in an all-against-all),
+  and the refinement alone, oriented and plain;
+* pyfmaps: its per-shape set-up (spectrum) and its matching.
+
+It also checks the answer against the FAUST ground truth carried to the new vertices by nearest neighbour: mean
+error over sqrt(area) and whether the map is mirrored (median error against the ``.sym.vts`` truth smaller).
+
+Usage: ``python benchmarks/correspondence_speed.py [--sizes 10000 60000] [--pair tr_reg_000 tr_reg_011]``
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
+from benchmarks.correspondence import FMAPS_SETTINGS, _data_root  # noqa: E402
+
+
+def resized(mesh, n_vertices: int):
+    """``mesh`` subdivided (each triangle into 4) until it has at least ``n_vertices`` vertices, then decimated
+    to about ``n_vertices`` (quadric error, fast-simplification)."""
+    import fast_simplification
+    import trimesh
+
+    from wpot.mesh import Mesh
+
+    v, f = mesh.vertices, mesh.faces
+    while len(v) < n_vertices:
+        v, f = trimesh.remesh.subdivide(v, f)
+    if len(v) > 1.05 * n_vertices:
+        v, f = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
+                                            target_reduction=1.0 - n_vertices / len(v))
+    return Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)).cleaned(keep_largest_component=True)[0]
+
+
+def truth_on(big, small, corres: np.ndarray) -> np.ndarray:
+    """The template points' vertices (``corres`` on ``small``) carried to ``big`` by nearest neighbour."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(big.vertices).query(small.vertices[corres])[1]
+
+
+def errors(b, pred: np.ndarray, dst: np.ndarray, sym: np.ndarray) -> tuple[float, bool]:
+    s = np.sqrt(b.area)
+    et = np.linalg.norm(b.vertices[pred] - b.vertices[dst], axis=1) / s
+    es = np.linalg.norm(b.vertices[pred] - b.vertices[sym], axis=1) / s
+    return float(et.mean()), bool(np.median(es) < np.median(et))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=_data_root())
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 60000])
+    ap.add_argument("--pair", nargs=2, default=["tr_reg_000", "tr_reg_011"])
+    ap.add_argument("--no-peer", action="store_true", help="skip pyfmaps")
+    a = ap.parse_args(argv)
+
+    import wpot
+    from wpot.comparison import Comparer
+    from wpot.datasets import tosca_vts
+    from wpot.io import load_mesh
+    from wpot.maps.zoomout import zoomout
+
+    vtx = a.data / "faust_5k" / "vtx_5k"
+    if not vtx.is_dir():
+        ap.error(f"{vtx} not found (set --data)")
+    x, y = a.pair
+    small = [load_mesh(vtx / f"{n}.off") for n in (x, y)]
+    rows = []
+    for n in a.sizes:
+        ma, mb = (resized(m, n) for m in small)
+        src = truth_on(ma, small[0], tosca_vts(vtx, x))
+        dst = truth_on(mb, small[1], tosca_vts(vtx, y))
+        sym = truth_on(mb, small[1], tosca_vts(vtx, y, symmetric=True))
+        t0 = time.perf_counter()
+        for m in (ma, mb):  # cold: these meshes are new to the process (and to a fresh $WPOT_CACHE_DIR)
+            if wpot.eigenpairs(m, 500).from_cache:
+                print(f"note: the spectrum of a {m.n_vertices}-vertex mesh came from $WPOT_CACHE_DIR: 'cold' is not")
+        t_spec = time.perf_counter() - t0
+        comparer = Comparer(max_vertices=500)
+        t0 = time.perf_counter()
+        c = comparer.compare(ma, mb)  # signatures (from the cached spectra), then the transport
+        res = zoomout(ma, mb, c.correspondence)
+        t_first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        c = comparer.compare(ma, mb)
+        t_cmp = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = zoomout(ma, mb, c.correspondence)
+        t_orient = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        plain = zoomout(ma, mb, c.correspondence, orient=False)
+        t_plain = time.perf_counter() - t0
+        err, mirrored = errors(mb, res.map[src], dst, sym)
+        perr, pmirrored = errors(mb, plain.map[src], dst, sym)
+        row = {"n": (ma.n_vertices, mb.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
+               "orient": t_orient, "plain": t_plain, "err": err, "mirrored": mirrored, "conf": res.orientation_confidence,
+               "plain_err": perr, "plain_mirrored": pmirrored}
+        if not a.no_peer:
+            from pyFM.functional import FunctionalMapping
+            from pyFM.mesh import TriMesh
+
+            s = FMAPS_SETTINGS
+            t0 = time.perf_counter()
+            tb, ta = (TriMesh(m.vertices, m.faces, area_normalize=True, center=True).process(k=s["k_process"])
+                      for m in (mb, ma))
+            row["peer_setup"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            model = FunctionalMapping(tb, ta)
+            model.preprocess(n_descr=s["n_descr"], descr_type="WKS", subsample_step=s["subsample_step"],
+                             k_process=s["k_process"])
+            model.fit(K=s["K"], w_descr=s["w_descr"], w_lap=s["w_lap"], w_dcomm=s["w_dcomm"], w_orient=s["w_orient"])
+            p2p = np.asarray(model.get_p2p(model.zoomout_refine(nit=s["zoomout_nit"], step=s["zoomout_step"])))
+            row["peer"] = time.perf_counter() - t0
+            row["peer_err"], row["peer_mirrored"] = errors(mb, p2p[src], dst, sym)
+        rows.append(row)
+        print(row, flush=True)
+    print("\n| vertices (A, B) | spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
+          "compare, warm | oriented ZoomOut | plain ZoomOut | oriented / plain | end to end, spectra cached | "
+          "error √area (mirrored), confidence | plain: error (mirrored) | pyfmaps set-up | pyfmaps match | "
+          "pyfmaps error (mirrored) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        peer = (f"{r['peer_setup']:.1f} s | {r['peer']:.1f} s | {r['peer_err']:.3f} ({'yes' if r['peer_mirrored'] else 'no'})"
+                if "peer" in r else "– | – | –")
+        print(f"| {r['n'][0]:,}, {r['n'][1]:,} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
+              f"{r['orient']:.1f} s | {r['plain']:.1f} s | {r['orient'] / r['plain']:.2f}x | "
+              f"{r['compare'] + r['orient']:.1f} s | {r['err']:.3f} ({'yes' if r['mirrored'] else 'no'}), "
+              f"{r['conf']:.2f} | {r['plain_err']:.3f} ({'yes' if r['plain_mirrored'] else 'no'}) | {peer} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
