@@ -38,8 +38,8 @@ from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_poin
 from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, nearest_costs
-from wpot.maps.locate import locate_part
-from wpot.maps.retrieval import rank_classes
+from wpot.maps.locate import check_part, locate_part
+from wpot.maps.retrieval import RetrievalWarning, rank_classes
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
 from wpot.signatures import get_signature, Signature
@@ -667,6 +667,8 @@ class Comparer:
         if len(wholes) != len(labels):
             raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and "
                              f"{len(labels)} labels")
+        if wholes:
+            check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
         return rank_classes(self.nearest_costs(part, wholes), labels, options=options)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:

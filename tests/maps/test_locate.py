@@ -236,3 +236,30 @@ def test_bad_input_is_named(partial):
         LocateOptions(tol=0.0)
     with pytest.raises(TypeError, match="LocateOptions"):
         locate_part(partial.part, partial.full, sp, sw, options={"n_anchors": 10})
+
+
+def test_a_part_of_several_components_is_refused_naming_the_remedy(partial):
+    from wpot.examples import example_mesh
+
+    debris = example_mesh(120)
+    p = partial.part
+    with pytest.warns(MeshWarning, match="2 connected components"):
+        part = Mesh(np.r_[p.vertices, 0.1 * debris.vertices + [6.0, 0.0, 0.0]], np.r_[p.faces, debris.faces + p.n_vertices])
+    sp, sw = _planted_signatures(partial, outliers=0.0)
+    sp = np.r_[sp, np.random.default_rng(1).normal(size=(debris.n_vertices, sp.shape[1]))]
+    with pytest.raises(ValueError, match=r"part has 2 connected components.*keep_largest_component=True"):
+        locate_part(part, partial.full, sp, sw)
+
+
+def test_a_part_larger_than_the_whole_is_named(partial):
+    from wpot.maps.locate import LocateWarning
+
+    sp, sw = _planted_signatures(partial, outliers=0.0)
+    # the whole as the part and the part as the whole: swapped arguments
+    with pytest.warns(LocateWarning, match=r"the part's area is 2\.\d+ times that of the whole.*swapped"):
+        locate_part(partial.full, partial.part, sw, sp)
+    # a true part raises no such warning
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LocateWarning)
+        locate_part(partial.part, partial.full, sp, sw)

@@ -104,3 +104,21 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     np.testing.assert_allclose(r.whole_costs, [c.nearest_signature_distance(part, w) for w in wholes], rtol=1e-9)
     with pytest.raises(ValueError, match="wholes and labels must be of one length"):
         c.retrieve(part, wholes, labels[:2])
+
+
+def test_a_part_larger_than_every_whole_is_named():
+    import warnings
+
+    import wpot
+    from wpot.maps.retrieval import RetrievalWarning
+
+    c = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    wholes = [wpot.example_mesh(300, seed=s) for s in (1, 2)]
+    big = wpot.Mesh(2.0 * wpot.example_mesh(300, seed=4).vertices, wpot.example_mesh(300, seed=4).faces, name="big.off")
+    with pytest.warns(RetrievalWarning, match=r"big\.off: the part's area is \d\.\d+ times that of the library's "
+                                              r"largest whole.*different scales"):
+        c.retrieve(big, wholes, ["x", "y"])
+    part = wpot.cut(wpot.example_mesh(300, seed=4), np.arange(150))[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrievalWarning)
+        c.retrieve(part, wholes, ["x", "y"])

@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
 from wpot.maps.orientation import local_orientation, orientation_score
@@ -275,6 +275,16 @@ def _pick(scores, costs) -> int:
     return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, np.asarray(costs, dtype=np.float64), np.inf)))
 
 
+def check_part(part: Mesh, whole: Mesh, category: type[Warning], whole_is: str = "the whole") -> None:
+    """Warn (``category``) when ``part`` is larger than ``whole`` (area more than 5 % above), which a part of it
+    cannot be: the two swapped, or meshes at different scales. ``whole_is`` names the whole in the message."""
+    ratio = part.area / whole.area
+    if ratio > 1.05:
+        warnings.warn(named(part.name, f"the part's area is {ratio:.2f} times that of {whole_is}, so it cannot be a "
+                            "part of it: are the part and the whole swapped, or at different scales?"), category,
+                      stacklevel=3)
+
+
 def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signatures: ArrayLike, *,
                 metric: str = "l2", options: LocateOptions | None = None, device: str | None = None) -> PartMap:
     """Locate ``part`` in ``whole`` and map it onto it (see the module docstring).
@@ -310,6 +320,11 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                          f"{sw.shape[1]}): compute both with the same signature settings")
     if part.n_vertices < 3:
         raise ValueError(f"part has {part.n_vertices} vertices; at least 3 are needed")
+    check_part(part, whole, LocateWarning)
+    if part.n_components > 1:
+        raise ValueError(f"part has {part.n_components} connected components: locate places one connected part by "
+                         "geodesic consistency, and no geodesic joins two components. Locate each component on its "
+                         "own (Mesh.cleaned(keep_largest_component=True) keeps the largest)")
     scale = float(np.sqrt(whole.area))
     g_part, g_whole = _geodesics(part), _geodesics(whole)
 

@@ -33,7 +33,11 @@ from numpy.typing import ArrayLike
 
 from wpot import _validate
 
-__all__ = ["RetrievalOptions", "ClassRanking", "rank_classes"]
+__all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes"]
+
+
+class RetrievalWarning(UserWarning):
+    """A part that cannot be a part of any whole of the library (larger than all of them)."""
 
 
 @dataclass(frozen=True)

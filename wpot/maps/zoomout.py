@@ -70,7 +70,7 @@ __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOM
 ZOOMOUT_K_END = 200
 #: a map whose `ZoomOutResult.orientation_confidence` is below this should be checked for left/right (chosen on
 #: FAUST pairs outside its test list, reported on the TOSCA and FAUST test pairs: the docs' Results page)
-ORIENTATION_DOUBT = 0.3
+ORIENTATION_DOUBT = 0.1
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
 #: are on different sides (`ZoomOutResult.orientation_confidence`)
 AGREEMENT = 0.1
@@ -126,7 +126,7 @@ def zoomout(
         connected components they apply to each pair of components, clamped to its smaller vertex count
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default `spectrum_size`
         of each mesh (500 from 5,000 vertices up: WKS's, so that the spectrum a WKS comparison computed
-        serves); the oriented candidate's WKS descriptors use them all
+        serves); the oriented candidate's WKS descriptors use the first `wpot.maps.fmap.FMAP_SPECTRUM` of them
     orient : keep left and right apart (default): bring two candidates to k = `wpot.maps.fmap.FMAP_K`, the
         given map refined and the map of an orientation-aware functional map fitted from WKS descriptors (only
         for two connected surfaces with a readable outside), and go on to k_end with the one of lower
@@ -210,8 +210,8 @@ def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
 
 def _oriented_problem(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> FmapEnergy | None:
     """The orientation-aware functional-map energy between A and B (`wpot.maps.fmap.FmapEnergy`, WKS
-    descriptors, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)); None when it cannot be built: a mesh of several
-    components, or one whose outside cannot be read (an open or flat surface)."""
+    descriptors, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)); None, with an `OrientationWarning` that names the
+    mesh and its repair, when it cannot be built (`_unreadable`)."""
 
     meshes = (mesh_a, mesh_b)
     for side, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
