@@ -503,6 +503,9 @@ def main(argv=None) -> int:
                     "orient=False (default: wpot fmaps)")
     ap.add_argument("--limit", type=int, default=None,
                     help="only K pairs, evenly spaced over test_pairs.txt (the report then covers those K only)")
+    ap.add_argument("--shard", default=None, metavar="I/N",
+                    help="only every N-th pair from the I-th (0-based), so that N processes share a run's pairs "
+                    "(each appends whole lines to the same results)")
     ap.add_argument("--max-vertices", type=int, default=500, help="wpot's farthest-point sample size (0: none)")
     ap.add_argument("--signature", default="wks", choices=["wks", "ldsift"])
     ap.add_argument("--transport", default="balanced", choices=["balanced", "partial"])
@@ -522,6 +525,10 @@ def main(argv=None) -> int:
 
     from wpot.evaluate import DEFAULT_MAX_THRESHOLD
 
+    if a.shard:
+        i, _, n = a.shard.partition("/")
+        if not (i.isdigit() and n.isdigit() and int(i) < int(n)):
+            ap.error(f"--shard must be I/N with 0 <= I < N, got {a.shard!r}")
     tmax = {"sqrt_area": a.sqrt_area_max or DEFAULT_MAX_THRESHOLD["sqrt_area"],
             "shrec19": a.shrec_max or DEFAULT_MAX_THRESHOLD["shrec19"]}
     for name in a.dataset:
@@ -557,6 +564,9 @@ def run(a, out: Path, store: Store, log) -> None:
     pairs = select_pairs(read_test_pairs(a.tosca / "test_pairs.txt"), a.limit)
     maxv = a.max_vertices or None
     tags = method_tags(a)
+    if a.shard:
+        i, n = (int(v) for v in a.shard.split("/"))
+        pairs = pairs[i::n]
     todo = [p for p in pairs if any((tags[m], *p) not in store.done for m in a.methods)]
     log(f"{len(pairs)} pairs selected, {len(todo)} still to do for {[tags[m] for m in a.methods]}; out={out}")
     if not todo:
