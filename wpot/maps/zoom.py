@@ -72,7 +72,7 @@ class Refiner:
 def spectral_basis(mesh: Mesh, n_eigen: int | None):
     """The eigenpairs ZoomOut uses: ``n_eigen``, by default `spectrum_size`, from the spectrum cache when they
     are there. Always that many, whatever else is cached (a larger cached spectrum would change the WKS
-    descriptors of `_oriented_start` and with them the map)."""
+    descriptors of `wpot.maps.zoomout`'s oriented candidate and with them the map)."""
     return eigenpairs(mesh, spectrum_size(mesh.n_vertices) if n_eigen is None else n_eigen)
 
 
