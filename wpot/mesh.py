@@ -444,8 +444,11 @@ def _misoriented(half: np.ndarray, areas: np.ndarray, n_vertices: int) -> np.nda
     """`Mesh.misoriented_faces` from the (3F, 2) half-edges (face k's edges at rows k, F + k, 2F + k) and the (F,)
     face areas."""
     n_f = len(areas)
-    face = np.tile(np.arange(n_f), 3)
     n = np.int64(max(n_vertices, 1))
+    directed = half[:, 0].astype(np.int64) * n + half[:, 1]
+    if np.unique(directed).size == directed.size:  # no edge traversed twice one way: consistent, manifold
+        return np.empty(0, dtype=np.int64)
+    face = np.tile(np.arange(n_f), 3)
     lo, hi = np.minimum(half[:, 0], half[:, 1]), np.maximum(half[:, 0], half[:, 1])
     order = np.argsort(lo * n + hi, kind="stable")
     _, first, counts = np.unique((lo * n + hi)[order], return_index=True, return_counts=True)
@@ -595,6 +598,10 @@ def signed_volume(mesh: Mesh) -> float:
         # the cap triangle (centre, j, i) runs the boundary edge i -> j the other way, as a neighbour face would
         vol += float(np.einsum("ij,ij->i", centre[loop], np.cross(v[border[:, 1]], v[border[:, 0]])).sum())
     return vol / 6.0
+
+
+#: why the outside of a surface whose `winding` is 0 cannot be read, for messages about it
+NO_OUTSIDE = "encloses no volume to tell its outside from its inside (an open or flat surface)"
 
 
 def winding(mesh: Mesh) -> int:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from wpot.cost import nearest_rows
-from wpot.mesh import Mesh, winding
+from wpot.mesh import NO_OUTSIDE, Mesh, winding
 from wpot.spectral import laplace_beltrami
 
 __all__ = ["FmapEnergy", "SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
@@ -117,8 +117,8 @@ class SpectralOperators:
         if self._grad_phi is None:
             side = winding(mesh)
             if side == 0:
-                raise ValueError("the orientation operators need a closed, consistently wound surface: this mesh "
-                                 "encloses no volume to tell its outside from its inside")
+                raise ValueError(f"the orientation operators need a closed, consistently wound surface: this mesh "
+                                 f"{NO_OUTSIDE}")
             self._normals = mesh.face_normals * side
             self._grad_phi = _face_gradients(mesh, self.phi, self._normals)
         grad_f = _face_gradients(mesh, values, self._normals)  # (F, 3, m)

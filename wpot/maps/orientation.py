@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
 from wpot._validate import vertex_map
-from wpot.mesh import Mesh, winding
+from wpot.mesh import NO_OUTSIDE, Mesh, winding
 
 __all__ = ["LOCAL_RADIUS", "OrientationWarning", "local_orientation", "map_score", "orientation_score",
            "orientation_terms", "spread", "terms_score", "winding"]
@@ -62,8 +62,8 @@ def orientation_score(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike) -> 
     terms = orientation_terms(mesh_a, mesh_b, t)
     if terms is None:
         side = "mesh_a" if winding(mesh_a) == 0 else "mesh_b"
-        warnings.warn(f"the orientation of a map cannot be scored: {side} encloses no volume to tell its outside "
-                      "from its inside (an open or flat surface)", OrientationWarning, stacklevel=2)
+        warnings.warn(f"the orientation of a map cannot be scored: {side} {NO_OUTSIDE}", OrientationWarning,
+                      stacklevel=2)
         return float("nan")
     score = terms_score(*terms)
     if np.isnan(score):

@@ -58,7 +58,7 @@ from wpot._validate import boolean, vertex_map
 from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.maps.orientation import OrientationWarning
-from wpot.mesh import Mesh, named, winding
+from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
@@ -198,7 +198,7 @@ def _unreadable(mesh: Mesh) -> str:
     if wound:
         return f"has {wound} triangles wound against their neighbours (Mesh.cleaned() rewinds them)"
     if winding(mesh) == 0:
-        return "encloses no volume to tell its outside from its inside (an open or flat surface)"
+        return NO_OUTSIDE
     return ""
 
 
