@@ -96,6 +96,7 @@ def _inward_kernel(
     facing: wp.float32,
     reach: wp.float32,
     offset: wp.float32,
+    first_opening: wp.int32,
     out: wp.array2d(dtype=wp.float32),
 ):
     i, k = wp.tid()
@@ -103,12 +104,14 @@ def _inward_kernel(
     c = cone[k]
     d = c[0] * e1[i] + c[1] * e2[i] - c[2] * n
     q = wp.mesh_query_ray(mesh_id, origins[i] - offset * n, d, reach)
-    t = float(-1.0)
+    t = float(wp.nan)
     # a ray that leaves the volume meets the inner side of a face: its winding normal (times `facing`, the
-    # mesh's winding) points along the ray
+    # mesh's winding) points along the ray; through an opening's cap, it is only known to run at least that far
     if q.result:
         if facing * wp.dot(q.normal, d) > 0.0:
             t = q.t + offset * c[2]
+            if q.face >= first_opening:
+                t = -t
     out[i, k] = t
 
 
@@ -215,7 +218,8 @@ class DepthRenderer:
         """A function that copies a float array to this renderer's device as float32 ``dtype`` (wp.vec3: rows)."""
         return lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=self.device)
 
-    def inward_hits(self, points: ArrayLike, frames: ArrayLike, cone: ArrayLike, *, facing: int = 1) -> np.ndarray:
+    def inward_hits(self, points: ArrayLike, frames: ArrayLike, cone: ArrayLike, *, facing: int = 1,
+                    first_opening: int | None = None) -> np.ndarray:
         """How far rays shot into the volume travel before they leave it: the shape diameter function's rays.
 
         From each point ``p`` (a surface point with frame ``e1, e2, o``, ``o`` its unit outward normal) one ray
@@ -231,11 +235,14 @@ class DepthRenderer:
         cone : (m, 3) unit directions in the frame, every ``z > 0`` (see `inward_cone`)
         facing : +1 when the faces wind counter-clockwise seen from outside, -1 the other way
             (`wpot.mesh.winding`)
+        first_opening : the faces from this index on are openings, caps over the holes of an open surface
+            (`wpot.mesh.boundary_caps`); None: there are none
 
         Returns
         -------
         (n, m) float64 distances from each point to where each ray leaves the solid; NaN for a ray that
-        meets nothing or first meets a face from outside. Rays start ``1e-5`` of the mesh's size inside
+        meets nothing or first meets a face from outside; minus the distance for a ray that leaves through an
+        opening (in the whole the surface was cut from, it runs at least that far). Rays start ``1e-5`` of the mesh's size inside
         the surface (so a face at the origin is not met at distance 0); the distance is counted from ``p``.
         """
         p = np.asarray(points, dtype=np.float64)
@@ -249,6 +256,9 @@ class DepthRenderer:
             raise ValueError("points and frames must be finite (got NaN or inf)")
         if facing not in (1, -1):
             raise ValueError(f"facing must be +1 or -1, got {facing!r}")
+        opening = self.n_faces if first_opening is None else int(first_opening)
+        if not 0 <= opening <= self.n_faces:
+            raise ValueError(f"first_opening must be a face index in [0, {self.n_faces}], got {first_opening!r}")
         n, m = len(p), len(c)
         if n == 0:
             return np.empty((0, m))
@@ -260,11 +270,10 @@ class DepthRenderer:
         wp.launch(
             _inward_kernel, dim=(n, m),
             inputs=[self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]), vec(c), float(facing),
-                    reach, 1e-5 * self.radius],
+                    reach, 1e-5 * self.radius, opening],
             outputs=[out], device=dev,
         )
-        t = out.numpy().astype(np.float64)
-        return np.where(t >= 0, t, np.nan)
+        return out.numpy().astype(np.float64)
 
 
 def inward_cone(n_rays: int = 32, half_angle: float = 60.0) -> np.ndarray:

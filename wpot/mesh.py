@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from numpy.typing import ArrayLike
 
-__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "validate", "winding"]
+__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "boundary_caps", "validate", "winding"]
 
 #: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
 DEGENERATE_AREA_RTOL = 1e-12
@@ -576,28 +576,42 @@ def repair_mesh(mesh: Mesh, mode: bool | str = "defects") -> tuple[Mesh, np.ndar
 
 
 # ----------------------------------------------------------------------------- orientation of the surface
-def signed_volume(mesh: Mesh) -> float:
-    """The volume the surface encloses, signed by its winding; an open surface is first closed by capping each
-    boundary loop with a fan to the loop's own centroid (a fan to one common point, the cone the surface spans
-    from its centroid, reads a bent open limb inside out)."""
-    v = mesh.vertices - mesh.vertices.mean(axis=0)
+def boundary_caps(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The caps that close an open surface: each boundary loop fanned to the loop's own centroid (a fan to one
+    common point, the cone the surface spans from its centroid, reads a bent open limb inside out).
+
+    Returns
+    -------
+    centres : (L, 3) float64, one centroid per boundary loop (L = 0 for a closed surface)
+    faces : (B, 3) int64, one cap triangle per boundary edge, indexing ``vstack([mesh.vertices, centres])``
+        (the centre of loop l is vertex N + l), wound as the surface's own triangles: each runs its boundary
+        edge the other way, as a neighbour face would.
+    """
     f = mesh.faces
-    vol = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum())
     half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     key = np.sort(half, axis=1)
     n = np.int64(max(mesh.n_vertices, 1))
     _, inv, cnt = np.unique(key[:, 0] * n + key[:, 1], return_inverse=True, return_counts=True)
     border = half[cnt[inv] == 1]  # boundary half-edges, in their face's direction
-    if len(border):
-        g = sp.coo_matrix((np.ones(len(border)), (border[:, 0], border[:, 1])), shape=(int(n), int(n)))
-        # each boundary loop is a connected component of the boundary edges (the other vertices are singletons)
-        _, loop = np.unique(connected_components(g, directed=False)[1][border[:, 0]], return_inverse=True)
-        centre = np.zeros((int(loop.max()) + 1, 3))
-        np.add.at(centre, loop, v[border[:, 0]])
-        centre /= np.bincount(loop)[:, None]
-        # the cap triangle (centre, j, i) runs the boundary edge i -> j the other way, as a neighbour face would
-        vol += float(np.einsum("ij,ij->i", centre[loop], np.cross(v[border[:, 1]], v[border[:, 0]])).sum())
-    return vol / 6.0
+    if not len(border):
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
+    g = sp.coo_matrix((np.ones(len(border)), (border[:, 0], border[:, 1])), shape=(int(n), int(n)))
+    # each boundary loop is a connected component of the boundary edges (the other vertices are singletons)
+    _, loop = np.unique(connected_components(g, directed=False)[1][border[:, 0]], return_inverse=True)
+    centres = np.zeros((int(loop.max()) + 1, 3))
+    np.add.at(centres, loop, mesh.vertices[border[:, 0]])
+    centres /= np.bincount(loop)[:, None]
+    return centres, np.stack([mesh.n_vertices + loop, border[:, 1], border[:, 0]], axis=1).astype(np.int64)
+
+
+def signed_volume(mesh: Mesh) -> float:
+    """The volume the surface encloses, signed by its winding; an open surface is first closed by its
+    `boundary_caps`."""
+    centres, caps = boundary_caps(mesh)
+    v = np.concatenate([mesh.vertices, centres])
+    v = v - mesh.vertices.mean(axis=0)
+    f = np.concatenate([mesh.faces, caps])
+    return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0
 
 
 #: why the outside of a surface whose `winding` is 0 cannot be read, for messages about it

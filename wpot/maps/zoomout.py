@@ -30,16 +30,19 @@ Laplace–Beltrami spectra match. Nor is it meant for a part against a whole, wh
 Left and right: ZoomOut alone cannot tell them apart. WKS maps mix the two sides of a symmetric body, and
 ZoomOut makes them consistent with one side, sometimes the mirror one, or the mirror one on a symmetric part
 only (both legs); on a near-cylindrical body (a human) it can also settle on a half turn, left and right and
-front and back exchanged, which keeps orientation and is still wrong. So by default (``orient=True``) two
-candidates are brought to the functional-map resolution k = `wpot.maps.fmap.FMAP_K`:
+front and back exchanged, which keeps orientation and is still wrong. So by default (``orient=True``) three
+candidates are brought to k = `CHOICE_K`:
 
 1. the given map, refined by ZoomOut from k_start;
-2. the point map of the functional map fitted from WKS descriptors with the orientation term
-   (`wpot.maps.fmap`). It does not use the given map, so it also rescues a map that is wrong beyond mirroring.
+2. the point maps of two functional maps fitted, at k = `wpot.maps.fmap.FMAP_K`, from WKS descriptors with the
+   orientation term (`wpot.maps.fmap`): descriptors from the first `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs,
+   and from all of them. They do not use the given map, so they also rescue a map that is wrong beyond mirroring.
 
-Each is scored by the energy that functional map minimizes (`wpot.maps.fmap.FmapEnergy`: descriptors,
-Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the functional
-map of the candidate's point map; the lower one goes on to k_end. The same energy gives the result's
+Each is scored by the energy the second functional map minimizes (`wpot.maps.fmap.FmapEnergy`: descriptors,
+Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the k =
+`wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end. Refining before
+comparing lets each candidate settle on one side everywhere, so that a map right on the body and mirrored on a
+limb is not compared with maps that are still coarse. The same energy gives the result's
 orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
 terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
 mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
@@ -63,7 +66,7 @@ from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
-           "AGREEMENT", "ORIENTATION_DOUBT"]
+           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K"]
 
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
 #: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
@@ -71,6 +74,11 @@ ZOOMOUT_K_END = 200
 #: a map whose `ZoomOutResult.orientation_confidence` is below this should be checked for left/right (chosen on
 #: FAUST pairs outside its test list, reported on the TOSCA and FAUST test pairs: the docs' Results page)
 ORIENTATION_DOUBT = 0.1
+#: the spectral resolution to which every candidate is refined before they are compared (chosen on FAUST pairs
+#: outside its test list, checked on TOSCA pairs outside it: the docs' Results page)
+CHOICE_K = 60
+#: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
+JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
 #: are on different sides (`ZoomOutResult.orientation_confidence`)
 AGREEMENT = 0.1
@@ -89,8 +97,8 @@ class ZoomOutResult:
         the two disagree (their images at the median vertex more than `AGREEMENT` sqrt(area(B)) apart). Near 0:
         another side fits about as well, doubt the map. NaN when the orientation could not be weighed
         (``orient=False``, several connected components, or a surface with no readable outside)
-    candidate : the candidate chosen, ``"given"`` (the map passed in, refined) or ``"descriptors"`` (the
-        orientation-aware functional map's); ``"given"`` when there was no choice
+    candidate : the candidate chosen, ``"given"`` (the map passed in, refined), ``"descriptors"`` or
+        ``"descriptors_full"`` (the orientation-aware functional maps'); ``"given"`` when there was no choice
     energies : each candidate's energy, by name, and its mirror image's (``"<name>_mirror"``)
     """
 
@@ -127,10 +135,10 @@ def zoomout(
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default `spectrum_size`
         of each mesh (500 from 5,000 vertices up: WKS's, so that the spectrum a WKS comparison computed
         serves); the oriented candidate's WKS descriptors use the first `wpot.maps.fmap.FMAP_SPECTRUM` of them
-    orient : keep left and right apart (default): bring two candidates to k = `wpot.maps.fmap.FMAP_K`, the
-        given map refined and the map of an orientation-aware functional map fitted from WKS descriptors (only
-        for two connected surfaces with a readable outside), and go on to k_end with the one of lower
-        functional-map energy (the module docstring). False: the plain ZoomOut of the given map, which settles
+    orient : keep left and right apart (default): bring three candidates to k = `CHOICE_K`, the given map
+        refined and the maps of two orientation-aware functional maps fitted from WKS descriptors (only for two
+        connected surfaces with a readable outside), and go on to k_end with the one of lowest functional-map
+        energy (the module docstring). False: the plain ZoomOut of the given map, which settles
         on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
@@ -170,13 +178,16 @@ def zoomout(
 
     if not orient:
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    problem = _oriented_problem(mesh_a, mesh_b, n_eigen, k_end)
-    if problem is None:
+    problems = _oriented_problems(mesh_a, mesh_b, n_eigen, k_end)
+    if problems is None:
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    k_sel = problem.k
-    cands = {"given": refine(t, k_start, k_sel, step) if k_start <= k_sel else t,
-             "descriptors": point_map(problem.ops_a.phi, problem.ops_b.phi, problem.fit())}
-    terms = {n: problem.terms(problem.ops_a.pinv @ problem.ops_b.phi[c]) for n, c in cands.items()}
+    k_sel = min(CHOICE_K, k_end)
+    starts = {"given": (t, k_start)}
+    for name, problem in problems.items():
+        starts[name] = (point_map(problem.ops_a.phi, problem.ops_b.phi, problem.fit()), problem.k + step)
+    cands = {n: refine(t0, k0, k_sel, step) if k0 <= k_sel else t0 for n, (t0, k0) in starts.items()}
+    judge = problems[JUDGE]
+    terms = {n: judge.terms(judge.ops_a.pinv @ judge.ops_b.phi[c]) for n, c in cands.items()}
     energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
     # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
     mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
@@ -184,8 +195,8 @@ def zoomout(
     others = [mirrors[chosen]] + [energies[n] for n in cands
                                   if n != chosen and _disagree(mesh_b, cands[n], cands[chosen])]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
-    k_next = min(k_sel + step, k_end) if k_start <= k_sel else k_start
-    out = cands[chosen] if k_end == k_sel else refine(cands[chosen], k_next, k_end, step)
+    k_next = max(k_sel + step, starts[chosen][1])
+    out = cands[chosen] if k_next > k_end else refine(cands[chosen], k_next, k_end, step)
     return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}})
 
 
@@ -208,10 +219,12 @@ def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
     return bool(np.median(gap) > AGREEMENT * np.sqrt(mesh_b.area))
 
 
-def _oriented_problem(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> FmapEnergy | None:
-    """The orientation-aware functional-map energy between A and B (`wpot.maps.fmap.FmapEnergy`, WKS
-    descriptors, at k = min(`wpot.maps.fmap.FMAP_K`, k_end)); None, with an `OrientationWarning` that names the
-    mesh and its repair, when it cannot be built (`_unreadable`)."""
+def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> dict[str, FmapEnergy] | None:
+    """The orientation-aware functional-map energies between A and B (`wpot.maps.fmap.FmapEnergy` at k =
+    min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors from the first
+    `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`, whose energy
+    also ranks the candidates; one problem when there are no more). None, with an `OrientationWarning` that
+    names the mesh and its repair, when they cannot be built (`_unreadable`)."""
 
     meshes = (mesh_a, mesh_b)
     for side, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
@@ -223,10 +236,15 @@ def _oriented_problem(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: in
             return None
     k = min(FMAP_K, k_end)
     specs = [spectral_basis(m, n_eigen) for m in meshes]
-    # scale-invariant WKS on one grid for both shapes, from the first FMAP_SPECTRUM eigenpairs, every second
-    # energy of a grid twice as fine (pyfmaps')
-    low = [s.first(FMAP_SPECTRUM) for s in specs]
-    grid = wks_energies(low, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
-    desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in low]
     ops = [SpectralOperators(m, s, k) for m, s in zip(meshes, specs)]
-    return FmapEnergy(*ops, *desc)
+
+    def problem(spectra) -> FmapEnergy:
+        # scale-invariant WKS on one grid for both shapes, every second energy of a grid twice as fine (pyfmaps')
+        grid = wks_energies(spectra, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
+        desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in spectra]
+        return FmapEnergy(*ops, *desc)
+
+    low = [s.first(FMAP_SPECTRUM) for s in specs]
+    if all(a is b for a, b in zip(low, specs)):
+        return {JUDGE: problem(specs)}
+    return {"descriptors": problem(low), JUDGE: problem(specs)}

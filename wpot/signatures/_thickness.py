@@ -14,9 +14,16 @@ vertex's frame (the vertex normal, and the LD-SIFT frame's e1 made tangent, `loc
 that frame's sign ambiguity, so that the rays and their median do not depend on how the shape is posed in space.
 A ray counts when it leaves the solid through a face seen from inside; the thickness is the median length of
 those rays.
-A vertex with fewer than `MIN_RAYS` such rays (a thin fin, a place where the surface crosses itself, the rim of
-a cut part whose rays escape through the opening) takes the mean of its neighbours' values, spread along the
-edges from the vertices that have one.
+
+A part cut from a whole (a surface with holes) is closed for the rays by the caps over its holes
+(`wpot.mesh.boundary_caps`). A ray that leaves through a cap would, in the whole, have gone on: it is only
+known to be at least that long. Dropping such rays, or reading them at the cap, keeps the short rays and
+loses the long ones, and reads a part thinner than its whole. So a vertex keeps its own value only when its
+median does not depend on how far its escaped rays would have run: when the median is the same with them at
+their lower bound and at infinity.
+A vertex with no value of its own (fewer than `MIN_RAYS` rays that count, as on a thin fin or where the surface
+crosses itself, or a median its escaped rays could move) takes the mean of its neighbours' values, spread along
+the edges from the vertices that have one.
 """
 from __future__ import annotations
 
@@ -25,13 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from wpot.mesh import Mesh, winding
+from wpot.mesh import Mesh, boundary_caps, winding
 from wpot.signatures._frames import local_frames
 
 __all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
 
 #: bumped whenever `thickness` changes its values; part of LD-SIFT's cache key when its thickness column is on
-VERSION = 1
+VERSION = 2
 #: rays per vertex, and the half-angle of their cone in degrees about the inward normal (Shapira et al.: 30
 #: rays in a 120 degree cone); a multiple of 4 (`render.raycast.inward_cone`)
 N_RAYS = 32
@@ -104,24 +111,45 @@ def thickness(
             "thickness column needs solid shapes: leave ldsift_thickness at 0 for this data"
         )
     fr = _ray_frames(mesh.vertex_normals * facing, (local_frames(mesh) if frames is None else frames).frames[:, 0])
-    hits = DepthRenderer(mesh, device=device).inward_hits(
-        mesh.vertices, fr, inward_cone(n_rays, cone_angle), facing=facing
+    centres, caps = boundary_caps(mesh)
+    closed = (np.concatenate([mesh.vertices, centres]), np.concatenate([mesh.faces, caps]))
+    hits = DepthRenderer(closed, device=device).inward_hits(
+        mesh.vertices, fr, inward_cone(n_rays, cone_angle), facing=facing, first_opening=mesh.n_faces
     )
-    counted = np.isfinite(hits).sum(axis=1)
-    known = counted >= min(MIN_RAYS, n_rays)
+    med, counted, censored = _censored_median(hits)
+    known = (counted >= min(MIN_RAYS, n_rays)) & ~censored
     if not known.any():
         raise ValueError(
             "no ray cast into the mesh leaves it through a face seen from inside, so its thickness cannot be "
             "measured (is the surface open or inconsistently wound?); leave ldsift_thickness at 0"
         )
     if known.mean() < MIN_MEASURED:
+        why = (f"rays from {censored.mean():.0%} of them leave through the mesh's {len(centres)} open boundary "
+               f"loop{'s' if len(centres) != 1 else ''} (a part cut from a whole: its thickness there is the "
+               "whole's, which the part does not show)" if censored.sum() >= (~known & ~censored).sum()
+               else "a very open surface, or inconsistently wound faces?")
         warnings.warn(
             f"the thickness of LD-SIFT's thickness column (ldsift_thickness) was measured at only {known.mean():.0%} "
-            "of the mesh's vertices; the rest are filled in from their neighbours (a very open surface, or "
-            "inconsistently wound faces?)",
+            f"of the mesh's vertices and filled in from their neighbours at the rest: {why}. Lower ldsift_thickness, "
+            "or set it to 0, for such meshes",
             stacklevel=2,
         )
+    # an escaped ray runs at least to its cap, so a filled-in value is never below the vertex's own lower bound
+    return np.where(censored, np.fmax(_spread(med, known, mesh), med), _spread(med, known, mesh))
+
+
+def _censored_median(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's median ray length, from `render.raycast.DepthRenderer.inward_hits`' (N, m) distances (NaN: the
+    ray does not count; negative: it left through an opening and runs at least that far).
+
+    Returns the (N,) medians, the (N,) counts of rays that count, and (N,) bool: the median would move if the
+    escaped rays ran farther than their bound (those rows' medians are not to be used).
+    """
+    low = np.abs(hits)
+    high = np.where(hits < 0, np.inf, hits)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: the vertices filled in below
-        med = np.nanmedian(hits, axis=1)
-    return _spread(med, known, mesh)
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows; inf - inf in a median of two infinities
+        med_low, med_high = np.nanmedian(low, axis=1), np.nanmedian(high, axis=1)
+    counted = np.isfinite(low).sum(axis=1)
+    censored = (counted > 0) & ~(med_high == med_low)
+    return med_low, counted, censored
