@@ -20,10 +20,10 @@ A part cut from a whole (a surface with holes) is closed for the rays by the cap
 known to be at least that long. Dropping such rays, or reading them at the cap, keeps the short rays and
 loses the long ones, and reads a part thinner than its whole. So a vertex keeps its own value only when its
 median does not depend on how far its escaped rays would have run: when the median is the same with them at
-their lower bound and at infinity.
+their lower bound and at infinity. Otherwise the two medians still bound its value.
 A vertex with no value of its own (fewer than `MIN_RAYS` rays that count, as on a thin fin or where the surface
 crosses itself, or a median its escaped rays could move) takes the mean of its neighbours' values, spread along
-the edges from the vertices that have one.
+the edges from the vertices that have one (kept within its own bounds).
 """
 from __future__ import annotations
 
@@ -116,7 +116,8 @@ def thickness(
     hits = DepthRenderer(closed, device=device).inward_hits(
         mesh.vertices, fr, inward_cone(n_rays, cone_angle), facing=facing, first_opening=mesh.n_faces
     )
-    med, counted, censored = _censored_median(hits)
+    med, med_high, counted = _median_bounds(hits)
+    censored = (counted > 0) & (med_high != med)
     known = (counted >= min(MIN_RAYS, n_rays)) & ~censored
     if not known.any():
         raise ValueError(
@@ -134,22 +135,23 @@ def thickness(
             "or set it to 0, for such meshes",
             stacklevel=2,
         )
-    # an escaped ray runs at least to its cap, so a filled-in value is never below the vertex's own lower bound
-    return np.where(censored, np.fmax(_spread(med, known, mesh), med), _spread(med, known, mesh))
+    filled = _spread(med, known, mesh)
+    # a vertex whose escaped rays could move its median still bounds it: its rays read at the caps from below,
+    # and with the escaped ones taken as endless from above; its filled-in value stays between the two
+    return np.where(censored, np.clip(filled, med, med_high), filled)
 
 
-def _censored_median(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each row's median ray length, from `render.raycast.DepthRenderer.inward_hits`' (N, m) distances (NaN: the
-    ray does not count; negative: it left through an opening and runs at least that far).
+def _median_bounds(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bounds on each row's median ray length, from `render.raycast.DepthRenderer.inward_hits`' (N, m) distances
+    (NaN: the ray does not count; negative: it left through an opening and runs at least that far).
 
-    Returns the (N,) medians, the (N,) counts of rays that count, and (N,) bool: the median would move if the
-    escaped rays ran farther than their bound (those rows' medians are not to be used).
+    Returns the (N,) medians with the escaped rays at their bound and (N,) with them endless (equal where the
+    escaped rays cannot move the median; NaN for a row without a ray that counts), and the (N,) counts of
+    rays that count.
     """
     low = np.abs(hits)
     high = np.where(hits < 0, np.inf, hits)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows; inf - inf in a median of two infinities
         med_low, med_high = np.nanmedian(low, axis=1), np.nanmedian(high, axis=1)
-    counted = np.isfinite(low).sum(axis=1)
-    censored = (counted > 0) & ~(med_high == med_low)
-    return med_low, counted, censored
+    return med_low, np.where(np.isnan(med_high) & ~np.isnan(med_low), np.inf, med_high), np.isfinite(low).sum(axis=1)
