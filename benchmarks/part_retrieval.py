@@ -184,7 +184,10 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log)
         todo = {w: c for w, c in comparers.items() if (method(w, a.ldsift_slab), pt, LIBRARY) not in store.done}
         if not todo:
             continue
-        part = cut(wholes[p["source"]], np.load(a.parts / "parts" / f"{pt}.npz")["idx"])[0]
+        stored = np.load(a.parts / "parts" / f"{pt}.npz", allow_pickle=False)
+        # a re-meshed part (partial_poses.py --remesh) is stored whole; the others are cut from their source again
+        part = (wpot.Mesh(stored["vertices"], stored["faces"], warn=False) if "vertices" in stored
+                else cut(wholes[p["source"]], stored["idx"])[0])
         library = [n for n in wholes if n != p["source"]]
         for w, c in todo.items():
             t = time.perf_counter()

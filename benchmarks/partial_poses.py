@@ -228,7 +228,9 @@ def landmarks(folder: Path, cls: str, members: list[str]) -> Landmarks:
 # ----------------------------------------------------------------------------- parts
 @dataclass
 class Part:
-    """A part P cut from source S: ``mesh`` = `wpot.cut`(S, mask), ``idx`` its index map (P vertex -> S vertex)."""
+    """A part P cut from source S, or from R, a re-meshing of S (``--remesh``): ``mesh`` = `wpot.cut`(R, mask),
+    ``idx`` its index map (P vertex -> R vertex). ``carrier`` (N_S,): for each vertex of S the nearest vertex
+    of R, which carries S's ground truth over to R; None when R is S itself."""
 
     name: str
     source: str
@@ -239,17 +241,70 @@ class Part:
     idx: np.ndarray = field(repr=False)
     mesh: object = field(repr=False)
     detail: dict = field(default_factory=dict)
+    carrier: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def large(self) -> bool:
         return self.fraction >= LARGE
 
     def sha(self) -> str:
-        return hashlib.sha1(np.ascontiguousarray(self.idx, dtype=np.int64).tobytes()).hexdigest()[:16]
+        h = hashlib.sha1(np.ascontiguousarray(self.idx, dtype=np.int64).tobytes())
+        if self.carrier is not None:
+            h.update(np.ascontiguousarray(self.carrier, dtype=np.int64).tobytes())
+        return h.hexdigest()[:16]
+
+    def source_vertices(self, n_source: int) -> np.ndarray:
+        """(N_S,) for each of the ``n_source`` vertices of S the part's vertex that stands for it (-1 outside the
+        part): the same vertex, or on a re-meshed part the one at S's vertex's nearest vertex of R."""
+        n_r = n_source if self.carrier is None else int(self.carrier.max()) + 1
+        inv = np.full(max(n_r, int(self.idx.max()) + 1), -1, dtype=np.int64)
+        inv[self.idx] = np.arange(len(self.idx))
+        return inv[:n_source] if self.carrier is None else inv[self.carrier]
 
     def meta(self) -> dict:
         return {"part": self.name, "source": self.source, "class": self.cls, "kind": self.kind, "size": self.size,
                 "fraction": self.fraction, "n_vertices": int(len(self.idx)), "idx_sha": self.sha(), **self.detail}
+
+
+def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
+    """The mesh parts of ``source`` are cut from (``--remesh``), and its carrier (N_S,), the nearest of its vertices
+    to each vertex of S: ``"none"``, S itself (carrier None); ``"lowres"``, the same pose in ``tosca_lowres``
+    (meshed apart, about 0.7x the density; None when that folder lacks it); a number F, S re-meshed by
+    quadric decimation (fast-simplification) to F times its vertices, after one midpoint subdivision when F > 1
+    (so that every vertex moves and no edge is S's)."""
+    from scipy.spatial import cKDTree
+
+    from wpot.io import load_mesh
+    from wpot.mesh import Mesh
+
+    mesh = load_mesh(_vtx(folder) / f"{source}.off")
+    if how == "none":
+        return mesh, None
+    if how == "lowres":
+        root = folder if (folder / "vtx_5k").is_dir() else folder.parent  # the dataset, or its vtx_5k folder
+        path = (lowres or root.parent / "tosca_lowres") / f"{source}.mat"
+        if not path.is_file():
+            return None, None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a few non-manifold edges in TOSCA's low-resolution meshes
+            r = load_mesh(path)
+            if r.n_components > 1:
+                r = r.cleaned(keep_largest_component=True)[0]
+    else:
+        import fast_simplification
+        import trimesh
+
+        f = float(how)
+        v, faces = mesh.vertices, mesh.faces
+        if f > 1:
+            v, faces = trimesh.remesh.subdivide(v, faces)
+        target = 1.0 - f * mesh.n_vertices / len(v)
+        v, faces = fast_simplification.simplify(np.array(v, np.float64, order="C"), np.array(faces, np.int64, order="C"),
+                                                target_reduction=float(np.clip(target, 0.0, 0.99)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = Mesh(v, faces).cleaned(keep_largest_component=True)[0]
+    return r, cKDTree(r.vertices).query(mesh.vertices)[1].astype(np.int64)
 
 
 def geodesic_ball(mesh, centre: int, fraction: float) -> tuple[np.ndarray, float]:
@@ -317,13 +372,18 @@ def _cut_one_piece(mesh, mask: np.ndarray):
     return part, idx
 
 
-def make_parts(folder: Path, source: str, lm: Landmarks, seed: int, kinds=KINDS) -> list[Part]:
-    """The parts of ``source`` (one per kind and size tag in `SIZES`), deterministic given ``seed``."""
+def make_parts(folder: Path, source: str, lm: Landmarks, seed: int, kinds=KINDS, remesh: str = "none",
+               lowres: Path | None = None) -> list[Part]:
+    """The parts of ``source`` (one per kind and size tag in `SIZES`), deterministic given ``seed``, cut from
+    S or from its re-meshing ``remesh`` (`remeshed`; none when ``"lowres"`` has no such pose)."""
     from wpot.datasets import tosca_vts
-    from wpot.io import load_mesh
 
-    mesh = load_mesh(_vtx(folder) / f"{source}.off")
+    mesh, carrier = remeshed(folder, source, remesh, lowres)
+    if mesh is None:
+        return []
     vts = tosca_vts(_vtx(folder), source)
+    if carrier is not None:
+        vts = carrier[vts]  # the landmarks' template points on R
     parts = []
     for kind in kinds:
         for size, spec in SIZES[kind].items():
@@ -347,18 +407,13 @@ def make_parts(folder: Path, source: str, lm: Landmarks, seed: int, kinds=KINDS)
                 raise ValueError(f"unknown part kind {kind!r}")
             part_mesh, idx = _cut_one_piece(mesh, mask)
             frac = float(part_mesh.area / mesh.area)
-            parts.append(Part(name, source, lm.cls, kind, size, frac, idx, part_mesh, detail))
+            if remesh != "none":
+                detail["remesh"] = remesh
+            parts.append(Part(name, source, lm.cls, kind, size, frac, idx, part_mesh, detail, carrier))
     return parts
 
 
 # ----------------------------------------------------------------------------- ground truth
-def part_template(idx: np.ndarray, vts_source: np.ndarray, n_source: int) -> np.ndarray:
-    """(K,) the part's vertex at each template point, -1 where the template point is not in the part."""
-    inv = np.full(n_source, -1, dtype=np.int64)
-    inv[idx] = np.arange(len(idx))
-    return inv[vts_source]
-
-
 def true_region(target, vts_target: np.ndarray, in_part: np.ndarray, exact: np.ndarray | None = None) -> np.ndarray:
     """(N_T,) bool: the vertices of T whose template correspondent lies in the part.
 
@@ -403,9 +458,11 @@ def ground_truth(folder: Path, part: Part, source_mesh, target: str, target_mesh
 
     vts_s, vts_t = tosca_ground_truth(_vtx(folder), part.source, target)
     _, vts_sym = tosca_ground_truth(_vtx(folder), part.source, target, symmetric=True)
-    tp = part_template(part.idx, vts_s, source_mesh.n_vertices)
+    inv = part.source_vertices(source_mesh.n_vertices)
+    tp = inv[vts_s]
     keep = tp >= 0
-    region = true_region(target_mesh, vts_t, keep, exact=part.idx if target == part.source else None)
+    exact = None if target != part.source else np.nonzero(inv >= 0)[0]
+    region = true_region(target_mesh, vts_t, keep, exact=exact)
     areas = target_mesh.vertex_areas
     return Truth(tp[keep], vts_t[keep], vts_sym[keep], region, float(areas[region].sum() / areas.sum()))
 
@@ -577,7 +634,8 @@ def record_parts(out: Path, parts: list[Part]) -> None:
                                  "changed; use another --out")
             continue
         (out / "parts").mkdir(parents=True, exist_ok=True)
-        np.savez(out / "parts" / f"{p.name}.npz", idx=p.idx.astype(np.int64))
+        extra = {} if p.carrier is None else {"vertices": p.mesh.vertices, "faces": p.mesh.faces, "carrier": p.carrier}
+        np.savez(out / "parts" / f"{p.name}.npz", idx=p.idx.astype(np.int64), **extra)
         new.append(m)
     with open(path, "a") as fh:
         for m in new:
@@ -859,6 +917,11 @@ def main(argv=None) -> int:
     ap.add_argument("--targets-per-source", type=int, default=2, help="other poses of the class per source")
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--remesh", default="none",
+                    help="cut the parts from a re-meshing of the source pose, so that they share no triangulation "
+                         "with the wholes: 'lowres' (the same pose in tosca_lowres, beside --tosca) or a number F "
+                         "(the source decimated to F times its vertices, subdivided first when F > 1); 'none' "
+                         "(default): from the source mesh itself")
     ap.add_argument("--limit", type=int, default=None,
                     help="only the first K parts (classes interleaved); the report then covers those only")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
@@ -894,6 +957,12 @@ def main(argv=None) -> int:
         a.locate = LocateOptions(**opts)
     except (ValueError, TypeError) as e:
         ap.error(f"--locate-options {a.locate_options!r}: {e}")
+    if a.remesh != "lowres" and a.remesh != "none":
+        try:
+            if not 0.05 <= float(a.remesh) <= 4:
+                raise ValueError
+        except ValueError:
+            ap.error(f"--remesh must be 'none', 'lowres' or a vertex ratio in [0.05, 4], got {a.remesh!r}")
     out, log = results_folder(a.out)
 
     store = Store(out)
@@ -930,7 +999,7 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
         if c not in lms:
             lms[c] = landmarks(a.tosca, c, members[c])
             log(f"{c}: landmarks on {lms[c].reference}: head = template point {lms[c].head}, limbs {lms[c].limbs}")
-        parts += make_parts(a.tosca, s, lms[c], a.seed, a.kinds)
+        parts += make_parts(a.tosca, s, lms[c], a.seed, a.kinds, a.remesh)
     # --limit: the first K parts taken round-robin over the sources (classes interleaved): every source's first
     # part, then every source's second part, ...
     rank = {s: k for k, s in enumerate(sources)}

@@ -73,9 +73,40 @@ def test_identity_match_onto_the_source_scores_zero_error_and_full_mass(pp, tosc
         assert truth.uniform == pytest.approx(va[p.idx].sum() / va.sum())
         # the template route (what another pose gets) gives the same region up to the template's resolution
         vts = tosca_vts_of(tosca5k, "cat0")
-        region = pp.true_region(S, vts, pp.part_template(p.idx, vts, S.n_vertices) >= 0)
+        region = pp.true_region(S, vts, p.source_vertices(S.n_vertices)[vts] >= 0)
         assert va[region == truth.region].sum() / va.sum() > 0.99, p.name
         assert pp.received_share(sent, None, region) > 0.98, p.name
+
+
+@pytest.mark.parametrize("remesh", ["lowres", "0.5"])
+def test_remeshed_parts_share_no_triangle_and_carry_the_ground_truth(pp, tosca5k, cat, remesh):
+    """A part cut from a re-meshing of S (the low-res pose, or S decimated) has none of S's triangles; mapped
+    back onto S by nearest vertices in space, it scores the error of a mesh's spacing (not 0: the vertices
+    differ), and its true region covers its own share of the area."""
+    from scipy.spatial import cKDTree
+
+    from wpot.evaluate import GeodesicDistances
+
+    S = cat["S"]
+    parts = pp.make_parts(tosca5k, "cat0", cat["lm"], seed=0, kinds=("head", "cut"), remesh=remesh)
+    if not parts:
+        pytest.skip(f"no low-res twin of cat0 beside {tosca5k}")
+    assert [p.sha() for p in parts] != [p.sha() for p in cat["parts"] if p.kind in ("head", "cut")]
+    s_faces = {tuple(sorted(f)) for f in S.faces.tolist()}
+    geo = GeodesicDistances(S)
+    spacing = S.edge_lengths.mean() / np.sqrt(S.area)
+    for p in parts:
+        assert p.detail["remesh"] == remesh and p.mesh.n_components == 1
+        near = cKDTree(S.vertices).query(p.mesh.vertices)[1]
+        assert sum(tuple(sorted(f)) in s_faces for f in near[p.mesh.faces].tolist()) < 0.5 * p.mesh.n_faces
+        truth = pp.ground_truth(tosca5k, p, S, "cat0", S)
+        assert len(truth.src) > 0.3 * p.fraction * 5000, p.name
+        rec, _ = pp.score_map(geo, near, truth)
+        assert rec["mean"] < 1.5 * spacing, (p.name, rec["mean"], spacing)
+        assert abs(truth.uniform - p.fraction) < 0.05, p.name  # up to a ring of S along the cut
+    if remesh == "0.5":  # half S's vertices (quadric decimation keeps more where the surface bends)
+        r, carrier = pp.remeshed(tosca5k, "cat0", remesh)
+        assert 0.45 < r.n_vertices / S.n_vertices < 0.55 and carrier.shape == (S.n_vertices,)
 
 
 def tosca_vts_of(folder, name):
