@@ -27,23 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.correspondence import FMAPS_SETTINGS, _data_root  # noqa: E402
-
-
-def resized(mesh, n_vertices: int):
-    """``mesh`` subdivided (each triangle into 4) until it has at least ``n_vertices`` vertices, then decimated
-    to about ``n_vertices`` (quadric error, fast-simplification)."""
-    import fast_simplification
-    import trimesh
-
-    from wpot.mesh import Mesh
-
-    v, f = mesh.vertices, mesh.faces
-    while len(v) < n_vertices:
-        v, f = trimesh.remesh.subdivide(v, f)
-    if len(v) > 1.05 * n_vertices:
-        v, f = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
-                                            target_reduction=1.0 - n_vertices / len(v))
-    return Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)).cleaned(keep_largest_component=True)[0]
+from benchmarks.remesh import resized  # noqa: E402
 
 
 def truth_on(big, small, corres: np.ndarray) -> np.ndarray:

@@ -269,9 +269,9 @@ class Part:
 def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
     """The mesh parts of ``source`` are cut from (``--remesh``), and its carrier (N_S,), the nearest of its vertices
     to each vertex of S: ``"none"``, S itself (carrier None); ``"lowres"``, the same pose in ``tosca_lowres``
-    (meshed apart, about 0.7x the density; None when that folder lacks it); a number F, S re-meshed by
-    quadric decimation (fast-simplification) to F times its vertices, after one midpoint subdivision when F > 1
-    (so that every vertex moves and no edge is S's)."""
+    (meshed apart, about 0.7x the density; None when that folder lacks it); a number F other than 1, S
+    subdivided and decimated to F times its vertices (`benchmarks.remesh.resized`: every vertex moves, no edge
+    is S's)."""
     from scipy.spatial import cKDTree
 
     from wpot.io import load_mesh
@@ -291,19 +291,9 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
             if r.n_components > 1:
                 r = r.cleaned(keep_largest_component=True)[0]
     else:
-        import fast_simplification
-        import trimesh
+        from benchmarks.remesh import resized
 
-        f = float(how)
-        v, faces = mesh.vertices, mesh.faces
-        if f > 1:
-            v, faces = trimesh.remesh.subdivide(v, faces)
-        target = 1.0 - f * mesh.n_vertices / len(v)
-        v, faces = fast_simplification.simplify(np.array(v, np.float64, order="C"), np.array(faces, np.int64, order="C"),
-                                                target_reduction=float(np.clip(target, 0.0, 0.99)))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            r = Mesh(v, faces).cleaned(keep_largest_component=True)[0]
+        r = resized(mesh, int(round(float(how) * mesh.n_vertices)))
     return r, cKDTree(r.vertices).query(mesh.vertices)[1].astype(np.int64)
 
 
@@ -920,7 +910,7 @@ def main(argv=None) -> int:
     ap.add_argument("--remesh", default="none",
                     help="cut the parts from a re-meshing of the source pose, so that they share no triangulation "
                          "with the wholes: 'lowres' (the same pose in tosca_lowres, beside --tosca) or a number F "
-                         "(the source decimated to F times its vertices, subdivided first when F > 1); 'none' "
+                         "(the source subdivided and decimated to F times its vertices); 'none' "
                          "(default): from the source mesh itself")
     ap.add_argument("--limit", type=int, default=None,
                     help="only the first K parts (classes interleaved); the report then covers those only")
