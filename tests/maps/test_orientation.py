@@ -130,13 +130,14 @@ def test_zoomout_keeps_orientation_where_plain_zoomout_may_flip():
     a, b, truth, mirror, start = _planted_mirror()
     plain = zoomout(a, b, start, k_end=40, orient=False)
     assert _error(b, plain.map, truth) > 0.1  # settled on the mirror side
-    assert np.isnan(plain.orientation_confidence) and plain.candidate == "given"
+    assert np.isnan(plain.orientation_confidence) and plain.candidate == "given" and not plain.mended
     oriented = zoomout(a, b, start, k_end=40)
     assert _error(b, oriented.map, truth) < 0.03
     assert orientation_score(a, b, oriented.map) > 0.5 > -0.5 > orientation_score(a, b, plain.map)
     # the mirror of the chosen map fits the energy far worse: the choice is trusted
     assert oriented.energies[f"{oriented.candidate}_mirror"] > 2 * oriented.energies[oriented.candidate]
     assert oriented.orientation_confidence > ORIENTATION_DOUBT
+    assert not oriented.mended  # the chosen candidate was right everywhere: nothing to mend
     np.testing.assert_array_equal(np.asarray(oriented), oriented.map)
     # keep_orientation leaves a map that already keeps orientation untouched
     t, score, flipped = keep_orientation(a, b, oriented.map)

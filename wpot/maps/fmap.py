@@ -37,9 +37,9 @@ __all__ = ["FmapEnergy", "SpectralOperators", "functional_map", "point_map", "FM
 FMAP_K = 30
 #: default number of WKS descriptors (every second one of a 2x finer grid, as pyfmaps does)
 FMAP_DESCRIPTORS = 50
-#: eigenpairs the descriptors are computed from (`wpot.zoomout`): energies beyond them carry detail a k = 30 basis
-#: cannot hold. Chosen on FAUST pairs outside its test list against 200 (pyfmaps') and 500 (WKS's), checked on
-#: TOSCA pairs (the docs' Results page)
+#: eigenpairs the descriptors of `wpot.zoomout`'s first functional-map candidate are computed from (the second
+#: uses all of them): energies beyond them carry detail a k = 30 basis cannot hold. Chosen on FAUST pairs outside
+#: its test list against 200 (pyfmaps') and 500 (WKS's), checked on TOSCA pairs (the docs' Results page)
 FMAP_SPECTRUM = 100
 #: faces per block of the orientation operators' per-face products (a block holds faces x m x k floats)
 _FACE_BLOCK = 4096

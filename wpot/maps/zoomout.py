@@ -42,7 +42,11 @@ Each is scored by the energy the second functional map minimizes (`wpot.maps.fma
 Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the k =
 `wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end. Refining before
 comparing lets each candidate settle on one side everywhere, so that a map right on the body and mirrored on a
-limb is not compared with maps that are still coarse. The same energy gives the result's
+limb is not compared with maps that are still coarse. A map can still be right on the body and mirrored on a
+symmetric part (both hind legs of a quadruped), which the energy hardly sees: where the chosen map reverses
+orientation locally, its vertices are sent through the shape's left/right symmetry
+(`wpot.maps.symmetry.keep_orientation`, which keeps the mended map only when it orients better), before the
+last rounds. The same energy gives the result's
 orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
 terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
 mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
@@ -61,6 +65,7 @@ from wpot._validate import boolean, vertex_map
 from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.maps.orientation import OrientationWarning
+from wpot.maps.symmetry import keep_orientation
 from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
@@ -100,12 +105,15 @@ class ZoomOutResult:
     candidate : the candidate chosen, ``"given"`` (the map passed in, refined), ``"descriptors"`` or
         ``"descriptors_full"`` (the orientation-aware functional maps'); ``"given"`` when there was no choice
     energies : each candidate's energy, by name, and its mirror image's (``"<name>_mirror"``)
+    mended : whether the chosen candidate was mirrored on a part and mended there through the shape's left/right
+        symmetry (the confidence weighs the choice made before)
     """
 
     map: np.ndarray
     orientation_confidence: float = float("nan")
     candidate: str = "given"
     energies: dict = field(default_factory=dict)
+    mended: bool = False
 
     def __array__(self, dtype=None, copy=None):
         return self.map if dtype is None else self.map.astype(dtype)
@@ -195,9 +203,15 @@ def zoomout(
     others = [mirrors[chosen]] + [energies[n] for n in cands
                                   if n != chosen and _disagree(mesh_b, cands[n], cands[chosen])]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
-    k_next = max(k_sel + step, starts[chosen][1])
-    out = cands[chosen] if k_next > k_end else refine(cands[chosen], k_next, k_end, step)
-    return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}})
+    # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
+    # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
+    # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
+    best, _, mended = keep_orientation(mesh_a, mesh_b, cands[chosen],
+                                       refine=lambda m: refine(m, k_start, k_sel, step) if k_start <= k_sel else m)
+    k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
+    out = best if k_next > k_end else refine(best, k_next, k_end, step)
+    return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
+                         mended)
 
 
 def _unreadable(mesh: Mesh) -> str:
