@@ -188,7 +188,7 @@ class ZoomOutMatcher:
         res = zoomout(self.base.meshes[x], self.base.meshes[y], pred, **self.options)
         dz = time.perf_counter() - t0
         return res.map, dt + dz, {**info, "zoomout_seconds": dz, "orientation_confidence": res.orientation_confidence,
-                                  "candidate": res.candidate, "energies": res.energies}
+                                  "candidate": res.candidate, "energies": res.energies, "mended": res.mended}
 
 
 class FmapsMatcher:
@@ -418,7 +418,8 @@ def orientation_section(by_method: dict, common: set, out: Path, dataset: str) -
                   f"| {len(recs)} | {flipped.sum()} ({flipped.mean():.1%}) | {(~trusted).sum()} | "
                   f"{flipped[trusted].sum()} of {trusted.sum()} | {flipped[top90].sum()} of {top90.sum()} | "
                   + ", ".join(f"{n} {c}" for n, c in sorted(Counter(r["info"]["candidate"] for r in recs).items()))
-                  + " |"]
+                  + (f"; mended {sum(bool(r['info']['mended']) for r in recs)}"
+                     if all("mended" in r["info"] for r in recs) else "") + " |"]
         plain = by_method.get(m[:-len(ZOOMOUT_SUFFIX)] + PLAIN_SUFFIX, {})
         ratio = [r["info"]["zoomout_seconds"] / plain[(r["source"], r["target"])]["info"]["zoomout_seconds"]
                  for r in recs if (r["source"], r["target"]) in plain]

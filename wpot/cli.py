@@ -121,6 +121,9 @@ def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> Any:
         doubt = (f"below {ORIENTATION_DOUBT}: another left/right choice fits nearly as well, check the map"
                  if conf < ORIENTATION_DOUBT else f"at least {ORIENTATION_DOUBT}: trusted")
         print(f"ZoomOut: orientation confidence {conf:.2f} ({doubt})")
+    if res.mended:
+        print("ZoomOut: the chosen map was mirrored on a part (e.g. both legs), which was mended through the "
+              "shape's left/right symmetry")
     return res
 
 
@@ -728,6 +731,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     if refined is not None:
         conf = refined.orientation_confidence
         info["zoomout_orientation_confidence"] = None if np.isnan(conf) else conf
+        info["zoomout_mended"] = bool(refined.mended)
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
 

@@ -119,8 +119,9 @@ def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path
     # the orientation confidence is printed and saved, as the API gives it
     printed = float(re.search(r"^ZoomOut: orientation confidence (\S+) ", r.stdout, re.M).group(1))
     assert printed == pytest.approx(res.orientation_confidence, abs=0.005)
-    saved = json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout_orientation_confidence"]
-    assert saved == pytest.approx(res.orientation_confidence)
+    info = json.loads((tmp_path / "z" / "comparison.json").read_text())
+    assert info["zoomout_orientation_confidence"] == pytest.approx(res.orientation_confidence)
+    assert info["zoomout_mended"] is res.mended and ("was mended" in r.stdout) is res.mended
     changed = float(re.search(r"^ZoomOut: (\S+)% of A's vertices changed their match", r.stdout, re.M).group(1))
     assert changed == pytest.approx(100 * np.mean(expected != z["correspondence"]), abs=0.05)
     assert json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout"] is True
