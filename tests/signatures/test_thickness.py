@@ -102,6 +102,12 @@ def test_a_cut_sphere_keeps_the_sphere_thickness(sphere):
         cut.vertices, frames, cone, first_opening=cut.n_faces)
     escaped = (hits < 0).any(axis=1)
     assert escaped[far].mean() > 0.3
+    # an escaped ray's bound is its distance to the cap: below the chord it would have run in the whole sphere
+    chords = np.broadcast_to(2 * 2.0 * cone[:, 2], hits.shape)
+    assert np.all(-hits[hits < 0] <= chords[hits < 0] * 1.01)
+    for bad in (-1, cut.n_faces + len(caps) + 1):
+        with pytest.raises(ValueError, match="first_opening"):
+            DepthRenderer(cut).inward_hits(cut.vertices, frames, cone, first_opening=bad)
 
 
 def _tube(length: float, radius: float, n_z: int, n_theta: int, capped: bool) -> Mesh:
