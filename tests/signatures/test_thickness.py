@@ -110,6 +110,16 @@ def test_a_cut_sphere_keeps_the_sphere_thickness(sphere):
             DepthRenderer(cut).inward_hits(cut.vertices, frames, cone, first_opening=bad)
 
 
+def test_half_a_sphere_reads_lower_bounds_and_says_so(sphere):
+    """Every vertex of a hemisphere sees the opening, so no median is known: the values are the medians with the
+    escaped rays at the cap, below the sphere's, and a warning names the boundary and the option."""
+    half, _ = _open_part(sphere, sphere.vertices[sphere.faces].mean(axis=1)[:, 2] < 0)
+    with pytest.warns(UserWarning, match="open boundary loop.*ldsift_thickness"):
+        t = thickness(half)
+    assert np.isfinite(t).all() and t.min() > 0
+    assert np.all(t <= 2 * 2.0 * np.median(inward_cone()[:, 2]) * 1.01)
+
+
 def _tube(length: float, radius: float, n_z: int, n_theta: int, capped: bool) -> Mesh:
     """A cylinder along z, a grid of n_z rings of n_theta vertices, open or closed by two fans."""
     th = 2 * np.pi * np.arange(n_theta) / n_theta

@@ -23,7 +23,9 @@ median does not depend on how far its escaped rays would have run: when the medi
 their lower bound and at infinity. Otherwise the two medians still bound its value.
 A vertex with no value of its own (fewer than `MIN_RAYS` rays that count, as on a thin fin or where the surface
 crosses itself, or a median its escaped rays could move) takes the mean of its neighbours' values, spread along
-the edges from the vertices that have one (kept within its own bounds).
+the edges from the vertices that have one (kept within its own bounds). When no vertex has a value of its own
+(every vertex sees an opening, as on half a shape), the medians with the escaped rays at their bound are used:
+lower bounds, and the warning says the column is not to be trusted there.
 """
 from __future__ import annotations
 
@@ -118,8 +120,9 @@ def thickness(
     )
     med, med_high, counted = _median_bounds(hits)
     censored = (counted > 0) & (med_high != med)
-    known = (counted >= min(MIN_RAYS, n_rays)) & ~censored
-    if not known.any():
+    measured = counted >= min(MIN_RAYS, n_rays)
+    known = measured & ~censored
+    if not measured.any():
         raise ValueError(
             "no ray cast into the mesh leaves it through a face seen from inside, so its thickness cannot be "
             "measured (is the surface open or inconsistently wound?); leave ldsift_thickness at 0"
@@ -135,6 +138,8 @@ def thickness(
             "or set it to 0, for such meshes",
             stacklevel=2,
         )
+    if not known.any():  # every vertex sees an opening (half a shape): its lower bounds are all there is
+        return _spread(med, measured, mesh)
     filled = _spread(med, known, mesh)
     # a vertex whose escaped rays could move its median still bounds it: its rays read at the caps from below,
     # and with the escaped ones taken as endless from above; its filled-in value stays between the two
