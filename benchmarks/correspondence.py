@@ -74,9 +74,9 @@ FMAPS_SETTINGS = {
     "w_dcomm": 1.0, "w_orient": 1.0, "zoomout_nit": 16, "zoomout_step": 5,
 }
 FMAPS_TAG = "fmaps-wks-zoomout"
-#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: the symmetry and functional-map
-#: candidates, the least stretched of those oriented about as well as the better, chosen at k = 100 and refined
-#: on to k = 200; sampled rounds)
+#: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: three candidates ranked by the
+#: functional-map energy at k = 60, the chosen one mended where mirrored on a part, refined on to k = 200;
+#: sampled rounds)
 ZOOMOUT_SUFFIX = "+zoomout-choose60-mend"
 #: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
 PLAIN_SUFFIX = "+zoomout-plain"

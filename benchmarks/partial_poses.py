@@ -256,10 +256,10 @@ class Part:
     def source_vertices(self, n_source: int) -> np.ndarray:
         """(N_S,) for each of the ``n_source`` vertices of S the part's vertex that stands for it (-1 outside the
         part): the same vertex, or on a re-meshed part the one at S's vertex's nearest vertex of R."""
-        n_r = n_source if self.carrier is None else int(self.carrier.max()) + 1
-        inv = np.full(max(n_r, int(self.idx.max()) + 1), -1, dtype=np.int64)
+        carrier = np.arange(n_source) if self.carrier is None else self.carrier
+        inv = np.full(max(int(carrier.max()), int(self.idx.max())) + 1, -1, dtype=np.int64)
         inv[self.idx] = np.arange(len(self.idx))
-        return inv[:n_source] if self.carrier is None else inv[self.carrier]
+        return inv[carrier]
 
     def meta(self) -> dict:
         return {"part": self.name, "source": self.source, "class": self.cls, "kind": self.kind, "size": self.size,
@@ -275,7 +275,6 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
     from scipy.spatial import cKDTree
 
     from wpot.io import load_mesh
-    from wpot.mesh import Mesh
 
     mesh = load_mesh(_vtx(folder) / f"{source}.off")
     if how == "none":
@@ -295,6 +294,19 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
 
         r = resized(mesh, int(round(float(how) * mesh.n_vertices)))
     return r, cKDTree(r.vertices).query(mesh.vertices)[1].astype(np.int64)
+
+
+def remesh_setting(value: str) -> str:
+    """``--remesh``: ``"none"``, ``"lowres"`` or a vertex ratio F in [0.05, 4] (`remeshed`)."""
+    if value in ("none", "lowres"):
+        return value
+    try:
+        ok = 0.05 <= float(value) <= 4
+    except ValueError:
+        ok = False
+    if not ok:
+        raise argparse.ArgumentTypeError(f"must be 'none', 'lowres' or a vertex ratio in [0.05, 4], got {value!r}")
+    return value
 
 
 def geodesic_ball(mesh, centre: int, fraction: float) -> tuple[np.ndarray, float]:
@@ -907,7 +919,7 @@ def main(argv=None) -> int:
     ap.add_argument("--targets-per-source", type=int, default=2, help="other poses of the class per source")
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--remesh", default="none",
+    ap.add_argument("--remesh", default="none", type=remesh_setting,
                     help="cut the parts from a re-meshing of the source pose, so that they share no triangulation "
                          "with the wholes: 'lowres' (the same pose in tosca_lowres, beside --tosca) or a number F "
                          "(the source subdivided and decimated to F times its vertices); 'none' "
@@ -947,12 +959,6 @@ def main(argv=None) -> int:
         a.locate = LocateOptions(**opts)
     except (ValueError, TypeError) as e:
         ap.error(f"--locate-options {a.locate_options!r}: {e}")
-    if a.remesh != "lowres" and a.remesh != "none":
-        try:
-            if not 0.05 <= float(a.remesh) <= 4:
-                raise ValueError
-        except ValueError:
-            ap.error(f"--remesh must be 'none', 'lowres' or a vertex ratio in [0.05, 4], got {a.remesh!r}")
     out, log = results_folder(a.out)
 
     store = Store(out)

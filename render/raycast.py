@@ -242,8 +242,9 @@ class DepthRenderer:
         -------
         (n, m) float64 distances from each point to where each ray leaves the solid; NaN for a ray that
         meets nothing or first meets a face from outside; minus the distance for a ray that leaves through an
-        opening (in the whole the surface was cut from, it runs at least that far). Rays start ``1e-5`` of the mesh's size inside
-        the surface (so a face at the origin is not met at distance 0); the distance is counted from ``p``.
+        opening (in the whole the surface was cut from, it runs at least that far). Rays start ``1e-5`` of the
+        mesh's size inside the surface (so a face at the origin is not met at distance 0); the distance is
+        counted from ``p``.
         """
         p = np.asarray(points, dtype=np.float64)
         fr = np.asarray(frames, dtype=np.float64)

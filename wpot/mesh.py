@@ -587,8 +587,7 @@ def boundary_caps(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
         (the centre of loop l is vertex N + l), wound as the surface's own triangles: each runs its boundary
         edge the other way, as a neighbour face would.
     """
-    f = mesh.faces
-    half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    half = mesh._half_edges
     key = np.sort(half, axis=1)
     n = np.int64(max(mesh.n_vertices, 1))
     _, inv, cnt = np.unique(key[:, 0] * n + key[:, 1], return_inverse=True, return_counts=True)

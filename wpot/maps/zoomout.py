@@ -142,7 +142,8 @@ def zoomout(
         connected components they apply to each pair of components, clamped to its smaller vertex count
     n_eigen : eigenpairs asked of `wpot.eigenpairs` for each mesh (at least k_end). Default `spectrum_size`
         of each mesh (500 from 5,000 vertices up: WKS's, so that the spectrum a WKS comparison computed
-        serves); the oriented candidate's WKS descriptors use the first `wpot.maps.fmap.FMAP_SPECTRUM` of them
+        serves); the oriented candidates' WKS descriptors use the first `wpot.maps.fmap.FMAP_SPECTRUM` of them
+        and all of them
     orient : keep left and right apart (default): bring three candidates to k = `CHOICE_K`, the given map
         refined and the maps of two orientation-aware functional maps fitted from WKS descriptors (only for two
         connected surfaces with a readable outside), and go on to k_end with the one of lowest functional-map

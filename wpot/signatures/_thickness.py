@@ -151,7 +151,7 @@ def _median_bounds(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     (NaN: the ray does not count; negative: it left through an opening and runs at least that far).
 
     Returns the (N,) medians with the escaped rays at their bound and (N,) with them endless (equal where the
-    escaped rays cannot move the median; NaN for a row without a ray that counts), and the (N,) counts of
+    escaped rays cannot move the median; both NaN for a row without a ray that counts), and the (N,) counts of
     rays that count.
     """
     low = np.abs(hits)
@@ -159,4 +159,4 @@ def _median_bounds(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows; inf - inf in a median of two infinities
         med_low, med_high = np.nanmedian(low, axis=1), np.nanmedian(high, axis=1)
-    return med_low, np.where(np.isnan(med_high) & ~np.isnan(med_low), np.inf, med_high), np.isfinite(low).sum(axis=1)
+    return med_low, med_high, np.isfinite(low).sum(axis=1)
