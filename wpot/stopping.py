@@ -224,13 +224,23 @@ def stop_on_signals(*, doing: str = "", after_hard_stop: str = "") -> Iterator[S
     def exiting(signum: int, frame: Any) -> None:  # the stop was said; the interpreter is ending
         os._exit(128 + state.signum)
 
+    unraisable = sys.unraisablehook
+
+    def swallowed(info: Any) -> None:
+        # the signal landed in a finalizer (a Warp array's __del__), which Python cannot raise from: not an
+        # error to print, `check_stop` raises it again at the next check
+        if not isinstance(info.exc_value, Interrupted):
+            unraisable(info)
+
     # a signal ignored from the start stays ignored (a background job of a script, nohup): as Python does for SIGINT
     previous = {s: signal.signal(s, handle) for s in SIGNALS if signal.getsignal(s) != signal.SIG_IGN}
     outer, _active = _active, state
+    sys.unraisablehook = swallowed
     try:
         yield state
     finally:
         _active = outer
+        sys.unraisablehook = unraisable
         for s, h in previous.items():
             signal.signal(s, exiting if state.signum is not None else h)
 
