@@ -7,7 +7,9 @@ from functools import lru_cache
 from typing import Callable
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
+from wpot.cache import Cache
 from wpot.maps.fmap import SpectralOperators, point_map
 from wpot.mesh import Mesh
 from wpot.sampling import farthest_point_sampling
@@ -28,6 +30,9 @@ ZOOMOUT_STEP = 5
 #: vertex): on TOSCA's 5,000-vertex shapes, the accuracy of every vertex in every round in much less time
 #: (the docs' Results page)
 ZOOMOUT_SAMPLES = 2000
+#: the rounds' farthest-point samples, keyed by mesh content and their count: an all-against-all samples each
+#: shape once
+sample_cache = Cache("zoomout_samples", max_entries=256, max_bytes=32 << 20)
 
 
 def spectrum_size(n_vertices: int) -> int:
@@ -48,19 +53,43 @@ def positive_int(value, name: str) -> int:
 
 
 class Refiner:
-    """ZoomOut rounds between two meshes with fixed ``n_eigen`` and ``samples`` (see `wpot.maps.zoomout.zoomout`),
-    each mesh sampled once however many times it is called: ``refiner(t, k_start, k_end, step)`` refines the map
-    t (N_A,) int64 from k_start to k_end and returns the new (N_A,) int64 map, component by component when a
-    mesh has several."""
+    """ZoomOut rounds between two meshes with fixed ``n_eigen`` and ``samples`` (see `wpot.maps.zoomout.zoomout`):
+    ``refiner(t, k_start, k_end, step)`` refines the map t (N_A,) int64 from k_start to k_end and returns the new
+    (N_A,) int64 map, component by component when a mesh has several. For two connected meshes, `points`,
+    `coarse` and `full` split that into the rounds on the samples and the last map of every vertex, so that
+    several maps can be brought to one resolution and compared before any maps every vertex."""
 
     def __init__(self, mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, samples: int | None):
         self.mesh_a, self.mesh_b, self.n_eigen, self.samples = mesh_a, mesh_b, n_eigen, samples
-        self.sample = lru_cache(maxsize=8)(self._sample)
 
-    def _sample(self, mesh: Mesh) -> np.ndarray | None:
+    def sample(self, mesh: Mesh) -> np.ndarray | None:
+        """(samples,) int64 farthest-point samples (Euclidean) of ``mesh``, or None when every vertex is used."""
         if self.samples is None or self.samples >= mesh.n_vertices:
             return None
-        return farthest_point_sampling(mesh, self.samples, metric="euclidean").indices
+        params = {"samples": self.samples, "metric": "euclidean"}
+        return sample_cache.get_or_compute(mesh.fingerprint, params, lambda: {
+            "indices": farthest_point_sampling(mesh, self.samples, metric="euclidean").indices})["indices"]
+
+    def points(self, mesh: Mesh) -> np.ndarray:
+        """The vertices of ``mesh`` that `coarse` maps: its samples, or every vertex."""
+        s = self.sample(mesh)
+        return np.arange(mesh.n_vertices) if s is None else s
+
+    def _phi(self, mesh: Mesh, k: int) -> np.ndarray:
+        return spectral_basis(mesh, self.n_eigen).evecs[:, :k]
+
+    def coarse(self, init: np.ndarray, k0: int, k1: int, dk: int) -> tuple[np.ndarray, np.ndarray]:
+        """The rounds k0, k0 + dk, ..., k1 on the `points` of two connected meshes: ``init`` (n_A,) maps A's
+        points to vertices of B. Returns the (k1, k1) functional map fitted (least squares) at k1, and A's points
+        mapped by it onto B's."""
+        a, b = self.points(self.mesh_a), self.points(self.mesh_b)
+        return _sample_rounds(self._phi(self.mesh_a, k1)[a], self._phi(self.mesh_b, k1), init, b,
+                              _schedule(k0, k1, dk))
+
+    def full(self, fmap: np.ndarray) -> np.ndarray:
+        """(N_A,) int64: every vertex of A mapped by the (k, k) functional map ``fmap``."""
+        k = fmap.shape[0]
+        return point_map(self._phi(self.mesh_a, k), self._phi(self.mesh_b, k), fmap)
 
     def __call__(self, init: np.ndarray, k0: int, k1: int, dk: int) -> np.ndarray:
         a, b = self.mesh_a, self.mesh_b
@@ -83,6 +112,21 @@ def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
     return ks
 
 
+def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.ndarray, ks: list[int]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """ZoomOut rounds on samples. ``phi_a`` (n_A, K): A's basis at its samples; ``phi_b`` (N_B, K): B's at every
+    vertex; ``ts`` (n_A,): the samples' images (vertices of B); ``sb``: B's samples. At each k of ``ks``, the
+    (k, k) functional map fitted to the samples' map by least squares, and the samples mapped by it onto B's
+    samples. Returns the last functional map and the last map of the samples."""
+    # one QR serves every k: the first k columns of phi_a are Q[:, :k] R[:k, :k]
+    phi_a, at_sb = np.ascontiguousarray(phi_a[:, :ks[-1]]), np.ascontiguousarray(phi_b[sb, :ks[-1]])
+    q, r = np.linalg.qr(phi_a)
+    for k in ks:
+        fmap = solve_triangular(r[:k, :k], q[:, :k].T @ phi_b[ts, :k])
+        ts = sb[point_map(phi_a[:, :k], at_sb[:, :k], fmap)]
+    return fmap, ts
+
+
 def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int, n_eigen: int | None,
           valid: np.ndarray | None = None, sample: Callable[[Mesh], np.ndarray | None] | None = None
           ) -> np.ndarray:
@@ -98,11 +142,7 @@ def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, s
     if sa is not None and sb is not None and len(ks) > 1:
         if valid is not None:
             sa = sa[valid[sa]]
-        ts = t[sa]
-        for n, k in enumerate(ks):
-            fmap = np.linalg.lstsq(phi_a[sa, :k], phi_b[ts, :k], rcond=None)[0]
-            if n < len(ks) - 1:
-                ts = sb[point_map(phi_a[sa, :k], phi_b[sb, :k], fmap)]
+        fmap = _sample_rounds(phi_a[sa], phi_b, t[sa], sb, ks)[0]
         t, ks, valid = point_map(phi_a, phi_b, fmap), ks[-1:], None
     weighted_a = ops_a.pinv.T  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
     first = weighted_a if valid is None else weighted_a * valid[:, None]

@@ -191,25 +191,30 @@ def zoomout(
     if problems is None:
         return ZoomOutResult(refine(t, k_start, k_end, step))
     k_sel = min(CHOICE_K, k_end)
-    starts = {"given": (t, k_start)}
+    # the candidates are brought to k_sel and compared on the rounds' samples; only the chosen one maps every vertex
+    sa, sb = refine.points(mesh_a), refine.points(mesh_b)
+    starts = {"given": (t[sa], k_start)}
     for name, problem in problems.items():
-        starts[name] = (point_map(problem.ops_a.phi, problem.ops_b.phi, problem.fit()), problem.k + step)
-    cands = {n: refine(t0, k0, k_sel, step) if k0 <= k_sel else t0 for n, (t0, k0) in starts.items()}
+        starts[name] = (sb[point_map(problem.ops_a.phi[sa], problem.ops_b.phi[sb], problem.fit())], problem.k + step)
+    cands = {n: refine.coarse(t0, min(k0, k_sel), k_sel, step) for n, (t0, k0) in starts.items()}
     judge = problems[JUDGE]
-    terms = {n: judge.terms(judge.ops_a.pinv @ judge.ops_b.phi[c]) for n, c in cands.items()}
+    phi_a, phi_b = judge.ops_a.phi[sa], judge.ops_b.phi
+    terms = {n: judge.terms(np.linalg.lstsq(phi_a, phi_b[c], rcond=None)[0]) for n, (_, c) in cands.items()}
     energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
     # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
     mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
     chosen = min(cands, key=lambda n: (energies[n], n != "given"))
     others = [mirrors[chosen]] + [energies[n] for n in cands
-                                  if n != chosen and _disagree(mesh_b, cands[n], cands[chosen])]
+                                  if n != chosen and _disagree(mesh_b, cands[n][1], cands[chosen][1])]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
     # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
     # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
     # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
-    best, _, mended = keep_orientation(mesh_a, mesh_b, cands[chosen],
-                                       refine=lambda m: refine(m, k_start, k_sel, step) if k_start <= k_sel else m)
+    best, _, mended = keep_orientation(mesh_a, mesh_b, refine.full(cands[chosen][0]),
+                                       refine=lambda m: refine.full(refine.coarse(m[sa], k_start, k_sel, step)[0]))
     k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
+    # the functional map of every vertex, once more at k_sel (as ZoomOut's last round does), then on to k_end
+    best = refine(best, k_sel, k_sel, step)
     out = best if k_next > k_end else refine(best, k_next, k_end, step)
     return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
                          mended)
@@ -229,7 +234,8 @@ def _unreadable(mesh: Mesh) -> str:
 
 
 def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
-    """Whether two maps into B send the median vertex more than `AGREEMENT` sqrt(area(B)) apart."""
+    """Whether two maps into B (of the same vertices of A) send the median vertex more than `AGREEMENT`
+    sqrt(area(B)) apart."""
     gap = np.linalg.norm(mesh_b.vertices[t1] - mesh_b.vertices[t2], axis=1)
     return bool(np.median(gap) > AGREEMENT * np.sqrt(mesh_b.area))
 
