@@ -583,7 +583,8 @@ class Matchers:
             pm = self.comparer.locate(p, t, options=self.locate_options)
             dt = time.perf_counter() - t0
         info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), "n_anchors": int(len(pm.anchors)),
-                "orientation": pm.orientation, "n_warnings": len(caught)}
+                "orientation": pm.orientation, "n_rival": int(len(pm.rival)),
+                "placement_confidence": pm.placement_confidence, "n_warnings": len(caught)}
         return pm.correspondence, dt, info, pm
 
     def nn_vertex(self, p, t) -> tuple[np.ndarray, float, dict]:

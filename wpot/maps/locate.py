@@ -34,6 +34,12 @@ geodesic distances to choose among them and to fill in the map:
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
    kept. A whole whose symmetry is not detected gets (a) and (b) only.
 
+5. **Rival placement.** The candidate matches that lie neither where the map sends their anchors nor at the
+   mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
+   set is the best other place for the part. The result's ``placement_confidence`` is the share of the
+   anchors that vouch for the chosen place and not for that rival: low when the part fits nowhere, or about
+   as well elsewhere (one leg of a quadruped on another leg).
+
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
 ``confidence`` from it; and which part of the whole was matched (`PartMap.region`: the images of the part's
@@ -62,11 +68,13 @@ from wpot.maps.orientation import local_orientation, orientation_score
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
-__all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning"]
+__all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning", "PLACEMENT_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
 ORIENT_MARGIN = 0.5
+#: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
+PLACEMENT_DOUBT = 0.1
 
 
 class LocateWarning(UserWarning):
@@ -86,6 +94,8 @@ class LocateOptions:
     region_tol : a vertex of the whole is in `PartMap.region` when an image of a vertex of the part lies within
         this (a fraction of √area(whole), along its edges) of it: about two edges on a 5,000-vertex shape,
         which closes the gaps between the images without reaching far past the part's border
+    rival_tol : a candidate match belongs to the chosen placement when its vertex lies within this (a fraction
+        of √area(whole)) of where the map sends its anchor; the others may form a rival placement (step 5)
     """
 
     n_anchors: int = 64
@@ -96,6 +106,7 @@ class LocateOptions:
     n_rounds: int = 2
     orient: bool = True
     region_tol: float = 0.03
+    rival_tol: float = 0.1
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -106,6 +117,7 @@ class LocateOptions:
         _validate.integer_at_least("n_rounds", self.n_rounds, 0)
         _validate.boolean("orient", self.orient)
         _validate.positive_finite("region_tol", self.region_tol)
+        _validate.positive_finite("rival_tol", self.rival_tol)
 
 
 @dataclass(frozen=True)
@@ -133,6 +145,12 @@ class PartMap:
     anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
     orientation : the final map's `wpot.maps.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`
+    rival : (R, 2) int64, the largest consistent set of candidate matches that are not in this placement (step
+        5): another place where the part fits about as well, when it is about as large as ``anchors``
+    placement_confidence : in [0, 1], ``(K − R) / n_anchors``: the share of the part's anchors that vouch for
+        this placement and for no other. Near 0 when the part fits nowhere (few consistent matches) or
+        about as well elsewhere (one leg of a quadruped on another); below `PLACEMENT_DOUBT`, doubt the whole
+        map, not only its low-``confidence`` vertices
     """
 
     correspondence: np.ndarray
@@ -143,6 +161,8 @@ class PartMap:
     anchors: np.ndarray
     orientation: float
     region_tol: float
+    rival: np.ndarray
+    placement_confidence: float
 
     def region(self, threshold: float | None = None) -> np.ndarray:
         """(N_W,) bool, the vertices of the whole that the part matched: ``image_distance <= threshold``
@@ -153,7 +173,8 @@ class PartMap:
     def __repr__(self) -> str:
         return (f"PartMap({len(self.correspondence)} -> {len(self.image_distance)} vertices, {len(self.anchors)} "
                 f"consistent anchors, median residual {np.median(self.residual):.3g}, "
-                f"orientation {self.orientation:.2f}, region {int(self.region().sum())} vertices)")
+                f"orientation {self.orientation:.2f}, region {int(self.region().sum())} vertices, placement confidence "
+                f"{self.placement_confidence:.2f})")
 
 
 def _geodesics(mesh: Mesh):
@@ -275,6 +296,24 @@ def _pick(scores, costs) -> int:
     return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, np.asarray(costs, dtype=np.float64), np.inf)))
 
 
+def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: np.ndarray, d_anchor: np.ndarray,
+           d_target: np.ndarray, opt: LocateOptions, scale: float) -> np.ndarray:
+    """Step 5: of the candidate matches (``owner`` (M,) their anchor, ``target`` (M,) their vertex of the whole),
+    those farther than ``rival_tol`` from where the map sends their anchor (``images`` (A,)) and from its mirror
+    image, and of them the largest consistent set (`consistent_matches`; ``d_anchor`` (A, A) and ``d_target``
+    (M, M) as in step 2). Returns its indices into the candidates."""
+    near = np.zeros(len(target), dtype=bool)
+    sym = reflection_symmetry(whole) if opt.orient else None
+    for im in (images,) if sym is None else (images, sym.map[images]):
+        uniq, at = np.unique(im, return_inverse=True)
+        near |= _distances(g_whole, uniq)[at[owner], target] <= opt.rival_tol * scale
+    away = np.nonzero(~near)[0]
+    if away.size < 3:
+        return away[:0]
+    return away[consistent_matches(d_anchor[np.ix_(owner[away], owner[away])], d_target[np.ix_(away, away)],
+                                   owner[away], sigma0=opt.tol * scale, rel_tol=opt.rel_tol)]
+
+
 def check_part(part: Mesh, whole: Mesh, category: type[Warning], whole_is: str = "the whole") -> None:
     """Warn (``category``) when ``part`` is larger than ``whole`` (area more than 5 % above), which a part of it
     cannot be: the two swapped, or meshes at different scales. ``whole_is`` names the whole in the message."""
@@ -349,6 +388,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # steps 3 and 4
     draw = _Redraw(part, whole, src, g_part, g_whole)
     t = draw.rounds(draw.dense(a, b), opt.n_rounds)
+    rival = _rival(g_whole, whole, t[anchors], owner, target, d_anchor, d_target, opt, scale)
 
     def cost(t: np.ndarray) -> float:
         return float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device)))
@@ -368,4 +408,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=confidence,
                    image_distance=_image_distance(whole, t) / scale, cost=mean_cost,
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
-                   region_tol=opt.region_tol)
+                   region_tol=opt.region_tol,
+                   rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
+                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)))
