@@ -163,10 +163,16 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     transform that places it)."""
     if not getattr(a, "locate", False):
         return None
+    from wpot.maps.locate import PLACEMENT_DOUBT
+
     pm = comparer.locate(ma, mb)
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
+    doubt = (f" (below {PLACEMENT_DOUBT}: another place in B fits A about as well, or none fits; check the region)"
+             if pm.placement_confidence < PLACEMENT_DOUBT else "")
+    print(f"placement confidence {pm.placement_confidence:.2f}: {len(pm.anchors)} anchors vouch for this place, "
+          f"{len(pm.rival)} for the best other{doubt}")
     reg = located_registration(ma, mb, pm)
     conf = f"confidence median {np.median(pm.confidence):.2f} ({np.mean(pm.confidence > 0.5):.0%} of A's vertices above 0.5)"
     if reg is None:
@@ -921,6 +927,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
             extra["locate"] = {"n_anchors": int(len(pm.anchors)), "median_residual": float(np.median(pm.residual)),
                                "orientation": pm.orientation, "region_vertices": int(pm.region().sum()),
                                "median_confidence": float(np.median(pm.confidence)),
+                               "placement_confidence": pm.placement_confidence, "n_rival": int(len(pm.rival)),
                                "registration": _registration_json(located.registration)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))

@@ -145,6 +145,9 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     n = int(re.search(r"^locate: (\d+) consistent anchor matches", r.stdout, re.M).group(1))
     info = json.loads((tmp_path / "l" / "comparison.json").read_text())["locate"]
     assert n == info["n_anchors"] == len(pm.anchors)
+    printed = float(re.search(r"^placement confidence ([\d.]+):", r.stdout, re.M).group(1))
+    assert printed == pytest.approx(info["placement_confidence"], abs=0.005)
+    assert info["placement_confidence"] == pytest.approx(pm.placement_confidence)
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
 
 

@@ -263,3 +263,34 @@ def test_a_part_larger_than_the_whole_is_named(partial):
     with warnings.catch_warnings():
         warnings.simplefilter("error", LocateWarning)
         locate_part(partial.part, partial.full, sp, sw)
+
+
+def test_placement_confidence_separates_a_unique_place_a_second_place_and_no_place(partial):
+    """Step 5: a part whose candidates hold one consistent place is trusted; the same part in a whole that holds
+    its place twice (two copies, the candidates split between them) is not, and its rival is the other copy;
+    nor is a part whose signatures fit nowhere (unrelated rows, so no large consistent set exists)."""
+    import warnings
+
+    from wpot.maps.locate import PLACEMENT_DOUBT, LocateWarning
+
+    full = partial.full
+    sp, sw = _planted_signatures(partial, outliers=0.3, seed=7)
+    one = locate_part(partial.part, full, sp, sw)
+    assert one.placement_confidence > 3 * PLACEMENT_DOUBT
+    assert len(one.rival) < 0.5 * len(one.anchors)
+
+    with pytest.warns(MeshWarning, match="2 connected components"):
+        twice = Mesh(np.r_[full.vertices, full.vertices + [5.0 * np.ptp(full.vertices[:, 0]), 0.0, 0.0]],
+                     np.r_[full.faces, full.faces + full.n_vertices])
+    pm = locate_part(partial.part, twice, sp, np.r_[sw, sw])
+    assert pm.placement_confidence < PLACEMENT_DOUBT
+    # the two places are the two copies
+    sides = [pm.anchors[:, 1] >= full.n_vertices, pm.rival[:, 1] >= full.n_vertices]
+    assert len(pm.rival) > 0.5 * len(pm.anchors) and sides[0].all() != sides[1].all()
+    assert sides[0].all() or not sides[0].any()
+
+    noise = np.random.default_rng(8).normal(size=sp.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LocateWarning)  # few consistent matches: warned about, and low
+        nowhere = locate_part(partial.part, full, noise, sw)
+    assert nowhere.placement_confidence < PLACEMENT_DOUBT
