@@ -40,7 +40,9 @@ candidates are brought to k = `CHOICE_K`:
 
 Each is scored by the energy the second functional map minimizes (`wpot.maps.fmap.FmapEnergy`: descriptors,
 Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the k =
-`wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end. Refining before
+`wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end. The candidates
+are refined and compared on the rounds' farthest-point samples (each functional map fitted to the samples' map
+by least squares), and only the chosen one is mapped at every vertex. Refining before
 comparing lets each candidate settle on one side everywhere, so that a map right on the body and mirrored on a
 limb is not compared with maps that are still coarse. A map can still be right on the body and mirrored on a
 symmetric part (both hind legs of a quadruped), which the energy hardly sees: where the chosen map reverses
