@@ -56,6 +56,11 @@ LIBRARY = "library"  # the second key of a record: the part's library (every who
 SCORINGS = ("nearest whole", "retrieve")
 
 
+def open_store(out: Path) -> JsonlStore:
+    """The results of a run in folder ``out``: one record per (method, part, library), the costs in ``costs/``."""
+    return JsonlStore(out, keys=("part", "library"), folder="costs")
+
+
 def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[str, dict]:
     """Both scorings of one part from its (N, M) ``costs`` to ``wholes``: per scoring, top-1, the rank of class
     ``cls`` (None when the library has none of it) and what the part was taken for (the first whole or class)."""
@@ -161,7 +166,7 @@ def main(argv=None) -> int:
     if not _vtx(a.tosca).is_dir():
         raise SystemExit(f"--tosca {a.tosca}: not found (tosca_isometric_5k, see ../shared/data/README)")
     out, log = results_folder(a.out)
-    store = JsonlStore(out, keys=("part", "library"), folder="costs")
+    store = open_store(out)
     if not a.report_only:
         run(a, parts, weights, store, log)
     report(store, parts, weights, a.ldsift_slab, RetrievalOptions(k_nearest=a.k_nearest), out, log)

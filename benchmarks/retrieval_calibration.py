@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
-from benchmarks.jsonl_store import JsonlStore  # noqa: E402
-from benchmarks.part_retrieval import method, score  # noqa: E402
+from benchmarks.part_retrieval import method, open_store, score  # noqa: E402
 from benchmarks.partial_poses import read_parts  # noqa: E402
 
 
@@ -52,7 +51,7 @@ def rows_of(out: Path, parts_dir: Path, w: float) -> tuple[np.ndarray, np.ndarra
     """(margins, right, probability) per part of one results folder, at weight ``w``."""
     from wpot.maps.retrieval import RetrievalOptions, probability_of
 
-    store = JsonlStore(out)
+    store = open_store(out)
     rows = score(store, read_parts(parts_dir), w, None, RetrievalOptions())
     m = np.array([r["retrieve"]["margin"] for r in rows.values()])
     ok = np.array([r["retrieve"]["top1"] for r in rows.values()], dtype=float)

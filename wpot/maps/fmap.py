@@ -25,6 +25,7 @@ Results page, correspondence). The point map of C is read as in ZoomOut (`point_
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from wpot.cost import nearest_rows
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
@@ -41,7 +42,7 @@ FMAP_DESCRIPTORS = 50
 #: uses all of them): energies beyond them carry detail a k = 30 basis cannot hold. Chosen on FAUST pairs outside
 #: its test list against 200 (pyfmaps') and 500 (WKS's), checked on TOSCA pairs (the docs' Results page)
 FMAP_SPECTRUM = 100
-#: faces per block of the orientation operators' per-face products (a block holds faces x m x k floats)
+#: faces per block of the orientation operators' per-face products (a block holds faces x k x k floats)
 _FACE_BLOCK = 4096
 
 
@@ -54,20 +55,26 @@ def point_map(phi_a: np.ndarray, phi_b: np.ndarray, fmap: np.ndarray) -> np.ndar
     return nearest_rows(phi_a, phi_b @ fmap.T)[0]
 
 
-def _face_gradients(mesh: Mesh, values: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(F, 3, m) per-face gradients of the piecewise-linear vertex functions ``values`` (N, m), on the mesh
-    scaled to area 1; ``normals`` (F, 3) the unit face normals that orient each face's edges."""
+def _hat_gradients(mesh: Mesh, normals: np.ndarray) -> list[np.ndarray]:
+    """The gradients (F, 3) of the hat functions of each face's three corners, on the mesh scaled to area 1;
+    ``normals`` (F, 3) the unit face normals that orient each face's edges. The gradient of corner a's hat
+    function is n × (edge b → c) / (2 area), the edge opposite a taken counter-clockwise about n; a degenerate
+    face has none (zeros)."""
     v = mesh.vertices / np.sqrt(mesh.area)
     f = mesh.faces
     area2 = 2.0 * mesh.face_areas / mesh.area
     ok = area2 > 0
-    inv = np.where(ok, 1.0 / np.where(ok, area2, 1.0), 0.0)  # a degenerate face has no gradient
+    inv = np.where(ok, 1.0 / np.where(ok, area2, 1.0), 0.0)
+    return [np.cross(normals, v[f[:, c]] - v[f[:, b]]) * inv[:, None] for b, c in ((1, 2), (2, 0), (0, 1))]
+
+
+def _face_gradients(mesh: Mesh, values: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(F, 3, m) per-face gradients of the piecewise-linear vertex functions ``values`` (N, m), on the mesh
+    scaled to area 1 (`_hat_gradients`)."""
+    f = mesh.faces
     grad = np.zeros((len(f), 3, values.shape[1]))
-    for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        # the gradient of the hat function of corner a is n x (edge b -> c) / (2 area), the edge opposite a
-        # taken counter-clockwise about n
-        rot = np.cross(normals, v[f[:, c]] - v[f[:, b]]) * inv[:, None]
-        grad += rot[:, :, None] * values[f[:, a]][:, None, :]
+    for a, hat in enumerate(_hat_gradients(mesh, normals)):
+        grad += hat[:, :, None] * values[f[:, a]][:, None, :]
     return grad
 
 
@@ -97,8 +104,7 @@ class SpectralOperators:
         self.evals = np.asarray(spectrum.evals[:k], dtype=np.float64)
         mass = laplace_beltrami(mesh)[1].diagonal()
         self.pinv = (self.phi * (mass / mass.sum())[:, None]).T
-        self._grad_phi: np.ndarray | None = None
-        self._normals: np.ndarray | None = None
+        self._orient_basis: np.ndarray | None = None
 
     def coefficients(self, values: np.ndarray) -> np.ndarray:
         """(k, m) coefficients of the vertex functions ``values`` (N, m)."""
@@ -113,27 +119,34 @@ class SpectralOperators:
         """(m, k, k): for each function f of ``values`` (N, m), the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis,
         with n the outward normal (per face, integrated over the faces: each face gives a third of its area to
         each corner). Raises ValueError on a mesh whose outside cannot be read."""
+        if self._orient_basis is None:
+            self._orient_basis = self._orientation_basis()
+        k = self.phi.shape[1]
+        return (np.asarray(values, dtype=np.float64).T @ self._orient_basis).reshape(-1, k, k)
+
+    def _orientation_basis(self) -> np.ndarray:
+        """(N, k²): the operator is linear in f, so row v holds the operator of the hat function of vertex v
+        (entry (k, l) at k·K + l), computed once for all descriptors. Per face, with a the corner of v:
+        ``⟨n × ∇hat_a, ∇φ_l⟩`` (a constant on the face) times ``∫φ_k``, a third of the face's normalized area
+        on each corner. N·k² float64 (72 MB at N = 10,000 and k = 30)."""
         mesh = self.mesh
-        if self._grad_phi is None:
-            side = winding(mesh)
-            if side == 0:
-                raise ValueError(f"the orientation operators need a closed, consistently wound surface: this mesh "
-                                 f"{NO_OUTSIDE}")
-            self._normals = mesh.face_normals * side
-            self._grad_phi = _face_gradients(mesh, self.phi, self._normals)
-        grad_f = _face_gradients(mesh, values, self._normals)  # (F, 3, m)
-        rotated = np.cross(self._normals[:, :, None], grad_f, axis=1)  # n x ∇f, (F, 3, m)
-        # per face <n x ∇f, ∇φ_l> = <n, ∇f x ∇φ_l>, given to the face's corners (a third of its normalized area
-        # each): row k of the operator sums φ_k over the corners
-        f = mesh.faces
+        side = winding(mesh)
+        if side == 0:
+            raise ValueError(f"the orientation operators need a closed, consistently wound surface: this mesh "
+                             f"{NO_OUTSIDE}")
+        normals = mesh.face_normals * side
+        grad_phi = _face_gradients(mesh, self.phi, normals)  # (F, 3, k)
+        f, n, k = mesh.faces, mesh.n_vertices, self.phi.shape[1]
         share = mesh.face_areas / mesh.area / 3.0
         corners = (self.phi[f[:, 0]] + self.phi[f[:, 1]] + self.phi[f[:, 2]]) * share[:, None]  # (F, k)
-        k, m = self.phi.shape[1], values.shape[1]
-        out = np.zeros((k, m * k))
-        for s in range(0, len(f), _FACE_BLOCK):  # (faces, m, k) products a block of faces at a time
-            per_face = np.matmul(rotated[s:s + _FACE_BLOCK].transpose(0, 2, 1), self._grad_phi[s:s + _FACE_BLOCK])
-            out += corners[s:s + _FACE_BLOCK].T @ per_face.reshape(-1, m * k)
-        return out.reshape(k, m, k).transpose(1, 0, 2)
+        out = np.zeros((n, k * k))
+        for a, hat in enumerate(_hat_gradients(mesh, normals)):  # ∇ of corner a's hat function, (F, 3)
+            g = np.einsum("fd,fdl->fl", np.cross(normals, hat), grad_phi)  # ⟨n × ∇hat_a, ∇φ_l⟩, (F, k)
+            for s in range(0, len(f), _FACE_BLOCK):
+                e = min(s + _FACE_BLOCK, len(f))
+                per_face = (corners[s:e, :, None] * g[s:e, None, :]).reshape(e - s, k * k)
+                out += csr_matrix((np.ones(e - s), (f[s:e, a], np.arange(e - s))), shape=(n, e - s)) @ per_face
+        return out
 
 
 def _normalized(xs: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
