@@ -82,6 +82,17 @@ class SpectralWarning(UserWarning):
     """The spectrum is usable but suspicious (several components, unexpected zero eigenvalues, ...)."""
 
 
+def _frozen_copy(x) -> np.ndarray:
+    """``x`` as a read-only float64 array: a copy, unless it is one already whose memory nothing can write (a
+    cached spectrum's arrays are handed out so; copying 500 eigenvectors at every use costs more than most uses)."""
+    if isinstance(x, np.ndarray) and x.dtype == np.float64 and not x.flags.writeable and (
+            x.base is None or (isinstance(x.base, np.ndarray) and not x.base.flags.writeable)):
+        return x
+    out = np.array(x, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Spectrum:
     """The k smallest eigenpairs of the area-normalized mesh, ``W φ = λ M φ``.
@@ -111,16 +122,13 @@ class Spectrum:
     normalized: bool = True
 
     def __post_init__(self) -> None:
-        ev = np.array(self.evals, dtype=np.float64)
-        vec = np.array(self.evecs, dtype=np.float64)
+        ev, vec = _frozen_copy(self.evals), _frozen_copy(self.evecs)
         if ev.ndim != 1 or vec.ndim != 2 or vec.shape[1] != ev.shape[0]:
             raise ValueError(f"evals must be (k,) and evecs (N, k); got {ev.shape} and {vec.shape}")
         if not (np.all(np.isfinite(ev)) and np.all(np.isfinite(vec))):
             raise ValueError("eigenpairs contain NaN or inf")
         if not (0 <= int(self.n_zero) <= ev.size):
             raise ValueError(f"n_zero must be in [0, {ev.size}], got {self.n_zero}")
-        ev.setflags(write=False)
-        vec.setflags(write=False)
         object.__setattr__(self, "evals", ev)
         object.__setattr__(self, "evecs", vec)
         object.__setattr__(self, "n_zero", int(self.n_zero))
