@@ -985,7 +985,7 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     from wpot.datasets import MESH_EXTENSIONS, list_shapes
     from wpot.io import load_mesh
     from wpot.runs.shapes import read_mesh_list
-    from wpot.maps.retrieval import RetrievalOptions
+    from wpot.maps.retrieval import MARGIN_DOUBT, RetrievalOptions
     from wpot.signatures import signature_options_from_args
 
     if a.k_nearest < 1:
@@ -1023,11 +1023,13 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
             break
         print(f"  {k + 1}. {cls}  score {score:.4g}  nearest {shapes.names[members[0]]}")
     if len(r.classes) > 1:
-        print(f"margin {r.margin:.3g}: the second class's score less the first's"
-              + (" (under about 0.12: doubtful, see the README)" if r.margin < 0.12 else ""))
+        chance = (f"; probability that {r.label} is right {r.probability:.2f}" if r.calibrated else
+                  f" (under {MARGIN_DOUBT}: doubtful; no calibrated probability at --k-nearest {a.k_nearest})")
+        print(f"margin {r.margin:.3g}: the second class's score less the first's{chance}")
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,
                "classes": list(r.classes), "scores": [float(x) for x in r.scores], "margin": r.margin,
+               "probability": None if np.isnan(r.probability) else r.probability,
                "members": [[shapes.names[j] for j in m] for m in r.members],
                "whole_costs": {n: float(c) for n, c in zip(shapes.names, r.whole_costs)}}
         Path(a.out).write_text(json.dumps(out, indent=1))

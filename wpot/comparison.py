@@ -21,6 +21,7 @@ matched pairs ``G(i, j) > 0.9·m1(i)`` and the similarity registration fitted to
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +40,7 @@ from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, nearest_costs
 from wpot.maps.locate import check_part, locate_part
-from wpot.maps.retrieval import RetrievalWarning, rank_classes
+from wpot.maps.retrieval import CALIBRATED_THICKNESS, RetrievalWarning, rank_classes
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
 from wpot.signatures import get_signature, Signature
@@ -669,7 +670,10 @@ class Comparer:
                              f"{len(labels)} labels")
         if wholes:
             check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
-        return rank_classes(self.nearest_costs(part, wholes), labels, options=options)
+        ranking = rank_classes(self.nearest_costs(part, wholes), labels, options=options)
+        opts = self.config.signature_options
+        calibrated = self.config.signature == "ldsift" and opts == type(opts)(thickness=CALIBRATED_THICKNESS)
+        return ranking if calibrated or not ranking.calibrated else dataclasses.replace(ranking, calibrated=False)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
         """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's

@@ -84,3 +84,19 @@ def test_margin_line_counts_the_misses_among_the_least_sure(pr):
     assert "largest margin 1" in line
     rows["p9"]["retrieve"]["top1"] = False  # a confident miss
     assert "hold 2 of the 3 misses; top-1 over the other parts 87.5%" in pr.margin_line(2.0, rows, share=0.2)
+
+
+def test_logistic_fit_recovers_planted_coefficients_and_bins_by_count():
+    """benchmarks/retrieval_calibration.py: the logistic fit finds the coefficients outcomes were drawn from,
+    and the reliability bins hold about equal counts with their mean probability and accuracy."""
+    cal = importlib.import_module("benchmarks.retrieval_calibration")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1.0, 2.0, 20000)
+    y = (rng.random(x.size) < 1.0 / (1.0 + np.exp(-(0.5 + 3.0 * x)))).astype(float)
+    a, b = cal.fit_logistic(x, y)
+    assert a == pytest.approx(0.5, abs=0.1) and b == pytest.approx(3.0, abs=0.15)
+    p = np.linspace(0.05, 0.95, 100)
+    ok = (np.arange(100) % 2).astype(float)
+    bins = cal.reliability(p, ok)
+    assert [n for n, _, _ in bins] == [10] * 10
+    assert bins[0][1] == pytest.approx(p[:10].mean()) and bins[0][2] == pytest.approx(0.5)

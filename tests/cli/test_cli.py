@@ -378,6 +378,9 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     printed = re.findall(r"^\s+\d+\. (\S+)\s+score", r.stdout, re.M)
     assert printed == list(ref.classes)
     assert saved["margin"] == pytest.approx(ref.margin) and f"margin {ref.margin:.3g}" in r.stdout
+    # LD-SIFT at the thickness the probability was calibrated for: printed and saved
+    assert ref.calibrated and saved["probability"] == pytest.approx(ref.probability)
+    assert f"probability that {ref.label} is right {ref.probability:.2f}" in r.stdout
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(dataset), "--k-nearest", "0")
     _one_line_error(bad, "--k-nearest must be at least 1")
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "nowhere"))

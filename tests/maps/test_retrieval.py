@@ -122,3 +122,19 @@ def test_a_part_larger_than_every_whole_is_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", RetrievalWarning)
         c.retrieve(part, wholes, ["x", "y"])
+
+
+def test_probability_grows_with_the_margin_and_needs_the_calibrated_options():
+    """`ClassRanking.probability` is the calibrated logistic of the margin: in (0, 1), increasing with the margin,
+    1 for the infinite margin of a ranking without a second class; NaN for options it was not calibrated for."""
+    from wpot.maps.retrieval import CALIBRATION, probability_of
+
+    assert CALIBRATION[1] > 0  # a larger margin is never less sure
+    m = np.linspace(0.0, 1.0, 11)
+    p = np.array([probability_of(x) for x in m])
+    assert np.all((p > 0) & (p < 1)) and np.all(np.diff(p) > 0) and probability_of(float("inf")) == 1.0
+    c, labels = _costs(3)
+    r = rank_classes(c, labels)
+    assert r.calibrated and r.probability == pytest.approx(probability_of(r.margin))
+    other = rank_classes(c, labels, options=RetrievalOptions(k_nearest=1))
+    assert not other.calibrated and np.isnan(other.probability)

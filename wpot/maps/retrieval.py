@@ -34,13 +34,16 @@ from numpy.typing import ArrayLike
 from wpot import _validate
 
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
-           "probability_of"]
+           "CALIBRATED_THICKNESS", "probability_of"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
 #: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options) and
 #: measured on its check parts (the docs' Results page)
-CALIBRATION = (0.0, 0.0)
+CALIBRATION = (-0.320, 28.459)
+#: the LD-SIFT thickness weight `CALIBRATION` was fitted with (LD-SIFT at its other defaults): `Comparer.retrieve`
+#: marks a ranking made with other signatures as not calibrated
+CALIBRATED_THICKNESS = 2.0
 #: the fixed rule that `ClassRanking.probability` replaces: a margin below this was called doubtful
 MARGIN_DOUBT = 0.12
 
@@ -87,7 +90,8 @@ class ClassRanking:
     members : (C,) for each class in that order, the indices (into the library) of the members that scored it,
         nearest first
     whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`)
-    calibrated : whether the ranking was made with the options `probability` was calibrated for (the defaults)
+    calibrated : whether the ranking was made as `probability` was calibrated: the default options, and (when
+        `Comparer.retrieve` made it) LD-SIFT with its thickness column at `CALIBRATED_THICKNESS`
     """
 
     classes: tuple[str, ...]
@@ -112,8 +116,8 @@ class ClassRanking:
     def probability(self) -> float:
         """The chance that `label` is the part's class, from the margin (`probability_of`): calibrated on parts
         of TOSCA shapes looked up in a library of TOSCA's other poses with LD-SIFT and its thickness column
-        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it. NaN for a ranking made with
-        other options than the defaults (``calibrated`` False), whose margins are on another scale."""
+        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it. NaN for a ranking made
+        otherwise (``calibrated`` False: other options or signatures), whose margins are on another scale."""
         return probability_of(self.margin) if self.calibrated else float("nan")
 
     def rank(self, label: str) -> int:
