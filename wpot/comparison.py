@@ -670,10 +670,7 @@ class Comparer:
                              f"{len(labels)} labels")
         if wholes:
             check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
-        ranking = rank_classes(self.nearest_costs(part, wholes), labels, options=options)
-        opts = self.config.signature_options
-        calibrated = self.config.signature == "ldsift" and opts == type(opts)(thickness=CALIBRATED_THICKNESS)
-        return ranking if calibrated or not ranking.calibrated else dataclasses.replace(ranking, calibrated=False)
+        return _as_calibrated(rank_classes(self.nearest_costs(part, wholes), labels, options=options), self.config)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
         """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's
@@ -683,6 +680,15 @@ class Comparer:
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
+
+
+def _as_calibrated(ranking: Any, config: ComparisonConfig) -> Any:
+    """``ranking`` (a `wpot.maps.retrieval.ClassRanking`), marked as not calibrated unless its costs came from the
+    signature its probability was calibrated with: LD-SIFT at its defaults with the thickness column at
+    `wpot.maps.retrieval.CALIBRATED_THICKNESS`."""
+    opts = config.signature_options
+    calibrated = config.signature == "ldsift" and opts == type(opts)(thickness=CALIBRATED_THICKNESS)
+    return ranking if calibrated or not ranking.calibrated else dataclasses.replace(ranking, calibrated=False)
 
 
 def _derived(base: "Comparer", changes: dict[str, Any]) -> "Comparer":

@@ -102,6 +102,9 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     assert r.classes == ref.classes
     np.testing.assert_allclose(r.scores, ref.scores, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(r.whole_costs, [c.nearest_signature_distance(part, w) for w in wholes], rtol=1e-9)
+    # LD-SIFT without the thickness column is not what the probability was calibrated on: NaN, not a number
+    # on another scale (the same costs through rank_classes alone are marked calibrated)
+    assert ref.calibrated and not r.calibrated and np.isnan(r.probability)
     with pytest.raises(ValueError, match="wholes and labels must be of one length"):
         c.retrieve(part, wholes, labels[:2])
 

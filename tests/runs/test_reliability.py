@@ -117,6 +117,36 @@ def test_a_damaged_store_is_refused_by_name_never_read(tmp_path, damage):
         assert db.stat().st_size > 0  # refused, not overwritten
 
 
+def test_a_store_locked_by_another_process_is_waited_for_not_called_damaged(tmp_path):
+    """A store another process is writing (its write lock held on a rollback-journal file, as a run's file is
+    before its first opener switches it to WAL) is busy, not damaged: opening it waits for the lock."""
+    import subprocess
+    import sys
+    import time
+
+    RunStore(tmp_path / "run", create=True).close()
+    db = tmp_path / "run" / "wpot.sqlite"
+    with sqlite3.connect(db, isolation_level=None) as con:
+        con.execute("PRAGMA journal_mode=DELETE")
+    con.close()
+    holder = subprocess.Popen([sys.executable, "-c", f"""
+import sqlite3, time
+con = sqlite3.connect({str(db)!r}, isolation_level=None)
+con.execute('BEGIN IMMEDIATE')
+print('held', flush=True)
+time.sleep(1.0)
+con.execute('COMMIT')
+"""], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        t0 = time.monotonic()
+        with RunStore(tmp_path / "run") as store:  # the code before this test said "damaged (database is locked)"
+            assert time.monotonic() - t0 > 0.2  # it did wait for the writer
+            assert store.con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    finally:
+        holder.wait(timeout=30)
+
+
 # ----------------------------------------------------------------------------------- damaged cache files
 def test_damaged_signature_and_spectrum_cache_files_are_recomputed_to_the_same_numbers(data, tmp_path, reference):
     cache = tmp_path / "cache"

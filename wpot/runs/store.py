@@ -34,6 +34,18 @@ class RunLockedError(OSError):
         self.folder = str(folder)
 
 
+#: how long opening a run store waits for another process's lock before giving up (`RunBusyError`)
+BUSY_SECONDS = 60.0
+
+
+class RunBusyError(OSError):
+    """A run folder's ``wpot.sqlite`` stayed locked by another process while it was being opened."""
+
+
+def _busy(exc: sqlite3.OperationalError) -> bool:
+    return "locked" in str(exc) or "busy" in str(exc)
+
+
 class CorruptRunError(ValueError):
     """A run folder's ``wpot.sqlite`` cannot be read as a wpot run (truncated, overwritten, not SQLite, or
     without the run's tables): refused, never read as an empty or partial run."""
@@ -131,14 +143,30 @@ class RunStore(DistanceReader):
 
         # Eq. 27 in SQL is wpot.ot.debiased itself, so the stored distance is the one the Python API computes
         self.con.create_function("debiased", 3, debiased, deterministic=True)
-        try:
-            self._open(existed, create)
-        except sqlite3.DatabaseError as exc:  # "file is not a database", "database disk image is malformed"
-            self.con.close()
-            raise CorruptRunError(
-                f"the run store {str(self.path)!r} is damaged ({exc}); it cannot be resumed or read. Move it away "
-                "and rerun the command to compute the run again (or restore it from a copy)", path=self.path,
-            ) from None
+        deadline = time.monotonic() + BUSY_SECONDS
+        while True:
+            try:
+                self._open(existed, create)
+                break
+            except sqlite3.OperationalError as exc:
+                # "database is locked": another process holds it (a journal-mode switch does not wait on the
+                # busy timeout); a lock is no damage, so wait for it
+                if not _busy(exc):
+                    raise self._damaged(exc) from None
+                if time.monotonic() > deadline:
+                    self.con.close()
+                    raise RunBusyError(f"the run store {str(self.path)!r} stayed locked by another process for "
+                                       f"{BUSY_SECONDS:.0f} s ({exc}): is another wpot run writing to "
+                                       f"{str(self.folder)!r}?") from None
+                time.sleep(0.05)
+            except sqlite3.DatabaseError as exc:  # "file is not a database", "database disk image is malformed"
+                raise self._damaged(exc) from None
+
+    def _damaged(self, exc: Exception) -> "CorruptRunError":
+        self.con.close()
+        return CorruptRunError(
+            f"the run store {str(self.path)!r} is damaged ({exc}); it cannot be resumed or read. Move it away "
+            "and rerun the command to compute the run again (or restore it from a copy)", path=self.path)
 
     def _open(self, existed: bool, create: bool) -> None:
         """Check an existing file (SQLite's ``quick_check``: every page readable and consistent) and create
