@@ -120,9 +120,12 @@ def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.
     samples. Returns the last functional map and the last map of the samples."""
     # one QR serves every k: the first k columns of phi_a are Q[:, :k] R[:k, :k]
     phi_a, at_sb = np.ascontiguousarray(phi_a[:, :ks[-1]]), np.ascontiguousarray(phi_b[sb, :ks[-1]])
+    # the leading k x k block of R's inverse is the inverse of R's leading block (R is upper triangular), so one
+    # inverse serves every k, and each round is two small products (small BLAS calls are slow when threaded)
     q, r = np.linalg.qr(phi_a)
+    qt, r_inv = np.ascontiguousarray(q.T), solve_triangular(r, np.eye(r.shape[0]))
     for k in ks:
-        fmap = solve_triangular(r[:k, :k], q[:, :k].T @ phi_b[ts, :k])
+        fmap = r_inv[:k, :k] @ (qt[:k] @ phi_b[ts, :k])
         ts = sb[point_map(phi_a[:, :k], at_sb[:, :k], fmap)]
     return fmap, ts
 
