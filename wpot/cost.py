@@ -258,15 +258,16 @@ def nearest_costs(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device:
     """For each row of S1, the row of S2 with the smallest cost and that cost: ((N1,) int64, (N1,) float64),
     the row minima of `cost_matrix` ``(S1, S2)`` computed ``block`` rows at a time (memory O(block · N2)).
 
-    ``metric="l2"`` goes through BLAS in float64 (`wpot.cost.nearest_rows`; several times faster than the
-    kernel for long signatures such as LD-SIFT's, the cost equal to `cost_matrix`'s to about 1e-7 of the
-    signatures' norms, so an exact tie may pick another row); the other metrics through `cost_matrix`. Same
-    validation as `cost_matrix`."""
+    ``metric="l2"`` finds the row through BLAS in float32 (`wpot.cost.nearest_rows`; several times faster than
+    the kernel for long signatures such as LD-SIFT's) and then takes its cost from `paired_costs`, so the cost is
+    `cost_matrix`'s entry exactly; a row within about 1e-7 of the signatures' squared norms of the nearest may
+    be picked instead of it (a near tie); the other metrics through `cost_matrix`. Same validation as
+    `cost_matrix`."""
     dev = resolve_device(device)
     a, b = prepare_signatures(S1, S2, metric, dev)
     if metric == "l2":
-        idx, d2 = nearest_rows(a.numpy(), b.numpy(), dtype=np.float64, block=block)
-        return idx, np.sqrt(d2)
+        idx = nearest_rows(a.numpy(), b.numpy(), dtype=np.float32, block=block)[0]
+        return idx, paired_costs(a, b, idx, metric=metric, device=dev)
     x = a.numpy()
     idx = np.empty(len(x), dtype=np.int64)
     best = np.empty(len(x))
