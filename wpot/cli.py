@@ -985,7 +985,7 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     from wpot.datasets import MESH_EXTENSIONS, list_shapes
     from wpot.io import load_mesh
     from wpot.runs.shapes import read_mesh_list
-    from wpot.maps.retrieval import MARGIN_DOUBT, RetrievalOptions
+    from wpot.maps.retrieval import CALIBRATED_THICKNESS, MARGIN_DOUBT, RetrievalOptions
     from wpot.signatures import signature_options_from_args
 
     if a.k_nearest < 1:
@@ -1024,7 +1024,8 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         print(f"  {k + 1}. {cls}  score {score:.4g}  nearest {shapes.names[members[0]]}")
     if len(r.classes) > 1:
         chance = (f"; probability that {r.label} is right {r.probability:.2f}" if r.calibrated else
-                  f" (under {MARGIN_DOUBT}: doubtful; no calibrated probability at --k-nearest {a.k_nearest})")
+                  f" (under {MARGIN_DOUBT}: doubtful; the probability is calibrated only for the default "
+                  f"--k-nearest and --signature ldsift with --ldsift-thickness {CALIBRATED_THICKNESS})")
         print(f"margin {r.margin:.3g}: the second class's score less the first's{chance}")
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,

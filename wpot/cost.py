@@ -247,8 +247,13 @@ def paired_costs(S1, S2, rows_2: ArrayLike, *, metric: Literal["wks", "l2", "l1"
                          f"and dtype {r.dtype}")
     if r.size and (r.min() < 0 or r.max() >= b.shape[0]):
         raise ValueError(f"rows_2 holds indices outside [0, {b.shape[0] - 1}]")
+    return _paired_costs(a, b, r, metric, dev)
+
+
+def _paired_costs(a: wp.array, b: wp.array, rows: np.ndarray, metric: str, dev) -> np.ndarray:
+    """`paired_costs` on signatures `prepare_signatures` has already checked and placed on ``dev``."""
     out = wp.empty(a.shape[0], dtype=wp.float64, device=dev)
-    wp.launch(_paired, dim=a.shape[0], inputs=[a, b, wp.array(r.astype(np.int64), dtype=wp.int64, device=dev),
+    wp.launch(_paired, dim=a.shape[0], inputs=[a, b, wp.array(rows.astype(np.int64), dtype=wp.int64, device=dev),
                                                METRIC_CODES[metric], out], device=dev)
     return out.numpy()
 
@@ -267,7 +272,7 @@ def nearest_costs(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device:
     a, b = prepare_signatures(S1, S2, metric, dev)
     if metric == "l2":
         idx = nearest_rows(a.numpy(), b.numpy(), dtype=np.float32, block=block)[0]
-        return idx, paired_costs(a, b, idx, metric=metric, device=dev)
+        return idx, _paired_costs(a, b, idx, metric, dev)
     x = a.numpy()
     idx = np.empty(len(x), dtype=np.int64)
     best = np.empty(len(x))

@@ -3,7 +3,6 @@ map of the current point map, then the point map of that functional map (see `wp
 and its public entry point, `zoomout`). Meshes of several components are refined component by component."""
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Callable
 
 import numpy as np
@@ -83,8 +82,9 @@ class Refiner:
         points to vertices of B. Returns the (k1, k1) functional map fitted (least squares) at k1, and A's points
         mapped by it onto B's."""
         a, b = self.points(self.mesh_a), self.points(self.mesh_b)
-        return _sample_rounds(self._phi(self.mesh_a, k1)[a], self._phi(self.mesh_b, k1), init, b,
-                              _schedule(k0, k1, dk))
+        phi_a, phi_b = self._phi(self.mesh_a, k1)[a], self._phi(self.mesh_b, k1)
+        fmap = _sample_rounds(phi_a, phi_b, init, b, _schedule(k0, k1, dk))
+        return fmap, b[point_map(phi_a, phi_b[b], fmap)]
 
     def full(self, fmap: np.ndarray) -> np.ndarray:
         """(N_A,) int64: every vertex of A mapped by the (k, k) functional map ``fmap``."""
@@ -113,21 +113,22 @@ def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
 
 
 def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.ndarray, ks: list[int]
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> np.ndarray:
     """ZoomOut rounds on samples. ``phi_a`` (n_A, K): A's basis at its samples; ``phi_b`` (N_B, K): B's at every
     vertex; ``ts`` (n_A,): the samples' images (vertices of B); ``sb``: B's samples. At each k of ``ks``, the
-    (k, k) functional map fitted to the samples' map by least squares, and the samples mapped by it onto B's
-    samples. Returns the last functional map and the last map of the samples."""
+    (k, k) functional map fitted to the samples' map by least squares, and but for the last k the samples
+    mapped by it onto B's samples. Returns the last functional map."""
     # one QR serves every k: the first k columns of phi_a are Q[:, :k] R[:k, :k]
     phi_a, at_sb = np.ascontiguousarray(phi_a[:, :ks[-1]]), np.ascontiguousarray(phi_b[sb, :ks[-1]])
     # the leading k x k block of R's inverse is the inverse of R's leading block (R is upper triangular), so one
     # inverse serves every k, and each round is two small products (small BLAS calls are slow when threaded)
     q, r = np.linalg.qr(phi_a)
     qt, r_inv = np.ascontiguousarray(q.T), solve_triangular(r, np.eye(r.shape[0]))
-    for k in ks:
+    for n, k in enumerate(ks):
         fmap = r_inv[:k, :k] @ (qt[:k] @ phi_b[ts, :k])
-        ts = sb[point_map(phi_a[:, :k], at_sb[:, :k], fmap)]
-    return fmap, ts
+        if n < len(ks) - 1:
+            ts = sb[point_map(phi_a[:, :k], at_sb[:, :k], fmap)]
+    return fmap
 
 
 def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, step: int, n_eigen: int | None,
@@ -145,7 +146,7 @@ def _zoom(mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, k_start: int, k_end: int, s
     if sa is not None and sb is not None and len(ks) > 1:
         if valid is not None:
             sa = sa[valid[sa]]
-        fmap = _sample_rounds(phi_a[sa], phi_b, t[sa], sb, ks)[0]
+        fmap = _sample_rounds(phi_a[sa], phi_b, t[sa], sb, ks)
         t, ks, valid = point_map(phi_a, phi_b, fmap), ks[-1:], None
     weighted_a = ops_a.pinv.T  # Φ_A^T (M_A / area) = the pseudo-inverse of Φ_A
     first = weighted_a if valid is None else weighted_a * valid[:, None]

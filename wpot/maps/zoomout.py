@@ -200,8 +200,8 @@ def zoomout(
         starts[name] = (sb[point_map(problem.ops_a.phi[sa], problem.ops_b.phi[sb], problem.fit())], problem.k + step)
     cands = {n: refine.coarse(t0, min(k0, k_sel), k_sel, step) for n, (t0, k0) in starts.items()}
     judge = problems[JUDGE]
-    phi_a, phi_b = judge.ops_a.phi[sa], judge.ops_b.phi
-    terms = {n: judge.terms(np.linalg.lstsq(phi_a, phi_b[c], rcond=None)[0]) for n, (_, c) in cands.items()}
+    fit_a, phi_b = np.linalg.pinv(judge.ops_a.phi[sa]), judge.ops_b.phi  # least squares on the samples
+    terms = {n: judge.terms(fit_a @ phi_b[c]) for n, (_, c) in cands.items()}
     energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
     # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
     mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
