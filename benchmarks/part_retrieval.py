@@ -61,14 +61,45 @@ def open_store(out: Path) -> JsonlStore:
     return JsonlStore(out, keys=("part", "library"), folder="costs")
 
 
-def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[str, dict]:
-    """Both scorings of one part from its (N, M) ``costs`` to ``wholes``: per scoring, top-1, the rank of class
-    ``cls`` (None when the library has none of it) and what the part was taken for (the first whole or class)."""
+class PartMeshes:
+    """The parts of a `partial_poses.py` run as meshes, by name: a re-meshed part (``--remesh``) is stored whole,
+    the others are cut from their source pose (one of ``wholes``) again."""
+
+    def __init__(self, parts_dir: Path, parts: dict[str, dict], wholes: dict) -> None:
+        self.parts_dir, self.parts, self.wholes = parts_dir, parts, wholes
+
+    def __call__(self, name: str):
+        import wpot
+        from wpot.mesh import cut
+
+        with np.load(self.parts_dir / "parts" / f"{name}.npz", allow_pickle=False) as stored:
+            if "vertices" in stored:
+                return wpot.Mesh(stored["vertices"], stored["faces"], warn=False)
+            return cut(self.wholes[self.parts[name]["source"]], stored["idx"])[0]
+
+
+def library_wholes(tosca: Path) -> dict:
+    """Every shape of ``tosca`` (tosca_isometric_5k), by name."""
+    from wpot.io import load_mesh
+
+    return {n: load_mesh(_vtx(tosca) / f"{n}.off", warn=False) for names in class_members(tosca).values()
+            for n in names}
+
+
+def score_part(costs: np.ndarray, wholes: list[str], cls: str, options, sample=None) -> dict[str, dict]:
+    """Both scorings of one part from its (N, M) ``costs`` to ``wholes``, on the rows `Comparer.retrieve` uses:
+    those of ``sample`` (the part's `wpot.maps.retrieval.retrieval_sample`, weighted by its cells), or every row
+    when it is None. Per scoring: top-1, the rank of class ``cls`` (None when the library has none of it) and
+    what the part was taken for (the first whole or class)."""
     from wpot.datasets import class_label
     from wpot.maps.retrieval import rank_classes
 
     labels = [class_label(n) for n in wholes]
-    r = rank_classes(costs, labels, options=options)
+    if sample is not None:
+        costs, weights = costs[sample.indices], sample.counts
+    else:
+        weights = None
+    r = rank_classes(costs, labels, weights=weights, options=options)
     order = np.argsort(r.whole_costs, kind="stable")
     ranked = [labels[j] for j in order]
     return {"nearest whole": {"top1": ranked[0] == cls, "rank": ranked.index(cls) + 1 if cls in ranked else None,
@@ -77,8 +108,13 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options) -> dict[
                          "taken_for": f"{r.label} ({wholes[r.members[0][0]]})", "margin": r.margin}}
 
 
-def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | None, options) -> dict:
-    """Per part with stored costs for weight ``w``: its kind, its size, and `score_part`."""
+def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | None, options,
+          meshes: PartMeshes | None = None) -> dict:
+    """Per part with stored costs for weight ``w``: its kind, its size, and `score_part` on the rows of its
+    `wpot.maps.retrieval.retrieval_sample` (``meshes`` gives the part's mesh; None: every row, as for parts of
+    at most ``options.max_points`` vertices)."""
+    from wpot.maps.retrieval import retrieval_sample
+
     rows = {}
     for rec in store.records:
         if rec["method"] != method(w, slab) or rec["part"] not in parts:
@@ -87,7 +123,8 @@ def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | Non
         with np.load(store.npz_path(rec["method"], rec["part"], LIBRARY), allow_pickle=False) as z:
             costs, wholes = z["costs"].astype(np.float64), [str(x) for x in z["wholes"]]
         rows[rec["part"]] = {"kind": p["kind"], "large": p["fraction"] >= LARGE,
-                             **score_part(costs, wholes, p["class"], options)}
+                             **score_part(costs, wholes, p["class"], options,
+                                          None if meshes is None else retrieval_sample(meshes(rec["part"]), options))}
     return rows
 
 
@@ -105,14 +142,14 @@ def margin_line(w: float, rows: dict, share: float = 0.1) -> str:
 
 
 def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, options,
-           out: Path, log) -> None:
+           meshes: PartMeshes | None, out: Path, log) -> None:
     lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}; retrieve: k_nearest "
-             f"{options.k_nearest}, standardize {options.standardize}", "",
+             f"{options.k_nearest}, standardize {options.standardize}, max_points {options.max_points}", "",
              "| w | scoring | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS)
              + " | mean rank of the class |", "|---|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
     for w in weights:
-        rows = score(store, parts, w, slab, options)
+        rows = score(store, parts, w, slab, options, meshes)
         if not rows:
             continue
         for sc in SCORINGS:
@@ -167,19 +204,18 @@ def main(argv=None) -> int:
         raise SystemExit(f"--tosca {a.tosca}: not found (tosca_isometric_5k, see ../shared/data/README)")
     out, log = results_folder(a.out)
     store = open_store(out)
+    wholes = library_wholes(a.tosca)
+    meshes = PartMeshes(a.parts, parts, wholes)
     if not a.report_only:
-        run(a, parts, weights, store, log)
-    report(store, parts, weights, a.ldsift_slab, RetrievalOptions(k_nearest=a.k_nearest), out, log)
+        run(a, parts, weights, store, wholes, meshes, log)
+    report(store, parts, weights, a.ldsift_slab, RetrievalOptions(k_nearest=a.k_nearest), meshes, out, log)
     return 0
 
 
-def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log) -> None:
+def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, wholes: dict, meshes: PartMeshes,
+        log) -> None:
     import wpot
-    from wpot.io import load_mesh
-    from wpot.mesh import cut
 
-    members = class_members(a.tosca)
-    wholes = {n: load_mesh(_vtx(a.tosca) / f"{n}.off", warn=False) for names in members.values() for n in names}
     slab = {} if a.ldsift_slab is None else {"ldsift_slab": a.ldsift_slab}
     base = wpot.Comparer(signature="ldsift", device=a.device, **slab)
     comparers = {w: base.with_options(ldsift_thickness=w) for w in weights}
@@ -189,10 +225,7 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, log)
         todo = {w: c for w, c in comparers.items() if (method(w, a.ldsift_slab), pt, LIBRARY) not in store.done}
         if not todo:
             continue
-        stored = np.load(a.parts / "parts" / f"{pt}.npz", allow_pickle=False)
-        # a re-meshed part (partial_poses.py --remesh) is stored whole; the others are cut from their source again
-        part = (wpot.Mesh(stored["vertices"], stored["faces"], warn=False) if "vertices" in stored
-                else cut(wholes[p["source"]], stored["idx"])[0])
+        part = meshes(pt)
         library = [n for n in wholes if n != p["source"]]
         for w, c in todo.items():
             t = time.perf_counter()

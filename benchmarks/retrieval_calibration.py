@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
-from benchmarks.part_retrieval import method, open_store, score  # noqa: E402
-from benchmarks.partial_poses import read_parts  # noqa: E402
+from benchmarks.part_retrieval import PartMeshes, library_wholes, method, open_store, score  # noqa: E402
+from benchmarks.partial_poses import _tosca, read_parts  # noqa: E402
 
 
 def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: int = 50) -> tuple[float, float]:
@@ -47,12 +47,14 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: i
     return float(a[0]), float(a[1])
 
 
-def rows_of(out: Path, parts_dir: Path, w: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(margins, right, probability) per part of one results folder, at weight ``w``."""
+def rows_of(out: Path, parts_dir: Path, w: float, wholes: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(margins, right, probability) per part of one results folder, at weight ``w``; ``wholes`` the library
+    (`library_wholes`), which the parts not stored whole are cut from."""
     from wpot.maps.retrieval import RetrievalOptions, probability_of
 
     store = open_store(out)
-    rows = score(store, read_parts(parts_dir), w, None, RetrievalOptions())
+    parts = read_parts(parts_dir)
+    rows = score(store, parts, w, None, RetrievalOptions(), PartMeshes(parts_dir, parts, wholes))
     m = np.array([r["retrieve"]["margin"] for r in rows.values()])
     ok = np.array([r["retrieve"]["top1"] for r in rows.values()], dtype=float)
     return m, ok, np.array([probability_of(x) for x in m])
@@ -72,7 +74,10 @@ def main(argv=None) -> int:
     ap.add_argument("--check-parts", type=Path, required=True)
     ap.add_argument("--weight", type=float, default=2.0, help="LD-SIFT thickness weight w (default 2, wpot's)")
     ap.add_argument("--out", type=Path, required=True, help="folder for reliability.png")
+    ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
+                    help="tosca_isometric_5k, the parts' sources (default: ../shared/data/tosca_isometric_5k)")
     a = ap.parse_args(argv)
+    wholes = library_wholes(a.tosca)
 
     from wpot.maps.retrieval import CALIBRATION, MARGIN_DOUBT
 
@@ -80,7 +85,7 @@ def main(argv=None) -> int:
           f"{CALIBRATION[1]:.3f}; method {method(a.weight)}")
     curves = {}
     for name, out, parts in (("development", a.dev, a.dev_parts), ("check", a.check, a.check_parts)):
-        m, ok, p = rows_of(out, parts, a.weight)
+        m, ok, p = rows_of(out, parts, a.weight, wholes)
         if not len(m):
             print(f"{name}: no scored parts in {out}")
             continue
@@ -89,8 +94,9 @@ def main(argv=None) -> int:
         doubt = m < MARGIN_DOUBT
         print(f"\n{name} ({out}): {len(m)} parts, top-1 {ok.mean():.1%}; logistic fitted here: intercept "
               f"{fit[0]:.3f}, slope {fit[1]:.3f}")
-        print(f"  probability >= 0.9: {int(hi.sum())} parts, {ok[hi].mean() if hi.any() else float('nan'):.1%} "
-              f"right; misses with probability >= 0.9: {int((hi & (ok == 0)).sum())}")
+        print(f"  probability >= 0.9: {int(hi.sum())} parts, {int(ok[hi].sum())} right "
+              f"({ok[hi].mean() if hi.any() else float('nan'):.2%}); misses with probability >= 0.9: "
+              f"{int((hi & (ok == 0)).sum())}")
         print(f"  the fixed rule (margin < {MARGIN_DOUBT}): {int(doubt.sum())} parts doubtful, holding "
               f"{int((doubt & (ok == 0)).sum())} of the {int((ok == 0).sum())} misses; right among the others "
               f"{ok[~doubt].mean() if (~doubt).any() else float('nan'):.1%}")

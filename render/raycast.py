@@ -4,7 +4,9 @@ One view per row of ``centers``: an orthographic camera above the plane through 
 normal ``frames[k, 2]`` looks straight down (direction ``-n``). All views are rendered in one Warp
 launch of shape ``(n, R, R)``; each thread casts one ray against a BVH (`warp.Mesh`) built once per
 mesh by `DepthRenderer`. The same BVH also casts rays *into* the solid from surface points
-(`DepthRenderer.inward_hits`, one launch of shape ``(n, m)``), for the local thickness.
+(`DepthRenderer.inward_hits`, one launch of shape ``(n, m)``), for the local thickness. On the CPU each
+launch is cut into one per core over contiguous views (`wpot._warp.launch_rows`), with the same results bit
+for bit.
 
 Conventions (for view k, with ``e1, e2, n = frames[k]``, ``c = centers[k]``, ``S = half_sizes[k]``)
 ------------------------------------------------------------------------------------------------------
@@ -41,6 +43,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
+
+from wpot._warp import launch_rows
 
 __all__ = ["DepthRenderer", "depth_images", "inward_cone", "RAY_OFFSET"]
 
@@ -200,17 +204,14 @@ class DepthRenderer:
         dev = self.device
         vec, flt = self._upload(wp.vec3), self._upload(wp.float32)
         res_wp = wp.empty((n, res, res), dtype=wp.float32, device=dev)
-        wp.launch(
+        views = [vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]), flt(s), flt(top), flt(depth)]
+        launch_rows(lambda lo, hi: wp.launch(
             _cast_kernel,
-            dim=(n, res, res),
-            inputs=[
-                self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]),
-                flt(s), flt(top), flt(depth), int(res), off[0], off[1],
-                float(background),
-            ],
-            outputs=[res_wp],
+            dim=(hi - lo, res, res),
+            inputs=[self._mesh.id, *(a[lo:hi] for a in views), int(res), off[0], off[1], float(background)],
+            outputs=[res_wp[lo:hi]],
             device=dev,
-        )
+        ), n, dev, cols=res * res)
         out[...] = res_wp.numpy()
         return out
 
@@ -268,12 +269,14 @@ class DepthRenderer:
         out = wp.empty((n, m), dtype=wp.float32, device=dev)
         local = p - self.origin
         reach = float(np.linalg.norm(local, axis=1).max() + 2.0 * self.radius) * 1.01 + 1e-30
-        wp.launch(
-            _inward_kernel, dim=(n, m),
-            inputs=[self._mesh.id, vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2]), vec(c), float(facing),
-                    reach, 1e-5 * self.radius, opening],
-            outputs=[out], device=dev,
-        )
+        rays = [vec(local), vec(fr[:, 0]), vec(fr[:, 1]), vec(fr[:, 2])]
+        cone_wp = vec(c)
+        launch_rows(lambda lo, hi: wp.launch(
+            _inward_kernel, dim=(hi - lo, m),
+            inputs=[self._mesh.id, *(a[lo:hi] for a in rays), cone_wp, float(facing), reach, 1e-5 * self.radius,
+                    opening],
+            outputs=[out[lo:hi]], device=dev,
+        ), n, dev, cols=m)
         return out.numpy().astype(np.float64)
 
 

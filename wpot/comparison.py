@@ -38,9 +38,9 @@ from wpot.maps.registration import area_scale, fit_similarity, fit_similarity_ro
 from wpot.sampling import FarthestPointSampler, Points, Subsample, farthest_point_sampling
 from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
-from wpot.cost import cost_matrix, cost_mean, nearest_costs
+from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
-from wpot.maps.retrieval import CALIBRATED_THICKNESS, RetrievalWarning, rank_classes
+from wpot.maps.retrieval import CALIBRATED_THICKNESS, RetrievalWarning, rank_classes, retrieval_sample
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
 from wpot.signatures import get_signature, Signature
@@ -660,17 +660,12 @@ class Comparer:
 
     def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
         """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`): from each
-        vertex's cost to the nearest signature of each whole (`nearest_costs`), standardised per vertex, a
-        class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
+        vertex's cost to the nearest signature of each whole (`nearest_costs`; for a part of more than
+        ``options.max_points`` vertices, those of its `wpot.maps.retrieval.retrieval_sample` only), standardised
+        per vertex, a class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
         a `wpot.maps.retrieval.RetrievalOptions`. Returns a `wpot.maps.retrieval.ClassRanking`, whose ``whole_costs``
         are `nearest_signature_distance` for each whole."""
-        wholes = list(wholes)
-        if len(wholes) != len(labels):
-            raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and "
-                             f"{len(labels)} labels")
-        if wholes:
-            check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
-        return _as_calibrated(rank_classes(self.nearest_costs(part, wholes), labels, options=options), self.config)
+        return retrieve(self, part, wholes, labels, options)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
         """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's
@@ -680,6 +675,19 @@ class Comparer:
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
+
+
+def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any) -> Any:
+    """`Comparer.retrieve`."""
+    wholes = list(wholes)
+    if len(wholes) != len(labels):
+        raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and {len(labels)} labels")
+    if wholes:
+        check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
+    sample = retrieval_sample(part, options)
+    rows, weights = (None, None) if sample is None else (sample.indices, sample.counts)
+    costs = library_costs(comparer, part, wholes, rows=rows)
+    return _as_calibrated(rank_classes(costs, labels, weights=weights, options=options), comparer.config)
 
 
 def _as_calibrated(ranking: Any, config: ComparisonConfig) -> Any:
@@ -716,9 +724,10 @@ def _derived(base: "Comparer", changes: dict[str, Any]) -> "Comparer":
     return new
 
 
-def library_costs(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh]) -> np.ndarray:
+def library_costs(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], *, rows: np.ndarray | None = None
+                  ) -> np.ndarray:
     """`Comparer.nearest_costs`: (N, M) float64, each of the part's N vertices' cost to the nearest signature of each
-    of the M wholes."""
+    of the M wholes; with ``rows`` (n,) vertex indices, (n, M) for those vertices only."""
     wholes = list(wholes)
     if not wholes:
         raise ValueError("wholes must hold at least one mesh")
@@ -726,9 +735,13 @@ def library_costs(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh]) -> n
         raise ValueError(f"{comparer.signature} needs fitting: call fit(wholes) first")
     with comparer.progress.stage(f"{comparer.stage.title} signatures of the part ({part.n_vertices} vertices)"):
         sig = comparer.signatures(part)
+    if rows is not None:
+        sig = sig[rows]
+
+    costs_to = NearestCosts(sig, metric=comparer.stage.metric, device=comparer.device)
 
     def costs(w: Mesh) -> np.ndarray:
-        return nearest_costs(sig, comparer.signatures(w), metric=comparer.stage.metric, device=comparer.device)[1]
+        return costs_to(comparer.signatures(w))[1]
 
     if len(wholes) == 1:
         return costs(wholes[0])[:, None]

@@ -136,7 +136,9 @@ def _scan_bad(a: wp.array2d(dtype=wp.float64), check_negative: int, flags: wp.ar
         flags[1] = 1
 
 
-def _as_signatures(name: str, s, dev) -> wp.array:
+def _as_signatures(name: str, s, dev, metric: str) -> wp.array:
+    if metric not in METRIC_CODES:
+        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     if isinstance(s, wp.array):
         if s.dtype != wp.float64 or s.ndim != 2:
             raise ValueError(f"{name} must be a 2-D float64 array, got a wp.array of dtype {s.dtype.__name__} with ndim {s.ndim}")
@@ -171,18 +173,30 @@ def prepare_signatures(S1, S2, metric: str, dev, names: tuple[str, str] = ("S1",
     Raises ValueError (naming the argument by ``names``) for an unknown metric, non-2-D input, mismatched
     D, empty input, NaN/inf values, negative values with ``metric="wks"`` or a wp.array on another device.
     """
-    if metric not in METRIC_CODES:
-        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     n1, n2 = names
-    a = _as_signatures(n1, S1, dev)
-    b = _as_signatures(n2, S2, dev)
+    a = _as_signatures(n1, S1, dev, metric)
+    b = _as_signatures(n2, S2, dev, metric)
+    _check_pair(a, b, names)
+    _check_values(n1, a, metric, dev)
+    _check_values(n2, b, metric, dev)
+    return a, b
+
+
+def _prepared(name: str, s, metric: str, dev) -> wp.array:
+    """One side of `prepare_signatures`: checked alone (its shape is checked against the other's by `_check_pair`)."""
+    a = _as_signatures(name, s, dev, metric)
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"empty signatures: {name} has shape {a.shape}")
+    _check_values(name, a, metric, dev)
+    return a
+
+
+def _check_pair(a: wp.array, b: wp.array, names: tuple[str, str]) -> None:
+    n1, n2 = names
     if a.shape[1] != b.shape[1]:
         raise ValueError(f"{n1} and {n2} must have the same signature length D, got {a.shape[1]} and {b.shape[1]}")
     if a.shape[0] == 0 or b.shape[0] == 0 or a.shape[1] == 0:
         raise ValueError(f"empty signatures: {n1} has shape {a.shape}, {n2} has shape {b.shape}")
-    _check_values(n1, a, metric, dev)
-    _check_values(n2, b, metric, dev)
-    return a, b
 
 
 def cost_matrix(
@@ -267,21 +281,39 @@ def nearest_costs(S1, S2, *, metric: Literal["wks", "l2", "l1"] = "wks", device:
     the kernel for long signatures such as LD-SIFT's) and then takes its cost from `paired_costs`, so the cost is
     `cost_matrix`'s entry exactly; a row within about 1e-7 of the signatures' squared norms of the nearest may
     be picked instead of it (a near tie); the other metrics through `cost_matrix`. Same validation as
-    `cost_matrix`."""
-    dev = resolve_device(device)
-    a, b = prepare_signatures(S1, S2, metric, dev)
-    if metric == "l2":
-        idx = nearest_rows(a.numpy(), b.numpy(), dtype=np.float32, block=block)[0]
-        return idx, _paired_costs(a, b, idx, metric, dev)
-    x = a.numpy()
-    idx = np.empty(len(x), dtype=np.int64)
-    best = np.empty(len(x))
-    for lo in range(0, len(x), int(block)):
-        c = cost_matrix(x[lo:lo + int(block)], b, metric=metric, device=dev)
-        j = np.argmin(c, axis=1)
-        idx[lo:lo + len(c)] = j
-        best[lo:lo + len(c)] = c[np.arange(len(c)), j]
-    return idx, best
+    `cost_matrix`. For one S1 against many S2, `NearestCosts` prepares S1 once."""
+    return NearestCosts(S1, metric=metric, device=device, block=block)(S2)
+
+
+class NearestCosts:
+    """`nearest_costs` from fixed signatures ``S1`` to each of many ``S2`` (a part against a library of wholes):
+    ``S1`` is validated and brought to the device once, ``self(S2)`` is ``nearest_costs(S1, S2)``."""
+
+    def __init__(self, S1, *, metric: Literal["wks", "l2", "l1"] = "wks", device: str | None = None,
+                 block: int = 1024) -> None:
+        self.device = resolve_device(device)
+        self.metric = metric
+        self.block = int(block)
+        self._a = _prepared("S1", S1, metric, self.device)
+        #: S1 in float32, for the BLAS search of metric "l2"
+        self._a32 = np.asarray(self._a.numpy(), dtype=np.float32) if metric == "l2" else None
+
+    def __call__(self, S2) -> tuple[np.ndarray, np.ndarray]:
+        dev, a = self.device, self._a
+        b = _prepared("S2", S2, self.metric, dev)
+        _check_pair(a, b, ("S1", "S2"))
+        if self.metric == "l2":
+            idx = nearest_rows(self._a32, b.numpy(), dtype=np.float32, block=self.block)[0]
+            return idx, _paired_costs(a, b, idx, self.metric, dev)
+        x = a.numpy()
+        idx = np.empty(len(x), dtype=np.int64)
+        best = np.empty(len(x))
+        for lo in range(0, len(x), self.block):
+            c = cost_matrix(x[lo:lo + self.block], b, metric=self.metric, device=dev)
+            j = np.argmin(c, axis=1)
+            idx[lo:lo + len(c)] = j
+            best[lo:lo + len(c)] = c[np.arange(len(c)), j]
+        return idx, best
 
 
 @wp.kernel
@@ -320,15 +352,22 @@ def nearest_rows(queries: np.ndarray, points: np.ndarray, *, dtype: type = np.fl
 
     Returns ((N,) int64 indices, (N,) squared distances in ``dtype``). Brute force by blocks of ``block`` rows
     of BLAS products, ``|q|² + |p|² − 2 q·p``; float32 by default (twice as fast; a k-d tree is slow in the
-    30-100 dimensions used here), the distances then good to about 1e-6 of the rows' squared norms."""
+    30-100 dimensions used here), the distances then good to about 1e-6 of the rows' squared norms. The product
+    is one GEMM of ``[q, 1]`` with ``[−2p, |p|²]``, which adds ``|p|²`` on the way (no pass over the block)."""
     pts = np.ascontiguousarray(points, dtype=dtype)
     pp = np.einsum("ij,ij->i", pts, pts)
+    right = np.empty((len(pts), pts.shape[1] + 1), dtype=dtype)
+    np.multiply(pts, -2.0, out=right[:, :-1])
+    right[:, -1] = pp
     qs = np.ascontiguousarray(queries, dtype=dtype)
+    left = np.ones((min(len(qs), int(block)), qs.shape[1] + 1), dtype=dtype)
     out = np.empty(len(qs), dtype=np.int64)
     best = np.empty(len(qs), dtype=dtype)
     for s in range(0, len(qs), int(block)):
         q = qs[s:s + int(block)]
-        d = pp[None, :] - 2.0 * (q @ pts.T)  # |q|^2, constant per row, added below
+        lq = left[:len(q)]
+        lq[:, :-1] = q
+        d = lq @ right.T  # |p|^2 - 2 q.p; |q|^2, constant per row, added below
         j = np.argmin(d, axis=1)
         out[s:s + len(q)] = j
         best[s:s + len(q)] = np.maximum(d[np.arange(len(q)), j] + np.einsum("ij,ij->i", q, q), 0)

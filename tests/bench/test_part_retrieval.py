@@ -31,6 +31,14 @@ def test_both_scorings_of_one_part(pr):
     # by its nearest member alone and without standardising, retrieve is the nearest whole's class
     raw = pr.score_part(costs, wholes, "cat", RetrievalOptions(k_nearest=1, standardize=False))["retrieve"]
     assert raw == {"top1": False, "rank": 2, "taken_for": "dog (dog3)", "margin": pytest.approx(1.31 - 1.09)}
+    # a part sampled: the sample's rows, each weighing its cell (here the first vertex stands for nine)
+    from wpot.sampling import Subsample
+
+    cell = Subsample(indices=np.array([0, 9]), nearest=np.r_[np.zeros(9, int), 1], radius=1.0, metric="euclidean")
+    sampled = pr.score_part(costs, wholes, "cat", RetrievalOptions(), cell)
+    full = pr.score_part(costs, wholes, "cat", RetrievalOptions())
+    assert sampled["retrieve"].pop("margin") == pytest.approx(full["retrieve"].pop("margin"), rel=1e-12)
+    assert sampled == full
     # a class the library lacks has no rank
     none = pr.score_part(costs, wholes, "wolf", RetrievalOptions())
     assert none["nearest whole"]["rank"] is None and none["retrieve"]["rank"] is None
@@ -57,7 +65,7 @@ def test_stored_costs_are_scored_and_reported(pr, tmp_path):
     expect = pr.score_part(costs.astype(np.float32).astype(np.float64), wholes, "cat", o)
     assert {k: rows["cat0_limb-S"][k] for k in pr.SCORINGS} == expect
     assert rows["cat0_limb-S"]["kind"] == "limb" and rows["cat0_limb-S"]["large"] is False
-    pr.report(store, parts, [2.0], None, o, tmp_path, lambda m: None)
+    pr.report(store, parts, [2.0], None, o, None, tmp_path, lambda m: None)
     text = (tmp_path / "results.md").read_text()
     for sc in pr.SCORINGS:
         top1 = expect[sc]["top1"]

@@ -77,7 +77,42 @@ def test_bad_input_is_named(kwargs, match):
         rank_classes(**kwargs)
 
 
+def test_a_row_of_weight_w_counts_as_w_copies():
+    """``weights``: integer weights give the ranking of the costs with each row repeated that many times; a
+    common factor changes nothing; zero weight drops a row."""
+    c, labels = _costs(5)
+    w = np.random.default_rng(6).integers(0, 4, size=len(c))
+    w[0] = 2
+    r = rank_classes(c, labels, weights=w)
+    ref = rank_classes(np.repeat(c, w, axis=0), labels)
+    assert r.classes == ref.classes and r.members == ref.members
+    np.testing.assert_allclose(r.scores, ref.scores, rtol=1e-12)
+    np.testing.assert_allclose(r.whole_costs, ref.whole_costs, rtol=1e-12)
+    np.testing.assert_allclose(rank_classes(c, labels, weights=3.5 * w).scores, r.scores, rtol=1e-12)
+    for bad in (np.ones(len(c) - 1), np.zeros(len(c)), -np.ones(len(c)), np.full(len(c), np.nan)):
+        with pytest.raises(ValueError, match="weights"):
+            rank_classes(c, labels, weights=bad)
+
+
+def test_a_large_part_stands_for_its_farthest_point_samples():
+    """`retrieval_sample`: None up to ``max_points`` vertices; above, ``max_points`` distinct vertices whose
+    cells (their counts) cover the part once; the same sample on every call."""
+    import wpot
+    from wpot.maps.retrieval import retrieval_sample
+
+    part = wpot.example_mesh(400, seed=7)
+    assert retrieval_sample(part, RetrievalOptions(max_points=None)) is None
+    assert retrieval_sample(part, RetrievalOptions(max_points=part.n_vertices)) is None
+    s = retrieval_sample(part, RetrievalOptions(max_points=50))
+    assert len(np.unique(s.indices)) == 50 and s.counts.sum() == part.n_vertices and s.counts.min() >= 1
+    np.testing.assert_array_equal(s.indices, retrieval_sample(part, RetrievalOptions(max_points=50)).indices)
+    with pytest.raises(TypeError, match="RetrievalOptions"):
+        retrieval_sample(part, {"max_points": 50})
+
+
 def test_bad_options_are_named():
+    with pytest.raises(ValueError, match="max_points"):
+        RetrievalOptions(max_points=2)
     with pytest.raises(ValueError, match="k_nearest"):
         RetrievalOptions(k_nearest=0)
     with pytest.raises((ValueError, TypeError), match="standardize"):
@@ -107,6 +142,15 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     assert ref.calibrated and not r.calibrated and np.isnan(r.probability)
     with pytest.raises(ValueError, match="wholes and labels must be of one length"):
         c.retrieve(part, wholes, labels[:2])
+    # a part of more than max_points vertices: the same ranking as rank_classes on its sample's rows, weighted
+    from wpot.maps.retrieval import retrieval_sample
+
+    few = RetrievalOptions(max_points=40)
+    s = retrieval_sample(part, few)
+    small = c.retrieve(part, wholes, labels, options=few)
+    ref = rank_classes(costs[s.indices], labels, weights=s.counts, options=few)
+    assert small.classes == ref.classes
+    np.testing.assert_allclose(small.scores, ref.scores, rtol=1e-5, atol=1e-6)
 
 
 def test_a_part_larger_than_every_whole_is_named():

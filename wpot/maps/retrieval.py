@@ -32,15 +32,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
+from wpot.mesh import Mesh
+from wpot.sampling import Subsample, farthest_point_sampling
 
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
-           "CALIBRATED_THICKNESS", "probability_of"]
+           "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
 #: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options) and
 #: measured on its check parts (the docs' Results page)
-CALIBRATION = (-0.320, 28.459)
+CALIBRATION = (-0.406, 28.707)
 #: the LD-SIFT thickness weight `CALIBRATION` was fitted with (LD-SIFT at its other defaults): `Comparer.retrieve`
 #: marks a ranking made with other signatures as not calibrated
 CALIBRATED_THICKNESS = 2.0
@@ -68,14 +70,37 @@ class RetrievalOptions:
         the part by their mean cost (all of them when the class has fewer); 1 scores a class by its nearest
         member alone
     standardize : turn each vertex's costs into z-scores over the library's wholes first
+    max_points : a part of more vertices stands for this many of them (`retrieval_sample`: Euclidean
+        farthest-point samples, each weighing its cell's vertex count), so the cost of a lookup stops growing
+        with the part's size and a densely meshed part counts its area, not its vertices; None: every vertex
     """
 
     k_nearest: int = 3
     standardize: bool = True
+    max_points: int | None = 1500
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("k_nearest", self.k_nearest, 1)
         _validate.boolean("standardize", self.standardize)
+        if self.max_points is not None:
+            object.__setattr__(self, "max_points", _validate.integer_at_least("max_points", self.max_points, 3))
+
+
+def _options(options: RetrievalOptions | None) -> RetrievalOptions:
+    o = RetrievalOptions() if options is None else options
+    if not isinstance(o, RetrievalOptions):
+        raise TypeError(f"options must be a RetrievalOptions, got {type(o).__name__}")
+    return o
+
+
+def retrieval_sample(part: Mesh, options: RetrievalOptions | None = None) -> Subsample | None:
+    """The points that stand for ``part`` in `rank_classes`: None (every vertex) up to ``options.max_points``
+    vertices, else that many Euclidean farthest-point samples (`wpot.sampling.farthest_point_sampling`); pass
+    their ``indices`` to pick the costs' rows and their ``counts`` as ``weights``. Deterministic for a mesh."""
+    o = _options(options)
+    if o.max_points is None or part.n_vertices <= o.max_points:
+        return None
+    return farthest_point_sampling(part, o.max_points, metric="euclidean")
 
 
 @dataclass(frozen=True)
@@ -89,7 +114,8 @@ class ClassRanking:
         ``standardize``)
     members : (C,) for each class in that order, the indices (into the library) of the members that scored it,
         nearest first
-    whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`)
+    whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`; a
+        weighted mean with `rank_classes`'s ``weights``)
     calibrated : whether the ranking was made as `probability` was calibrated: the default options, and (when
         `Comparer.retrieve` made it) LD-SIFT with its thickness column at `CALIBRATED_THICKNESS`
     """
@@ -133,8 +159,8 @@ class ClassRanking:
                 f"{self.probability:.2f})")
 
 
-def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalOptions | None = None
-                 ) -> ClassRanking:
+def rank_classes(costs: ArrayLike, labels: Sequence[str], *, weights: ArrayLike | None = None,
+                 options: RetrievalOptions | None = None) -> ClassRanking:
     """Rank the classes of a library of whole shapes for one part.
 
     Parameters
@@ -142,11 +168,13 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalO
     costs : (N, M) for each of the part's N vertices and each of the library's M wholes, the cost from the
         vertex's signature to the nearest signature of the whole (`wpot.cost.nearest_costs`); finite
     labels : (M,) the class of each whole
-    options : `RetrievalOptions` (default: standardised, ``k_nearest=3``)
+    weights : (N,) nonnegative, not all zero: what each vertex weighs in the means over the part (e.g. a
+        farthest-point sample's cell sizes, `retrieval_sample`); None: every vertex the same. A row of weight
+        w counts as w copies of it.
+    options : `RetrievalOptions` (default: standardised, ``k_nearest=3``); its ``max_points`` is for the caller
+        (`retrieval_sample`): the rows given here are all used
     """
-    o = RetrievalOptions() if options is None else options
-    if not isinstance(o, RetrievalOptions):
-        raise TypeError(f"options must be a RetrievalOptions, got {type(o).__name__}")
+    o = _options(options)
     c = np.asarray(costs, dtype=np.float64)
     labels = [str(x) for x in labels]
     if c.ndim != 2 or c.shape[0] == 0 or c.shape[1] == 0:
@@ -159,19 +187,28 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, options: RetrievalO
     if len(set(labels)) < 2:
         raise ValueError(f"labels name one class ({labels[0]!r}): a ranking needs a library of at least two "
                          "classes (a part's class cannot be told from a library that holds one)")
-    whole_costs = c.mean(axis=0)
+    if weights is None:
+        w = np.full(c.shape[0], 1.0 / c.shape[0])
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (c.shape[0],):
+            raise ValueError(f"weights must have one entry per row of costs ({c.shape[0]}), got shape {w.shape}")
+        if not np.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
+            raise ValueError("weights must be finite and nonnegative, and not all zero")
+        w = w / w.sum()
+    whole_costs = w @ c
     z = c
     if o.standardize:
         sd = c.std(axis=1, keepdims=True)
         z = np.divide(c - c.mean(axis=1, keepdims=True), sd, out=np.zeros_like(c), where=sd > 0)
-    means = z.mean(axis=0)
+    means = w @ z
     names = sorted(set(labels))
     lab = np.asarray(labels)
     scores, members = [], []
     for name in names:
         cols = np.flatnonzero(lab == name)
         cols = cols[np.argsort(means[cols], kind="stable")[:o.k_nearest]]
-        scores.append(float(z[:, cols].min(axis=1).mean()))
+        scores.append(float(w @ z[:, cols].min(axis=1)))
         members.append(tuple(int(j) for j in cols))
     order = np.argsort(scores, kind="stable")
     return ClassRanking(tuple(names[i] for i in order), np.asarray(scores)[order],
