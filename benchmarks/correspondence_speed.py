@@ -3,13 +3,17 @@ ZoomOut (``orient=False``) and pyfmaps (WKS functional map + ZoomOut, `correspon
 pair, at about 10,000 and 60,000 vertices.
 
 The meshes: two FAUST shapes (``faust_5k``, two people in two poses), each midpoint-subdivided (4x the faces) and,
-where that overshoots, simplified to the target vertex count by quadric decimation (``fast-simplification``, in
-the ``bench`` extra): independent triangulations of the two shapes at the size asked. For each size it times
+where that overshoots, simplified to the target vertex count by quadric decimation (``fast-simplification``):
+independent triangulations of the two shapes at the size asked. Meshes above `wpot.maps.zoomout.ZOOMOUT_MAX_VERTICES`
+are matched through simplified copies (`wpot.simplify`): the comparison runs on the copies and its correspondence is
+carried back to every vertex, and `wpot.zoomout` refines through the same copies. For each size it times
 
-* **cold**: the Laplace-Beltrami spectra (computed, not read from a cache), the comparison and the refinement;
+* **cold**: the copies and their Laplace-Beltrami spectra (computed, not read from a cache; run with a fresh
+  ``$WPOT_CACHE_DIR``), then the comparison and the refinement (the cold total is the sum of the two columns);
 * **warm**: the comparison and the refinement with the spectra cached (the usual case in an all-against-all),
   and the refinement alone, oriented and plain;
-* pyfmaps: its per-shape set-up (spectrum) and its matching.
+* pyfmaps: its per-shape set-up (spectrum) and its matching, on the meshes themselves, up to ``--peer-max``
+  vertices.
 
 It also checks the answer against the FAUST ground truth carried to the new vertices by nearest neighbour: mean
 error over sqrt(area) and whether the map is mirrored (median error against the ``.sym.vts`` truth smaller).
@@ -50,13 +54,17 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 60000])
     ap.add_argument("--pair", nargs=2, default=["tr_reg_000", "tr_reg_011"])
     ap.add_argument("--no-peer", action="store_true", help="skip pyfmaps")
+    ap.add_argument("--peer-max", type=int, default=20000,
+                    help="run pyfmaps only up to this many vertices (default %(default)s; at 60,000 its spectra alone "
+                    "take many minutes)")
     a = ap.parse_args(argv)
 
     import wpot
     from wpot.comparison import Comparer
     from wpot.datasets import tosca_vts
     from wpot.io import load_mesh
-    from wpot.maps.zoomout import zoomout
+    from wpot.maps.zoomout import ZOOMOUT_MAX_VERTICES, zoomout
+    from wpot.simplify import lift_map, simplify
 
     vtx = a.data / "faust_5k" / "vtx_5k"
     if not vtx.is_dir():
@@ -70,57 +78,70 @@ def main(argv=None) -> int:
         dst = truth_on(mb, small[1], tosca_vts(vtx, y))
         sym = truth_on(mb, small[1], tosca_vts(vtx, y, symmetric=True))
         t0 = time.perf_counter()
-        for m in (ma, mb):  # cold: these meshes are new to the process (and to a fresh $WPOT_CACHE_DIR)
+        # above ZOOMOUT_MAX_VERTICES, the comparison runs on simplified copies (as zoomout refines through them)
+        # and its correspondence is carried back to every vertex: the recipe of wpot.simplify's docstring
+        sa, sb = simplify(ma, ZOOMOUT_MAX_VERTICES), simplify(mb, ZOOMOUT_MAX_VERTICES)
+        for m in (sa.coarse, sb.coarse):  # cold: these meshes are new to the process (and to a fresh $WPOT_CACHE_DIR)
             if wpot.eigenpairs(m, 500).from_cache:
                 print(f"note: the spectrum of a {m.n_vertices}-vertex mesh came from $WPOT_CACHE_DIR: 'cold' is not")
         t_spec = time.perf_counter() - t0
         comparer = Comparer(max_vertices=500)
+
+        def matched() -> np.ndarray:
+            c = comparer.compare(sa.coarse, sb.coarse)  # signatures (from the cached spectra), then the transport
+            return lift_map(sa, sb, c.correspondence)
+
         t0 = time.perf_counter()
-        c = comparer.compare(ma, mb)  # signatures (from the cached spectra), then the transport
-        res = zoomout(ma, mb, c.correspondence)
+        res = zoomout(ma, mb, matched())
         t_first = time.perf_counter() - t0
         t0 = time.perf_counter()
-        c = comparer.compare(ma, mb)
+        start = matched()
         t_cmp = time.perf_counter() - t0
         t0 = time.perf_counter()
-        res = zoomout(ma, mb, c.correspondence)
+        res = zoomout(ma, mb, start)
         t_orient = time.perf_counter() - t0
         t0 = time.perf_counter()
-        plain = zoomout(ma, mb, c.correspondence, orient=False)
+        plain = zoomout(ma, mb, start, orient=False)
         t_plain = time.perf_counter() - t0
         err, mirrored = errors(mb, res.map[src], dst, sym)
         perr, pmirrored = errors(mb, plain.map[src], dst, sym)
-        row = {"n": (ma.n_vertices, mb.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
+        row = {"n": (ma.n_vertices, mb.n_vertices), "copies": (sa.coarse.n_vertices, sb.coarse.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
                "orient": t_orient, "plain": t_plain, "err": err, "mirrored": mirrored, "conf": res.orientation_confidence,
                "plain_err": perr, "plain_mirrored": pmirrored}
-        if not a.no_peer:
+        if not a.no_peer and max(row["n"]) <= a.peer_max:
             from pyFM.functional import FunctionalMapping
             from pyFM.mesh import TriMesh
 
             s = FMAPS_SETTINGS
             t0 = time.perf_counter()
-            tb, ta = (TriMesh(m.vertices, m.faces, area_normalize=True, center=True).process(k=s["k_process"])
-                      for m in (mb, ma))
-            row["peer_setup"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            model = FunctionalMapping(tb, ta)
-            model.preprocess(n_descr=s["n_descr"], descr_type="WKS", subsample_step=s["subsample_step"],
-                             k_process=s["k_process"])
-            model.fit(K=s["K"], w_descr=s["w_descr"], w_lap=s["w_lap"], w_dcomm=s["w_dcomm"], w_orient=s["w_orient"])
-            p2p = np.asarray(model.get_p2p(model.zoomout_refine(nit=s["zoomout_nit"], step=s["zoomout_step"])))
-            row["peer"] = time.perf_counter() - t0
-            row["peer_err"], row["peer_mirrored"] = errors(mb, p2p[src], dst, sym)
+            try:
+                tb, ta = (TriMesh(m.vertices, m.faces, area_normalize=True, center=True).process(k=s["k_process"])
+                          for m in (mb, ma))
+                row["peer_setup"] = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                model = FunctionalMapping(tb, ta)
+                model.preprocess(n_descr=s["n_descr"], descr_type="WKS", subsample_step=s["subsample_step"],
+                                 k_process=s["k_process"])
+                model.fit(K=s["K"], w_descr=s["w_descr"], w_lap=s["w_lap"], w_dcomm=s["w_dcomm"],
+                          w_orient=s["w_orient"])
+                p2p = np.asarray(model.get_p2p(model.zoomout_refine(nit=s["zoomout_nit"], step=s["zoomout_step"])))
+                row["peer"] = time.perf_counter() - t0
+                row["peer_err"], row["peer_mirrored"] = errors(mb, p2p[src], dst, sym)
+            except Exception as exc:  # a peer that fails on this size is reported, not a crash of the run
+                row["peer_failed"] = f"{type(exc).__name__} after {time.perf_counter() - t0:.0f} s: {exc}"
         rows.append(row)
         print(row, flush=True)
-    print("\n| vertices (A, B) | spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
+    print("\n| vertices (A, B) | matched through (copies) | copies and their spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
           "compare, warm | oriented ZoomOut | plain ZoomOut | oriented / plain | end to end, spectra cached | "
           "error √area (mirrored), confidence | plain: error (mirrored) | pyfmaps set-up | pyfmaps match | "
           "pyfmaps error (mirrored) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         peer = (f"{r['peer_setup']:.1f} s | {r['peer']:.1f} s | {r['peer_err']:.3f} ({'yes' if r['peer_mirrored'] else 'no'})"
-                if "peer" in r else "– | – | –")
-        print(f"| {r['n'][0]:,}, {r['n'][1]:,} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
+                if "peer" in r else f"failed: {r['peer_failed'][:80]} | – | –" if "peer_failed" in r else "– | – | –")
+        ca, cb = r["copies"]
+        through = "themselves" if r["copies"] == r["n"] else f"{ca:,}, {cb:,}"
+        print(f"| {r['n'][0]:,}, {r['n'][1]:,} | {through} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
               f"{r['orient']:.1f} s | {r['plain']:.1f} s | {r['orient'] / r['plain']:.2f}x | "
               f"{r['compare'] + r['orient']:.1f} s | {r['err']:.3f} ({'yes' if r['mirrored'] else 'no'}), "
               f"{r['conf']:.2f} | {r['plain_err']:.3f} ({'yes' if r['plain_mirrored'] else 'no'}) | {peer} |")

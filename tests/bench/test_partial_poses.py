@@ -88,7 +88,7 @@ def test_remeshed_parts_share_no_triangle_and_carry_the_ground_truth(pp, tosca5k
     from wpot.evaluate import GeodesicDistances
 
     if remesh != "lowres":
-        pytest.importorskip("fast_simplification", reason="the decimation is in the bench extra")
+        pytest.importorskip("fast_simplification", reason="fast-simplification (a dependency of wpot) is not installed")
     S = cat["S"]
     parts = pp.make_parts(tosca5k, "cat0", cat["lm"], seed=0, kinds=("head", "cut"), remesh=remesh)
     if not parts:

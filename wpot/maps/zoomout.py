@@ -54,16 +54,22 @@ terms, with the orientation term replaced by its reversed form (``orient_reverse
 mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
 that of its mirror and of a candidate on another side.
 
+Large meshes: above ``max_vertices`` (`ZOOMOUT_MAX_VERTICES`) vertices a mesh is matched through a simplified
+copy (`wpot.simplify`): the given map is carried to the copies, refined there, and carried back to every vertex
+(`wpot.simplify.lift_map`). The spectra, the candidates and every nearest-neighbour search then cost what they
+cost at the copy's size.
+
 """
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from wpot._validate import boolean, vertex_map
+from wpot._validate import boolean, integer_at_least, vertex_map
 from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.maps.orientation import OrientationWarning
@@ -71,9 +77,10 @@ from wpot.maps.symmetry import keep_orientation
 from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
+from wpot.simplify import lift_map, simplify
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
-           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K"]
+           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "ZOOMOUT_MAX_VERTICES"]
 
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
 #: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
@@ -84,6 +91,9 @@ ORIENTATION_DOUBT = 0.1
 #: the spectral resolution to which every candidate is refined before they are compared (chosen on FAUST pairs
 #: outside its test list, checked on TOSCA pairs outside it: the docs' Results page)
 CHOICE_K = 60
+#: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`): the spectra of
+#: two such copies take about 20 s on a 2-core CPU, those of two 60,000-vertex meshes many minutes
+ZOOMOUT_MAX_VERTICES = 10_000
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
@@ -109,6 +119,8 @@ class ZoomOutResult:
     energies : each candidate's energy, by name, and its mirror image's (``"<name>_mirror"``)
     mended : whether the chosen candidate was mirrored on a part and mended there through the shape's left/right
         symmetry (the confidence weighs the choice made before)
+    coarse_vertices : (n_A, n_B), the vertex counts of the simplified copies the map was refined on
+        (``max_vertices``); None when it was refined on the meshes themselves
     """
 
     map: np.ndarray
@@ -116,6 +128,7 @@ class ZoomOutResult:
     candidate: str = "given"
     energies: dict = field(default_factory=dict)
     mended: bool = False
+    coarse_vertices: tuple[int, int] | None = None
 
     def __array__(self, dtype=None, copy=None):
         return self.map if dtype is None else self.map.astype(dtype)
@@ -132,6 +145,7 @@ def zoomout(
     n_eigen: int | None = None,
     orient: bool = True,
     samples: int | None = ZOOMOUT_SAMPLES,
+    max_vertices: int | None = ZOOMOUT_MAX_VERTICES,
 ) -> ZoomOutResult:
     """Refine a vertex map from A to B by ZoomOut (spectral upsampling of its functional map).
 
@@ -153,6 +167,9 @@ def zoomout(
         on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
         every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
+    max_vertices : a mesh of more vertices is refined through a simplified copy of this many (`wpot.simplify`;
+        default `ZOOMOUT_MAX_VERTICES`), and the map carried back to its every vertex; None: never. The other
+        options then apply to the copies
 
     Returns
     -------
@@ -170,6 +187,14 @@ def zoomout(
     k_start = positive_int(k_start, "k_start")
     step = positive_int(step, "step")
     t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
+    if max_vertices is not None:
+        max_vertices = integer_at_least("max_vertices", max_vertices, 100)
+    if max_vertices is not None and max(mesh_a.n_vertices, mesh_b.n_vertices) > max_vertices:
+        sa, sb = simplify(mesh_a, max_vertices), simplify(mesh_b, max_vertices)
+        res = zoomout(sa.coarse, sb.coarse, sa.restrict_map(sb, t), k_start=k_start, k_end=k_end, step=step,
+                      n_eigen=n_eigen, orient=orient, samples=samples, max_vertices=None)
+        return dataclasses.replace(res, map=lift_map(sa, sb, res.map),
+                                   coarse_vertices=(sa.coarse.n_vertices, sb.coarse.n_vertices))
     n_avail = min(mesh_a.n_vertices, mesh_b.n_vertices)
     if n_eigen is not None:
         n_eigen = positive_int(n_eigen, "n_eigen")
@@ -192,6 +217,13 @@ def zoomout(
     problems = _oriented_problems(mesh_a, mesh_b, n_eigen, k_end)
     if problems is None:
         return ZoomOutResult(refine(t, k_start, k_end, step))
+    return _oriented(refine, mesh_a, mesh_b, t, problems, k_start, k_end, step)
+
+
+def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, problems: dict[str, FmapEnergy],
+              k_start: int, k_end: int, step: int) -> ZoomOutResult:
+    """`zoomout` with ``orient=True``: the candidates brought to `CHOICE_K` and compared, the chosen one mended and
+    refined on to k_end (the module docstring)."""
     k_sel = min(CHOICE_K, k_end)
     # the candidates are brought to k_sel and compared on the rounds' samples; only the chosen one maps every vertex
     sa, sb = refine.points(mesh_a), refine.points(mesh_b)
