@@ -8,7 +8,9 @@ which holds the part itself. The part's class has other poses there (2 to 19 of 
 class: what a user faces who looks a part up in a dataset of whole shapes.
 
 **Costs**: for each part and each whole of its library, the cost from each vertex of the part to the nearest
-signature of the whole (`Comparer.nearest_costs`), LD-SIFT with each ``--weights`` w of its thickness column
+signature of the whole (`Comparer.nearest_costs`), LD-SIFT at one edge length for the part and the library, the
+library's, as `Comparer.retrieve` does (``--edge library``, the default; ``--edge own``: each mesh's own, the
+paper's), with each ``--weights`` w of its thickness column
 (``ldsift_thickness``); w = 0, the paper's LD-SIFT, is the peer in the same run. One `Comparer` and its
 ``with_options`` copies share the signature cache, where LD-SIFT is kept as its descriptor and its thickness
 apart, so every weight reuses one descriptor a shape.
@@ -48,8 +50,10 @@ from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
 from benchmarks.partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts  # noqa: E402
 
 
-def method(w: float, slab: float | None = None) -> str:
-    return f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}")
+def method(w: float, slab: float | None = None, edge: str = "own") -> str:
+    """The stored costs' name: LD-SIFT's thickness weight, its slab, and its edge length (``"library"``: the
+    library's for every mesh, as `Comparer.retrieve` does by default; ``"own"``: each mesh's, the paper's)."""
+    return f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}") + ("-libedge" if edge == "library" else "")
 
 
 LIBRARY = "library"  # the second key of a record: the part's library (every whole but its source)
@@ -117,7 +121,7 @@ def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | Non
 
     rows = {}
     for rec in store.records:
-        if rec["method"] != method(w, slab) or rec["part"] not in parts:
+        if rec["method"] != method(w, slab, options.edge) or rec["part"] not in parts:
             continue
         p = parts[rec["part"]]
         with np.load(store.npz_path(rec["method"], rec["part"], LIBRARY), allow_pickle=False) as z:
@@ -143,8 +147,8 @@ def margin_line(w: float, rows: dict, share: float = 0.1) -> str:
 
 def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, options,
            meshes: PartMeshes | None, out: Path, log) -> None:
-    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}; retrieve: k_nearest "
-             f"{options.k_nearest}, standardize {options.standardize}, max_points {options.max_points}", "",
+    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}, edge length: {options.edge}; retrieve: "
+             f"k_nearest {options.k_nearest}, standardize {options.standardize}, max_points {options.max_points}", "",
              "| w | scoring | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS)
              + " | mean rank of the class |", "|---|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
@@ -172,7 +176,7 @@ def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab
 
 
 def main(argv=None) -> int:
-    from wpot.maps.retrieval import RetrievalOptions
+    from wpot.maps.retrieval import EDGES, RetrievalOptions
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", type=Path, required=True, help="a partial_poses.py --out folder (its parts)")
@@ -184,6 +188,9 @@ def main(argv=None) -> int:
                     help="LD-SIFT's depth slab (ldsift_slab; default: LD-SIFT's own), a method of its own in --out")
     ap.add_argument("--k-nearest", type=int, default=RetrievalOptions.k_nearest,
                     help="retrieve's k_nearest: a class is the union of this many of its members (default %(default)s)")
+    ap.add_argument("--edge", choices=EDGES, default=RetrievalOptions.edge,
+                    help="LD-SIFT's edge length: the library's for every mesh (library, retrieve's default) or each "
+                    "mesh's own (own, the paper's); default %(default)s")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--report-only", action="store_true")
     a = ap.parse_args(argv)
@@ -206,15 +213,17 @@ def main(argv=None) -> int:
     store = open_store(out)
     wholes = library_wholes(a.tosca)
     meshes = PartMeshes(a.parts, parts, wholes)
+    options = RetrievalOptions(k_nearest=a.k_nearest, edge=a.edge)
     if not a.report_only:
         run(a, parts, weights, store, wholes, meshes, log)
-    report(store, parts, weights, a.ldsift_slab, RetrievalOptions(k_nearest=a.k_nearest), meshes, out, log)
+    report(store, parts, weights, a.ldsift_slab, options, meshes, out, log)
     return 0
 
 
 def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, wholes: dict, meshes: PartMeshes,
         log) -> None:
     import wpot
+    from wpot.comparison import at_common_edge
 
     slab = {} if a.ldsift_slab is None else {"ldsift_slab": a.ldsift_slab}
     base = wpot.Comparer(signature="ldsift", device=a.device, **slab)
@@ -222,15 +231,18 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, whol
     log(f"{len(parts)} parts, {len(wholes)} wholes, weights {weights}; wpot {wpot.__file__}")
     t0 = time.perf_counter()
     for k, (pt, p) in enumerate(parts.items()):
-        todo = {w: c for w, c in comparers.items() if (method(w, a.ldsift_slab), pt, LIBRARY) not in store.done}
+        name = {w: method(w, a.ldsift_slab, a.edge) for w in comparers}
+        todo = {w: c for w, c in comparers.items() if (name[w], pt, LIBRARY) not in store.done}
         if not todo:
             continue
         part = meshes(pt)
         library = [n for n in wholes if n != p["source"]]
         for w, c in todo.items():
             t = time.perf_counter()
+            if a.edge == "library":  # as Comparer.retrieve: one edge length, the library's, for part and wholes
+                c = at_common_edge(c, [wholes[n] for n in library])
             costs = c.nearest_costs(part, [wholes[n] for n in library])
-            store.add({"method": method(w, a.ldsift_slab), "part": pt, "library": LIBRARY, "n_wholes": len(library),
+            store.add({"method": name[w], "part": pt, "library": LIBRARY, "n_wholes": len(library),
                        "seconds": time.perf_counter() - t},
                       {"costs": costs.astype(np.float32), "wholes": np.array(library)})
         log(f"part {k + 1}/{len(parts)} {pt}: {time.perf_counter() - t0:.0f} s")

@@ -33,7 +33,10 @@ from benchmarks.partial_poses import _tosca, read_parts  # noqa: E402
 
 def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: int = 50) -> tuple[float, float]:
     """(intercept, slope) of ``P(y) = 1 / (1 + exp(-(a + b x)))`` by Newton's method on the log-likelihood, with a
-    small ridge on the slope (it keeps the fit finite when the set is separable)."""
+    small ridge on the slope (it keeps the fit finite when the set is separable). (NaN, NaN) when every outcome is
+    the same (nothing to fit: the intercept would run off to infinity)."""
+    if len(y) == 0 or y.min() == y.max():
+        return float("nan"), float("nan")
     a = np.array([0.0, 0.0])
     X = np.stack([np.ones_like(x), x], axis=1)
     for _ in range(n_iter):
@@ -47,14 +50,16 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: i
     return float(a[0]), float(a[1])
 
 
-def rows_of(out: Path, parts_dir: Path, w: float, wholes: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rows_of(out: Path, parts_dir: Path, w: float, wholes: dict, edge: str = "library"
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(margins, right, probability) per part of one results folder, at weight ``w``; ``wholes`` the library
-    (`library_wholes`), which the parts not stored whole are cut from."""
+    (`library_wholes`), which the parts not stored whole are cut from; ``edge`` LD-SIFT's edge length
+    (`part_retrieval.method`)."""
     from wpot.maps.retrieval import RetrievalOptions, probability_of
 
     store = open_store(out)
     parts = read_parts(parts_dir)
-    rows = score(store, parts, w, None, RetrievalOptions(), PartMeshes(parts_dir, parts, wholes))
+    rows = score(store, parts, w, None, RetrievalOptions(edge=edge), PartMeshes(parts_dir, parts, wholes))
     m = np.array([r["retrieve"]["margin"] for r in rows.values()])
     ok = np.array([r["retrieve"]["top1"] for r in rows.values()], dtype=float)
     return m, ok, np.array([probability_of(x) for x in m])
@@ -74,6 +79,8 @@ def main(argv=None) -> int:
     ap.add_argument("--check-parts", type=Path, required=True)
     ap.add_argument("--weight", type=float, default=2.0, help="LD-SIFT thickness weight w (default 2, wpot's)")
     ap.add_argument("--out", type=Path, required=True, help="folder for reliability.png")
+    ap.add_argument("--edge", choices=("library", "own"), default="library",
+                    help="LD-SIFT's edge length of the stored costs (part_retrieval.py --edge; default %(default)s)")
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
                     help="tosca_isometric_5k, the parts' sources (default: ../shared/data/tosca_isometric_5k)")
     a = ap.parse_args(argv)
@@ -82,10 +89,10 @@ def main(argv=None) -> int:
     from wpot.maps.retrieval import CALIBRATION, MARGIN_DOUBT
 
     print(f"shipped calibration (fitted on the development set): intercept {CALIBRATION[0]:.3f}, slope "
-          f"{CALIBRATION[1]:.3f}; method {method(a.weight)}")
+          f"{CALIBRATION[1]:.3f}; method {method(a.weight, None, a.edge)}")
     curves = {}
     for name, out, parts in (("development", a.dev, a.dev_parts), ("check", a.check, a.check_parts)):
-        m, ok, p = rows_of(out, parts, a.weight, wholes)
+        m, ok, p = rows_of(out, parts, a.weight, wholes, a.edge)
         if not len(m):
             print(f"{name}: no scored parts in {out}")
             continue

@@ -1017,7 +1017,11 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         comparer.fit(wholes)
     r = comparer.retrieve(part, wholes, list(shapes.labels["class"]),
                           options=RetrievalOptions(k_nearest=a.k_nearest))
-    print(f"{a.part} against {len(wholes)} wholes of {len(r.classes)} classes ({signature_title(a.signature)}):")
+    from wpot.comparison import at_common_edge
+
+    edge = getattr(at_common_edge(comparer, wholes).config.signature_options, "edge", None)  # what retrieve used
+    at = "" if edge is None else f", at one edge length for the part and the library, {edge:.3g}"
+    print(f"{a.part} against {len(wholes)} wholes of {len(r.classes)} classes ({signature_title(a.signature)}{at}):")
     for k, (cls, score, members) in enumerate(zip(r.classes, r.scores, r.members)):
         if k == a.top:
             break
@@ -1029,6 +1033,7 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         print(f"margin {r.margin:.3g}: the second class's score less the first's{chance}")
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,
+               "ldsift_edge": edge,
                "classes": list(r.classes), "scores": [float(x) for x in r.scores], "margin": r.margin,
                "probability": None if np.isnan(r.probability) else r.probability,
                "members": [[shapes.names[j] for j in m] for m in r.members],

@@ -41,6 +41,7 @@ from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
 from wpot.maps.retrieval import CALIBRATED_THICKNESS, RetrievalWarning, rank_classes, retrieval_sample
+from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
 from wpot.signatures import get_signature, Signature
@@ -671,9 +672,11 @@ class Comparer:
         """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's
         signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
-        vertices; ``options`` is a `wpot.maps.locate.LocateOptions`. Returns a `wpot.maps.locate.PartMap`."""
+        vertices; ``options`` is a `wpot.maps.locate.LocateOptions` (with ``edge="whole"``, LD-SIFT at the whole's
+        edge length for both meshes). Returns a `wpot.maps.locate.PartMap`."""
         self._fit_to_pair(part, whole, ("part", "whole"))
-        return locate_part(part, whole, self.signatures(part), self.signatures(whole), metric=self.stage.metric,
+        c = at_common_edge(self, [whole]) if options is not None and options.edge == "whole" else self
+        return locate_part(part, whole, c.signatures(part), c.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
 
 
@@ -686,16 +689,28 @@ def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: S
         check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
     sample = retrieval_sample(part, options)
     rows, weights = (None, None) if sample is None else (sample.indices, sample.counts)
+    if (options is None or options.edge == "library") and wholes:
+        comparer = at_common_edge(comparer, wholes)
     costs = library_costs(comparer, part, wholes, rows=rows)
     return _as_calibrated(rank_classes(costs, labels, weights=weights, options=options), comparer.config)
 
 
+def at_common_edge(comparer: "Comparer", meshes: Sequence[Mesh]) -> "Comparer":
+    """``comparer``, or for LD-SIFT with its edge length unset a copy (`Comparer.with_options`, sharing its caches)
+    with the edge set to ``meshes``' `wpot.signatures._frames.common_edge`: every mesh it then describes, whatever
+    its density, is seen at one scale (what `Comparer.retrieve` does with its library)."""
+    if comparer.config.signature != "ldsift" or comparer.config.signature_options.edge is not None:
+        return comparer
+    return comparer.with_options(ldsift_edge=common_edge(meshes))
+
+
 def _as_calibrated(ranking: Any, config: ComparisonConfig) -> Any:
     """``ranking`` (a `wpot.maps.retrieval.ClassRanking`), marked as not calibrated unless its costs came from the
-    signature its probability was calibrated with: LD-SIFT at its defaults with the thickness column at
-    `wpot.maps.retrieval.CALIBRATED_THICKNESS`."""
+    signature its probability was calibrated with: LD-SIFT at its defaults (any common edge length) with the
+    thickness column at `wpot.maps.retrieval.CALIBRATED_THICKNESS`."""
     opts = config.signature_options
-    calibrated = config.signature == "ldsift" and opts == type(opts)(thickness=CALIBRATED_THICKNESS)
+    calibrated = (config.signature == "ldsift"
+                  and dataclasses.replace(opts, edge=None) == type(opts)(thickness=CALIBRATED_THICKNESS))
     return ranking if calibrated or not ranking.calibrated else dataclasses.replace(ranking, calibrated=False)
 
 

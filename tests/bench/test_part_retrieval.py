@@ -57,9 +57,11 @@ def test_stored_costs_are_scored_and_reported(pr, tmp_path):
     rng = np.random.default_rng(0)
     costs = rng.uniform(1, 2, size=(12, 4))
     wholes = ["dog3", "cat2", "cat4", "wolf1"]
-    store.add({"method": pr.method(2.0), "part": "cat0_limb-S", "library": pr.LIBRARY},
-              {"costs": costs.astype(np.float32), "wholes": np.array(wholes)})
     o = RetrievalOptions()
+    store.add({"method": pr.method(2.0, None, o.edge), "part": "cat0_limb-S", "library": pr.LIBRARY},
+              {"costs": costs.astype(np.float32), "wholes": np.array(wholes)})
+    # costs stored at each mesh's own edge lengths are another method: not scored as the library's
+    assert pr.method(2.0, None, "own") != pr.method(2.0, None, "library")
     rows = pr.score(JsonlStore(tmp_path, keys=("part", "library"), folder="costs"), parts, 2.0, None, o)
     assert set(rows) == {"cat0_limb-S"}  # dog2_head-L has no costs yet
     expect = pr.score_part(costs.astype(np.float32).astype(np.float64), wholes, "cat", o)
@@ -103,6 +105,7 @@ def test_logistic_fit_recovers_planted_coefficients_and_bins_by_count():
     y = (rng.random(x.size) < 1.0 / (1.0 + np.exp(-(0.5 + 3.0 * x)))).astype(float)
     a, b = cal.fit_logistic(x, y)
     assert a == pytest.approx(0.5, abs=0.1) and b == pytest.approx(3.0, abs=0.15)
+    assert all(np.isnan(cal.fit_logistic(x, np.ones_like(x))))  # every part right: nothing to fit
     p = np.linspace(0.05, 0.95, 100)
     ok = (np.arange(100) % 2).astype(float)
     bins = cal.reliability(p, ok)

@@ -381,6 +381,11 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     # LD-SIFT at the thickness the probability was calibrated for: printed and saved
     assert ref.calibrated and saved["probability"] == pytest.approx(ref.probability)
     assert f"probability that {ref.label} is right {ref.probability:.2f}" in r.stdout
+    # one LD-SIFT edge length for the part and the library, the library's: printed and saved
+    from wpot.signatures._frames import common_edge
+
+    edge = common_edge([wp_.load_mesh(p) for p in library])
+    assert saved["ldsift_edge"] == pytest.approx(edge) and f"library, {edge:.3g}" in r.stdout
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(dataset), "--k-nearest", "0")
     _one_line_error(bad, "--k-nearest must be at least 1")
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(tmp_path / "nowhere"))

@@ -113,6 +113,8 @@ def test_a_large_part_stands_for_its_farthest_point_samples():
 def test_bad_options_are_named():
     with pytest.raises(ValueError, match="max_points"):
         RetrievalOptions(max_points=2)
+    with pytest.raises(ValueError, match="edge"):
+        RetrievalOptions(edge="mine")
     with pytest.raises(ValueError, match="k_nearest"):
         RetrievalOptions(k_nearest=0)
     with pytest.raises((ValueError, TypeError), match="standardize"):
@@ -125,12 +127,18 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     import wpot
     from wpot.cost import cost_matrix
 
-    c = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    from wpot.comparison import at_common_edge
+    from wpot.signatures._frames import common_edge
+
+    base = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
     wholes = [wpot.example_mesh(300, seed=s) for s in (1, 2, 3)]
     part = wpot.cut(wpot.example_mesh(300, seed=4), np.arange(150))[0]
     labels = ["x", "y", "x"]
-    r = c.retrieve(part, wholes, labels)
+    r = base.retrieve(part, wholes, labels)
     assert isinstance(r, ClassRanking)
+    # LD-SIFT at one edge length, the library's, for the part and every whole (RetrievalOptions.edge="library")
+    c = at_common_edge(base, wholes)
+    assert c.config.signature_options.edge == common_edge(wholes) and base.config.signature_options.edge is None
     costs = np.column_stack([cost_matrix(c.signatures(part), c.signatures(w), metric="l2").min(axis=1)
                              for w in wholes])
     ref = rank_classes(costs, labels)
@@ -142,6 +150,12 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     assert ref.calibrated and not r.calibrated and np.isnan(r.probability)
     with pytest.raises(ValueError, match="wholes and labels must be of one length"):
         c.retrieve(part, wholes, labels[:2])
+    # each mesh at its own edge lengths (the paper's): the costs of the comparer as it was given
+    own = base.retrieve(part, wholes, labels, options=RetrievalOptions(edge="own"))
+    mine = np.column_stack([cost_matrix(base.signatures(part), base.signatures(w), metric="l2").min(axis=1)
+                            for w in wholes])
+    np.testing.assert_allclose(own.scores, rank_classes(mine, labels).scores, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(own.whole_costs, r.whole_costs)
     # a part of more than max_points vertices: the same ranking as rank_classes on its sample's rows, weighted
     from wpot.maps.retrieval import retrieval_sample
 

@@ -96,6 +96,11 @@ class LocateOptions:
         which closes the gaps between the images without reaching far past the part's border
     rival_tol : a candidate match belongs to the chosen placement when its vertex lies within this (a fraction
         of √area(whole)) of where the map sends its anchor; the others may form a rival placement (step 5)
+    edge : for LD-SIFT in `Comparer.locate`, when the comparer leaves its edge length unset
+        (`wpot.signatures.LDSIFTOptions.edge`): ``"own"`` (default) each mesh's own, the paper's Eq. 1;
+        ``"whole"`` the whole's (`wpot.signatures._frames.common_edge`) for both meshes, so that a part meshed at
+        another density sees images of its whole's size. "whole" locates parts meshed apart better and parts cut
+        from a mesh like the whole's worse, which decided the default (the docs' Results page)
     """
 
     n_anchors: int = 64
@@ -107,6 +112,7 @@ class LocateOptions:
     orient: bool = True
     region_tol: float = 0.03
     rival_tol: float = 0.1
+    edge: str = "own"
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -118,6 +124,7 @@ class LocateOptions:
         _validate.boolean("orient", self.orient)
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
+        _validate.one_of("edge", self.edge, ("whole", "own"))
 
 
 @dataclass(frozen=True)

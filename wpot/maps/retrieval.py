@@ -40,12 +40,15 @@ __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
-#: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options) and
-#: measured on its check parts (the docs' Results page)
+#: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options, each mesh
+#: at its own edge lengths: with the library's, the default since, the development set has no miss left to fit)
+#: and measured on its check parts (the docs' Results page)
 CALIBRATION = (-0.406, 28.707)
 #: the LD-SIFT thickness weight `CALIBRATION` was fitted with (LD-SIFT at its other defaults): `Comparer.retrieve`
 #: marks a ranking made with other signatures as not calibrated
 CALIBRATED_THICKNESS = 2.0
+#: the values of `RetrievalOptions.edge`
+EDGES = ("library", "own")
 #: the fixed rule that `ClassRanking.probability` replaces: a margin below this was called doubtful
 MARGIN_DOUBT = 0.12
 
@@ -73,17 +76,23 @@ class RetrievalOptions:
     max_points : a part of more vertices stands for this many of them (`retrieval_sample`: Euclidean
         farthest-point samples, each weighing its cell's vertex count), so the cost of a lookup stops growing
         with the part's size and a densely meshed part counts its area, not its vertices; None: every vertex
+    edge : for LD-SIFT in `Comparer.retrieve`, when the comparer leaves its edge length unset
+        (`wpot.signatures.LDSIFTOptions.edge`): ``"library"`` (default) one edge length for the part and every
+        whole, the library's (`wpot.signatures._frames.common_edge`), so that a part meshed at another density
+        sees the images its whole does; ``"own"``: each mesh's own, the paper's Eq. 1
     """
 
     k_nearest: int = 3
     standardize: bool = True
     max_points: int | None = 1500
+    edge: str = "library"
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("k_nearest", self.k_nearest, 1)
         _validate.boolean("standardize", self.standardize)
         if self.max_points is not None:
             object.__setattr__(self, "max_points", _validate.integer_at_least("max_points", self.max_points, 3))
+        _validate.one_of("edge", self.edge, EDGES)
 
 
 def _options(options: RetrievalOptions | None) -> RetrievalOptions:

@@ -70,7 +70,21 @@ def check_K(K: float) -> float:
     return positive_finite(K, "K")
 
 
-def local_frames(mesh: Mesh, *, K: float = 3.0) -> LocalFrames:
+def check_edge(edge: float) -> float:
+    return positive_finite(edge, "edge", " (an edge length in the mesh's units)")
+
+
+def common_edge(meshes) -> float:
+    """One edge length for a set of meshes (a library, or a part and its whole): the median over the meshes of
+    each one's median vertex mean edge length D(v), to 3 significant digits (so that the signature cache keys
+    it is part of stay the same when a library changes a little)."""
+    meds = [float(np.median(check_mesh(m).one_ring_mean_edge_length)) for m in meshes]
+    if not meds:
+        raise ValueError("common_edge needs at least one mesh")
+    return float(f"{np.median(meds):.3g}")
+
+
+def local_frames(mesh: Mesh, *, K: float = 3.0, edge: float | None = None) -> LocalFrames:
     """Scale S(v) and dominant-plane frame (e1, e2, n) of every vertex (paper Eq. 1 and 28).
 
     ``N(v)`` is the set of vertices within Euclidean distance ``S(v) = K D(v)`` of v, v included (a
@@ -91,6 +105,9 @@ def local_frames(mesh: Mesh, *, K: float = 3.0) -> LocalFrames:
     ----------
     mesh : `wpot.Mesh` with D(v) > 0 at every vertex
     K : scale factor (paper: 3)
+    edge : one edge length, in the mesh's units, taken as D(v) at every vertex (``S = K edge``): a scale that does
+        not follow the mesh's density, so two meshes of one surface at different densities get the same images;
+        None (default): each vertex's own mean edge length, the paper's Eq. 1
 
     Returns
     -------
@@ -100,7 +117,7 @@ def local_frames(mesh: Mesh, *, K: float = 3.0) -> LocalFrames:
     K = check_K(K)
     v = mesh.vertices
     n_v = len(v)
-    S = K * mesh.one_ring_mean_edge_length
+    S = K * (mesh.one_ring_mean_edge_length if edge is None else np.full(n_v, check_edge(edge)))
     tree = cKDTree(v)
     balls = tree.query_ball_point(v, r=S)
     counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=n_v)

@@ -72,7 +72,8 @@ import numpy as np
 
 from wpot._validate import integer_at_least, nonnegative_finite
 from wpot.mesh import Mesh
-from wpot.signatures._frames import MIN_NEIGHBOURS, LocalFrames, check_K, check_mesh, local_frames, positive_finite
+from wpot.signatures._frames import (MIN_NEIGHBOURS, LocalFrames, check_edge, check_K, check_mesh, local_frames,
+                                     positive_finite)
 from wpot.signatures._thickness import VERSION as THICKNESS_VERSION
 from wpot.signatures._thickness import thickness
 from wpot.signatures.base import Signature, SignatureOptions, option, register_signature
@@ -139,18 +140,19 @@ def ldsift_images(
     slab: float = SLAB,
     device: str | None = None,
     frames: LocalFrames | None = None,
+    edge: float | None = None,
 ) -> np.ndarray:
     """The LD-SIFT depth images of every vertex, before the 8-bit stretch: (N, R, R) float32 heights.
 
     Heights along each vertex's n, in the slab ``[-slab S(v), slab S(v)]`` (default `SLAB`): rays start at
     ``+slab S(v)``, deeper surfaces and empty pixels read ``-slab S(v)``. ``frames`` may pass precomputed
-    `local_frames`.
+    `local_frames`; ``edge`` is `local_frames`'s (one D for every vertex).
     """
     from render.raycast import DepthRenderer
 
     slab = _check_slab(slab)
     mesh = check_mesh(mesh)
-    fr = local_frames(mesh, K=K) if frames is None else frames
+    fr = local_frames(mesh, K=K, edge=edge) if frames is None else frames
     raw = DepthRenderer(mesh, device=device).render(
         mesh.vertices, fr.frames, fr.half_sizes, resolution, ceiling=slab
     )
@@ -165,7 +167,7 @@ def to_slab(images: np.ndarray, half_sizes: np.ndarray, *, slab: float = SLAB) -
 
 def ldsift(
     mesh: Mesh, *, K: float = 3.0, resolution: int = 21, slab: float = SLAB, device: str | None = None,
-    frames: LocalFrames | None = None,
+    frames: LocalFrames | None = None, edge: float | None = None,
 ) -> np.ndarray:
     """LD-SIFT signature of every vertex (paper sections 2.2 and 3.1).
 
@@ -180,6 +182,8 @@ def ldsift(
         the broad features of smooth shapes (module docstring)
     device : Warp device for the depth rendering; None means Warp's default device
     frames : precomputed `local_frames` of ``mesh`` at this K (computed here when None)
+    edge : one edge length D for every vertex (``S = K edge``, in the mesh's units) instead of each vertex's own
+        mean edge length: meshes of one surface at different densities then see the same images (`local_frames`)
 
     Returns
     -------
@@ -194,7 +198,7 @@ def ldsift(
 
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 8:
         raise ValueError(f"resolution must be an integer >= 8 (SIFT needs room for its 4 x 4 bins), got {resolution!r}")
-    images = ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device, frames=frames)
+    images = ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device, frames=frames, edge=edge)
     return sift_at_center(to_uint8(images))
 
 
@@ -211,6 +215,10 @@ class LDSIFTOptions(SignatureOptions):
         it only when it is not `SLAB` (``key_omit_default``), so keys of runs at the default do not name it.
     thickness : weight w of the size column (`THICKNESS_UNIT` w log t(v), t the local thickness,
         `wpot.signatures._thickness`); 0 (default) leaves it out; finite, >= 0. Keys carry it only when set.
+    edge : one edge length D for every vertex of every mesh, in the meshes' units (``S = K edge``), instead of each
+        vertex's own mean edge length D(v) (Eq. 1, None, the default): meshes of one surface at different
+        densities (a part meshed apart from its whole) then see the same images. `Comparer.retrieve` sets it to
+        its library's `wpot.signatures._frames.common_edge` unless given. Keys carry it only when set.
     """
 
     K: float = option(3.0, keyword="ldsift_K", help="scale factor K: the image of a vertex covers 2 K D(v) (default {default:g})")
@@ -230,8 +238,14 @@ class LDSIFTOptions(SignatureOptions):
              "TOSCA8; see the docs' Results page)",
     )
 
+    edge: float | None = option(None, keyword="ldsift_edge", key_omit_default=True,
+                                help="one edge length D for every vertex, in the meshes' units (default: each "
+                                     "vertex's own, the paper's)")
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "thickness", nonnegative_finite("thickness", self.thickness))
+        if self.edge is not None:
+            object.__setattr__(self, "edge", check_edge(self.edge))
         object.__setattr__(self, "K", check_K(self.K))
         object.__setattr__(self, "resolution", integer_at_least("resolution", self.resolution, 8))
         object.__setattr__(self, "slab", SLAB if self.slab is None else _check_slab(self.slab))
@@ -272,6 +286,8 @@ class LDSIFT(Signature):
         if self.options.thickness:
             out["thickness"] = {"signature": "ldsift_thickness", "K": self.options.K, "version": THICKNESS_VERSION,
                                 "frames_version": VERSION}
+            if self.options.edge is not None:  # the frames' neighbourhoods follow it
+                out["thickness"]["edge"] = self.options.edge
         return out
 
     def compute_pieces(self, mesh: Mesh, names: Sequence[str]) -> dict[str, np.ndarray]:
@@ -281,7 +297,7 @@ class LDSIFT(Signature):
         if bad:
             raise ValueError(f"LD-SIFT's cached pieces are 'descriptor' and 'thickness', got {bad}")
         o = self.options
-        fr = local_frames(check_mesh(mesh), K=o.K)
+        fr = local_frames(check_mesh(mesh), K=o.K, edge=o.edge)
         out = {}
         if "descriptor" in names:
             out["descriptor"] = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
