@@ -1,8 +1,7 @@
 """Simplified copies of large meshes, and the maps between a mesh and its copy.
 
-The spectral steps (`wpot.eigenpairs`, `wpot.zoomout`) cost grow faster than the vertex count: 500 eigenpairs take
-seconds at 5,000 vertices and many minutes at 60,000. A shape's low-frequency content, which is what they use,
-survives a careful simplification, so a large mesh can be matched through a copy of about 10,000 vertices and the
+The cost of the spectral steps (`wpot.eigenpairs`, `wpot.zoomout`) grows faster than the vertex count (the docs'
+Results page, §6). A shape's low-frequency content, which is what they use, survives a careful simplification, so a large mesh can be matched through a copy of about 10,000 vertices and the
 answer carried back to every vertex:
 
 * `simplify` makes the copy by quadric-error decimation (``fast-simplification``, Garland and Heckbert's
@@ -133,8 +132,7 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simpl
         warnings.simplefilter("ignore", MeshWarning)  # the defects cleaned() repairs next
         rough = Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), name=name)
     # a connected shape stays connected: pieces the decimation split off are dropped
-    coarse = rough.cleaned(keep_largest_component=mesh.n_components == 1)[0]
-    coarse = Mesh(coarse.vertices, coarse.faces, name=name, warn=False)
+    coarse = rough.cleaned(keep_largest_component=mesh.n_components == 1)[0]  # keeps the name
     corners, weights = _closest_points(coarse, mesh.vertices, device)
     nearest = cKDTree(mesh.vertices).query(coarse.vertices)[1].astype(np.int64)
     return Simplified(mesh, coarse, corners, weights, nearest)

@@ -91,8 +91,8 @@ ORIENTATION_DOUBT = 0.1
 #: the spectral resolution to which every candidate is refined before they are compared (chosen on FAUST pairs
 #: outside its test list, checked on TOSCA pairs outside it: the docs' Results page)
 CHOICE_K = 60
-#: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`): the spectra of
-#: two such copies take about 20 s on a 2-core CPU, those of two 60,000-vertex meshes many minutes
+#: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`), where the spectra
+#: stay affordable on a laptop CPU (their times at 10,000 and 60,000 vertices: the docs' Results page, §6)
 ZOOMOUT_MAX_VERTICES = 10_000
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
