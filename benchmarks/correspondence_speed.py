@@ -4,9 +4,10 @@ pair, at about 10,000 and 60,000 vertices.
 
 The meshes: two FAUST shapes (``faust_5k``, two people in two poses), each midpoint-subdivided (4x the faces) and,
 where that overshoots, simplified to the target vertex count by quadric decimation (``fast-simplification``):
-independent triangulations of the two shapes at the size asked. Meshes above `wpot.maps.zoomout.ZOOMOUT_MAX_VERTICES`
-are matched through simplified copies (`wpot.simplify`): the comparison runs on the copies and its correspondence is
-carried back to every vertex, and `wpot.zoomout` refines through the same copies. For each size it times
+independent triangulations of the two shapes at the size asked. It runs what ``wpot compare A B --zoomout`` runs:
+`wpot.Comparer` on the meshes themselves, whose WKS of a mesh above `wpot.spectral.SPECTRAL_MAX_VERTICES` vertices is
+its simplified copy's (`wpot.simplify`) blended to every vertex, then `wpot.zoomout`, which refines through the same
+copies. For each size it times
 
 * **cold**: the copies and their Laplace-Beltrami spectra (computed, not read from a cache; run with a fresh
   ``$WPOT_CACHE_DIR``), then the comparison and the refinement (the cold total is the sum of the two columns);
@@ -63,8 +64,9 @@ def main(argv=None) -> int:
     from wpot.comparison import Comparer
     from wpot.datasets import tosca_vts
     from wpot.io import load_mesh
-    from wpot.maps.zoomout import ZOOMOUT_MAX_VERTICES, zoomout
-    from wpot.simplify import lift_map, simplify
+    from wpot.maps.zoomout import zoomout
+    from wpot.simplify import simplify
+    from wpot.spectral import SPECTRAL_MAX_VERTICES
 
     vtx = a.data / "faust_5k" / "vtx_5k"
     if not vtx.is_dir():
@@ -78,9 +80,8 @@ def main(argv=None) -> int:
         dst = truth_on(mb, small[1], tosca_vts(vtx, y))
         sym = truth_on(mb, small[1], tosca_vts(vtx, y, symmetric=True))
         t0 = time.perf_counter()
-        # above ZOOMOUT_MAX_VERTICES, the comparison runs on simplified copies (as zoomout refines through them)
-        # and its correspondence is carried back to every vertex: the recipe of wpot.simplify's docstring
-        sa, sb = simplify(ma, ZOOMOUT_MAX_VERTICES), simplify(mb, ZOOMOUT_MAX_VERTICES)
+        # above SPECTRAL_MAX_VERTICES, the spectra are the simplified copies' (the WKS signatures' and zoomout's)
+        sa, sb = simplify(ma, SPECTRAL_MAX_VERTICES), simplify(mb, SPECTRAL_MAX_VERTICES)
         for m in (sa.coarse, sb.coarse):  # cold: these meshes are new to the process (and to a fresh $WPOT_CACHE_DIR)
             if wpot.eigenpairs(m, 500).from_cache:
                 print(f"note: the spectrum of a {m.n_vertices}-vertex mesh came from $WPOT_CACHE_DIR: 'cold' is not")
@@ -88,8 +89,9 @@ def main(argv=None) -> int:
         comparer = Comparer(max_vertices=500)
 
         def matched() -> np.ndarray:
-            c = comparer.compare(sa.coarse, sb.coarse)  # signatures (from the cached spectra), then the transport
-            return lift_map(sa, sb, c.correspondence)
+            # what `wpot compare A B --zoomout` does: WKS through the copies (from the cached spectra), the
+            # transport on samples of the meshes themselves
+            return comparer.compare(ma, mb).correspondence
 
         t0 = time.perf_counter()
         res = zoomout(ma, mb, matched())

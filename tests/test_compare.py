@@ -216,6 +216,21 @@ def test_a_problem_runs_dense_when_it_fits_else_matrix_free_else_names_max_verti
         choose_cost_mode(solver, 50_000, 50_000, 100, 2**20)
 
 
+def test_a_transport_over_every_vertex_of_two_large_meshes_warns_on_a_cpu_naming_max_vertices():
+    import warnings
+
+    from wpot.cli import cli_words
+    from wpot.comparison import ComparisonWarning, check_transport_size
+
+    with pytest.warns(ComparisonWarning, match="a 60000 x 60000 transport over every vertex .* max_vertices=2000") as w:
+        check_transport_size(60_000, 60_000, "cpu")
+    assert "--max-vertices 2000 compares" in cli_words(str(w[0].message))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_transport_size(20_000, 20_000, "cpu")  # about a minute: no warning
+        check_transport_size(60_000, 60_000, "cuda:0")
+
+
 def test_history_at_reads_the_last_value_at_or_below_each_beta():
     h = np.array([[1e3, 5.0], [1e4, 4.0], [1e5, 3.5]])
     np.testing.assert_array_equal(history_at(h, np.array([1e2, 1e3, 1e4, 1e6])), [np.nan, 5.0, 4.0, 3.5])

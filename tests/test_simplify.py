@@ -94,3 +94,59 @@ def test_bad_sizes_are_named(big):
         lift_map(s, s, np.zeros(5, dtype=int))
     with pytest.raises(ValueError, match="vertex_map"):
         s.restrict_map(s, np.zeros(5, dtype=int))
+
+
+# ----------------------------------------------------------------------------- spectral signatures through the copy
+def _wks(max_vertices: int, n_eigen: int = 40):
+    from wpot.signatures import WKS
+    from wpot.signatures._wks import WKSOptions
+
+    return WKS(WKSOptions(n_eigen=n_eigen, n_energies=40, max_vertices=max_vertices), spectrum_cache=False)
+
+
+def test_a_spectral_signature_of_a_large_mesh_is_its_copys_blended_to_every_vertex(big):
+    """Above ``max_vertices`` the eigenvalues are the copy's, close to the mesh's own (the lowest frequencies
+    survive decimation), and the WKS blended from the copy differs from the mesh's own WKS less than the WKS of
+    another triangulation of the same surface at the mesh's own density does (the variation every comparison
+    of two meshes already lives with)."""
+    from scipy.spatial import cKDTree
+
+    through, direct = _wks(1200), _wks(0)
+    assert through.copy_of(big) is not None and direct.copy_of(big) is None
+    ev_copy, ev_full = through.fit_input(big).evals, direct.fit_input(big).evals
+    assert len(ev_copy) == len(ev_full) == 40
+    np.testing.assert_allclose(ev_copy[1:], ev_full[1:], rtol=0.02)
+    direct.fit([big])
+    through.set_state({"energies": direct.energies})
+    a, b = through(big), direct(big)
+    assert a.shape == b.shape == (big.n_vertices, 40)
+    other = mirror_symmetric(big.n_vertices, seed=11)  # the same surface, its own random triangulation
+    c = direct(other)[cKDTree(other.vertices).query(big.vertices)[1]]
+    assert np.linalg.norm(a - b) < 0.8 * np.linalg.norm(c - b)
+
+
+def test_the_copy_is_made_once_and_a_small_mesh_is_seen_as_it_is(big):
+    s = _wks(1200)
+    assert s.copy_of(big) is s.copy_of(big)
+    small = mirror_symmetric(300, seed=1)
+    assert s.copy_of(small) is None and s.spectral_mesh(small) is small
+    import pickle
+
+    assert pickle.loads(pickle.dumps(s)).copy_of(big).coarse.n_vertices == s.copy_of(big).coarse.n_vertices
+
+
+def test_spectral_max_vertices_is_checked_and_kept_out_of_keys_at_its_default():
+    from wpot.signatures import WKS
+    from wpot.signatures._wks import WKSOptions
+    from wpot.spectral import SPECTRAL_MAX_VERTICES
+
+    with pytest.raises(ValueError, match=r"spectral_max_vertices must be 0 \(off\) or at least 1000, got 999"):
+        WKSOptions(max_vertices=999)
+    assert WKSOptions(n_eigen=40, max_vertices=1200).copy_vertices == 1200
+    assert WKSOptions(n_eigen=800, max_vertices=1200).copy_vertices == 1600  # the copy resolves the eigenpairs
+    assert WKSOptions(max_vertices=0).copy_vertices == 0
+    with pytest.raises(ValueError, match="spectral_max_vertices"):
+        WKSOptions(max_vertices=-1)
+    assert WKSOptions().max_vertices == SPECTRAL_MAX_VERTICES
+    assert "max_vertices" not in WKS().params() and "spectral_max_vertices" not in WKS().run_key()
+    assert WKS(WKSOptions(max_vertices=0)).run_key()["spectral_max_vertices"] == 0

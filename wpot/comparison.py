@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -53,6 +54,7 @@ __all__ = [
     "PENALTY_SCALES",
     "TRANSPORTS",
     "Comparison",
+    "ComparisonWarning",
     "Comparer",
     "ComparisonConfig",
     "ProblemTooLargeError",
@@ -178,6 +180,24 @@ def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: floa
     )
 
 
+#: above this many pairs of points (20,000 a side), a transport over every vertex warns on a CPU device
+#: (`check_transport_size`): the exact solver's time there grows from about a minute (the docs' Results page, §1)
+LARGE_TRANSPORT_PAIRS = 20_000 ** 2
+
+
+class ComparisonWarning(UserWarning):
+    """A comparison that will run, but not as the caller likely expects (e.g. for hours)."""
+
+
+def check_transport_size(n1: int, n2: int, device: str) -> None:
+    """Warn (`ComparisonWarning`) when an ``n1 × n2`` transport on a CPU ``device`` exceeds
+    `LARGE_TRANSPORT_PAIRS`, naming ``max_vertices``: a large mesh compared vertex by vertex runs for hours."""
+    if str(device).startswith("cpu") and n1 * n2 > LARGE_TRANSPORT_PAIRS:
+        warnings.warn(f"a {n1} x {n2} transport over every vertex can take an hour or more on a CPU; max_vertices=2000 "
+                      "compares 2000 farthest-point samples of each mesh instead, and the correspondence still covers "
+                      "every vertex", ComparisonWarning, stacklevel=3)
+
+
 # ------------------------------------------------------------------------------------------- mesh size
 #: the fewest vertices of a mesh in a comparison: three points to sample (`SamplerOptions.max_vertices`) and
 #: three matched pairs to fit a registration
@@ -214,8 +234,10 @@ def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
     """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
 
     if isinstance(stage, SpectralSignature):
-        return (f"Laplace-Beltrami spectrum of {label} ({mesh.n_vertices} vertices, "
-                f"{min(int(stage.options.n_eigen), mesh.n_vertices)} eigenpairs)")
+        cap = stage.options.copy_vertices
+        size = (f"{mesh.n_vertices} vertices" if not cap or mesh.n_vertices <= cap
+                else f"{mesh.n_vertices} vertices, through a simplified copy of {cap}")
+        return f"Laplace-Beltrami spectrum of {label} ({size}, {min(int(stage.options.n_eigen), mesh.n_vertices)} eigenpairs)"
     return f"fitting {stage.title} to {label} ({mesh.n_vertices} vertices)"
 
 
@@ -627,6 +649,7 @@ class Comparer:
         self.sampler.check_cells(mesh_a, mesh_b)
         pa, pb = self._reported_points(mesh_a, "A"), self._reported_points(mesh_b, "B")
         what = "every vertex" if pa.subsample is None and pb.subsample is None else "farthest-point samples"
+        check_transport_size(len(pa.signatures), len(pb.signatures), self.device)
         with self.progress.stage(f"{self.transport} transport on {what}, {len(pa.signatures)} x {len(pb.signatures)}"):
             res = solve_with_progress(self.solver, self.transport_problem(pa, pb), self.progress)
         hist = res.energy_history

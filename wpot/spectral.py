@@ -59,6 +59,7 @@ __all__ = [
     "SpectralWarning",
     "choose_solver",
     "spectrum_cache",
+    "SPECTRAL_MAX_VERTICES",
 ]
 
 #: "auto" picks the dense solver at or below this many vertices, whatever k
@@ -70,6 +71,10 @@ DENSE_RATIO = 4.0
 DEFAULT_SHIFT = -1e-2
 #: a computed eigenvalue counts as zero when below this fraction of the first nonzero one
 ZERO_RTOL = 1e-6
+#: the spectral steps (WKS and HKS signatures, `wpot.zoomout`) see a mesh of more vertices through a simplified copy
+#: of this many (`wpot.simplify`), where the spectra stay affordable on a laptop CPU (their times at 10,000 and
+#: 60,000 vertices: the docs' Results page, §6)
+SPECTRAL_MAX_VERTICES = 10_000
 
 Solver = Literal["auto", "dense", "lanczos", "sliced"]
 SOLVERS = ("auto", "dense", "lanczos", "sliced")

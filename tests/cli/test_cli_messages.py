@@ -371,6 +371,8 @@ BAD_VALUES = {
     "--ldsift-thickness": (["--signature", "ldsift", "--ldsift-thickness", "-1"],
                            "--ldsift-thickness must be a finite number >= 0, got -1"),
     "--hks-n-times": (["--signature", "hks", "--hks-n-times", "1"], "--hks-n-times must be an integer >= 2, got 1"),
+    "--spectral-max-vertices": (["--spectral-max-vertices", "500"],
+                                "--spectral-max-vertices must be 0 (off) or at least 1000, got 500"),
     "--match-ratio": (["--match-ratio", "1.5"], "--match-ratio must be in (0, 1], got 1.5"),
     "--device": (["--device", "nowhere"], "--device: unknown Warp device 'nowhere'"),
     "--energies-from": (["--energies-from", "no-such-run"], "--energies-from: no such run folder: no-such-run"),

@@ -72,7 +72,7 @@ def test_signature_options_routes_flat_keywords():
     assert signature_options("ldsift", ldsift_slab=None).slab == 1.0  # None: the default slab
     assert signature_options("wks") == WKSOptions()
     with pytest.raises(ValueError, match=r"unknown signature options \['bogus', 'n_eigenn'\] for signature 'wks'; "
-                                         r"its options: \['n_eigen', 'n_energies', 'scale_invariant'\]"):
+                                         r"its options: \['n_eigen', 'n_energies', 'scale_invariant', 'spectral_max_vertices'\]"):
         signature_options("wks", n_eigen=10, bogus=1, n_eigenn=3)
     with pytest.raises(ValueError, match="signature must be one of"):
         signature_options("nope")
@@ -83,7 +83,7 @@ def test_options_are_frozen_and_validated():
     with pytest.raises(dataclasses.FrozenInstanceError):
         o.n_eigen = 3  # type: ignore[misc]
     assert o.replace(n_eigen=40.0).n_eigen == 40 and o.to_dict() == {"n_eigen": 500, "n_energies": 200,
-                                                                     "scale_invariant": False}
+                                                                     "scale_invariant": False, "max_vertices": 10_000}
     assert WKSOptions.from_dict({"n_energies": 30}) == WKSOptions(n_energies=30)
     with pytest.raises(ValueError, match=r"unknown WKSOptions fields \['K'\]"):
         WKSOptions.from_dict({"K": 3})

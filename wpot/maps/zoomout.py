@@ -78,6 +78,7 @@ from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 from wpot.simplify import lift_map, simplify
+from wpot.spectral import SPECTRAL_MAX_VERTICES
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
            "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "ZOOMOUT_MAX_VERTICES"]
@@ -91,9 +92,9 @@ ORIENTATION_DOUBT = 0.1
 #: the spectral resolution to which every candidate is refined before they are compared (chosen on FAUST pairs
 #: outside its test list, checked on TOSCA pairs outside it: the docs' Results page)
 CHOICE_K = 60
-#: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`), where the spectra
-#: stay affordable on a laptop CPU (their times at 10,000 and 60,000 vertices: the docs' Results page, §6)
-ZOOMOUT_MAX_VERTICES = 10_000
+#: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`): the spectral
+#: signatures' `wpot.spectral.SPECTRAL_MAX_VERTICES`, so that both read one cached spectrum of each copy
+ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))

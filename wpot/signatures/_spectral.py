@@ -5,6 +5,12 @@
 (`wpot.spectral.eigenpairs`, through the instance's spectrum cache, so every spectral signature of an
 all-vs-all reads the same cached spectra): its `fit_input` is a shape's eigenvalues, and a subclass says in
 `fit_from` how a grid follows from them.
+
+A mesh of more than ``max_vertices`` vertices (`wpot.spectral.SPECTRAL_MAX_VERTICES`) is seen through a simplified
+copy of that many (`wpot.simplify`): its eigenvalues are the copy's, and its signatures the copy's, blended to every
+vertex at its closest point of the copy (`wpot.simplify.Simplified.interpolate`). The eigenpairs a spectral
+signature uses are a surface's lowest frequencies, which the copy keeps, while their cost grows faster than the
+vertex count.
 """
 from __future__ import annotations
 
@@ -18,7 +24,7 @@ from numpy.typing import ArrayLike
 from wpot._validate import boolean, integer_at_least
 from wpot.mesh import Mesh
 from wpot.signatures.base import Signature, SignatureOptions, option
-from wpot.spectral import Spectrum, eigenpairs
+from wpot.spectral import SPECTRAL_MAX_VERTICES, Spectrum, eigenpairs
 
 __all__ = ["ZERO_EVAL_RTOL", "SpectralOptions", "SpectralSignature", "check_eigenpairs", "mesh_spectrum",
            "positive_evals", "spectrum_summary"]
@@ -95,6 +101,9 @@ def spectrum_summary(spectrum: Spectrum) -> Spectrum:
                     fingerprint=s.fingerprint, normalized=s.normalized)
 
 
+#: the smallest nonzero ``spectral_max_vertices``: a smaller copy loses the shape's detail
+MIN_COPY_VERTICES = 1000
+
 #: the fewest Laplace-Beltrami eigenpairs a spectral signature (WKS, HKS) takes: ``n_eigen`` below it is refused,
 #: and a mesh with fewer vertices than ``min(n_eigen, MIN_EIGENPAIRS)`` cannot be compared
 #: (`wpot.comparison.min_vertices`). Below this, every vertex's signature is a mix of a handful of eigenfunctions, and
@@ -113,6 +122,9 @@ class SpectralOptions(SignatureOptions):
         with fewer vertices uses all of them. One value serves every spectral
         signature, so they share one cached spectrum.
     scale_invariant : False: the meshes at their own size (the paper; size counts); True: scaled to area 1.
+    max_vertices : a mesh of more vertices is seen through a simplified copy of this many (the module docstring),
+        or of ``2 n_eigen`` when that is more (`copy_vertices`); 0: every mesh as it is. Keys carry it only when
+        not at its default.
     """
 
     n_eigen: int = option(500, keyword="n_eigen", flag="--n-eigen", help="Laplace-Beltrami eigenpairs (default {default})")
@@ -122,9 +134,25 @@ class SpectralOptions(SignatureOptions):
              "paper; then all meshes must share one unit of length)",
     )
 
+    max_vertices: int = option(
+        SPECTRAL_MAX_VERTICES, keyword="spectral_max_vertices", flag="--spectral-max-vertices", key_omit_default=True,
+        help="meshes of more vertices get their spectral signature on a simplified copy of this many, blended back "
+             "to every vertex (default {default}; 0: always on the mesh itself)",
+    )
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "n_eigen", integer_at_least("n_eigen", self.n_eigen, MIN_EIGENPAIRS))
         object.__setattr__(self, "scale_invariant", boolean("scale_invariant", self.scale_invariant))
+        n = integer_at_least("spectral_max_vertices", self.max_vertices, 0)
+        if 0 < n < MIN_COPY_VERTICES:
+            raise ValueError(f"spectral_max_vertices must be 0 (off) or at least {MIN_COPY_VERTICES}, got {n}")
+        object.__setattr__(self, "max_vertices", n)
+
+    @property
+    def copy_vertices(self) -> int:
+        """The size of the simplified copy a larger mesh is seen through: ``max_vertices``, raised to ``2 n_eigen``
+        so that the copy resolves the eigenpairs asked; 0 when off."""
+        return max(self.max_vertices, 2 * self.n_eigen) if self.max_vertices else 0
 
 
 class SpectralSignature(Signature):
@@ -132,13 +160,54 @@ class SpectralSignature(Signature):
     from the shapes' eigenvalues (`fit_input`; the subclass's `fit_from` builds its grid from them)."""
 
     needs_fit = True
+    #: how many simplified copies an instance keeps (`copy_of`): a comparison's two meshes
+    KEEP_COPIES = 2
+
+    def copy_of(self, mesh: Mesh) -> Any:
+        """The `wpot.simplify.Simplified` copy ``mesh`` is seen through, or None when it is seen as it is (at most
+        `SpectralOptions.copy_vertices` vertices, or ``max_vertices`` 0). The last `KEEP_COPIES` copies are kept, so fitting and
+        evaluating a mesh simplify it once."""
+        n = self.options.copy_vertices
+        if not n or mesh.n_vertices <= n:
+            return None
+        copies = self.__dict__.setdefault("_copies", {})
+        key = (mesh.fingerprint, n)
+        if key not in copies:
+            from wpot.simplify import simplify  # imports Warp: only for large meshes
+
+            while len(copies) >= self.KEEP_COPIES:
+                copies.pop(next(iter(copies)))
+            copies[key] = simplify(mesh, n, device=self.device)
+        return copies[key]
+
+    def spectral_mesh(self, mesh: Mesh) -> Mesh:
+        """The mesh whose spectrum stands for ``mesh``'s: its simplified copy (`copy_of`), or itself."""
+        s = self.copy_of(mesh)
+        return mesh if s is None else s.coarse
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_copies", None)  # large; a worker process simplifies again
+        return state
 
     def fit_input(self, mesh: Any) -> Spectrum:
         """The eigenvalues of ``mesh`` (a `Spectrum` with a placeholder for the eigenvectors, `spectrum_summary`),
-        from ``min(n_eigen, N)`` eigenpairs through the instance's spectrum cache, where the eigenvectors wait
-        for the signature itself."""
+        from ``min(n_eigen, N)`` eigenpairs of `spectral_mesh` through the instance's spectrum cache, where the
+        eigenvectors wait for the signature itself."""
         if not isinstance(mesh, Mesh):
             raise TypeError(f"fit_input expects a wpot.Mesh, got {type(mesh).__name__}")
+        m = self.spectral_mesh(mesh)
         # a mesh with fewer vertices than n_eigen uses all its eigenpairs, as the signature itself does
-        s = eigenpairs(mesh, min(self.options.n_eigen, mesh.n_vertices), cache=self.spectrum_cache)
+        s = eigenpairs(m, min(self.options.n_eigen, m.n_vertices), cache=self.spectrum_cache)
         return spectrum_summary(s)
+
+    def __call__(self, mesh: Mesh) -> np.ndarray:
+        """(N, d) float64 signatures of every vertex of ``mesh``: `evaluate` on the mesh, or on its simplified copy
+        and blended to every vertex (`copy_of`)."""
+        self.check_fitted()
+        s = self.copy_of(mesh)
+        return self.evaluate(mesh) if s is None else s.interpolate(self.evaluate(s.coarse))
+
+    def evaluate(self, mesh: Mesh) -> np.ndarray:
+        """(N, d) float64 signatures of the vertices of ``mesh`` itself, by the fitted state."""
+        raise NotImplementedError

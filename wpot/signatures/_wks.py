@@ -317,9 +317,8 @@ class WKS(SpectralSignature):
         o = self.options
         self.set_state({"energies": wks_energies(list(inputs), n_energies=o.n_energies, scale_invariant=o.scale_invariant).energies})
 
-    def __call__(self, mesh: Mesh) -> np.ndarray:
+    def evaluate(self, mesh: Mesh) -> np.ndarray:
         """(N, n_energies) float64, `wks` of ``mesh`` on the fitted grid."""
-        self.check_fitted()
         o = self.options
         return np.asarray(wks(mesh, n_eigen=o.n_eigen, n_energies=o.n_energies, energies=self.energies,
                               scale_invariant=o.scale_invariant, cache=self.spectrum_cache), dtype=np.float64)

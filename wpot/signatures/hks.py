@@ -252,8 +252,7 @@ class HKS(SpectralSignature):
         o = self.options
         self.set_state({"times": hks_times(list(inputs), n_times=o.n_times, scale_invariant=o.scale_invariant)})
 
-    def __call__(self, mesh: Mesh) -> np.ndarray:
+    def evaluate(self, mesh: Mesh) -> np.ndarray:
         """(N, n_times) float64, `hks` of ``mesh`` at the fitted times."""
-        self.check_fitted()
         o = self.options
         return hks(mesh, times=self.times, n_eigen=o.n_eigen, scale_invariant=o.scale_invariant, cache=self.spectrum_cache)
