@@ -19,11 +19,13 @@ copies. For each size it times
 It also checks the answer against the FAUST ground truth carried to the new vertices by nearest neighbour: mean
 error over sqrt(area) and whether the map is mirrored (median error against the ``.sym.vts`` truth smaller).
 
-Usage: ``python benchmarks/correspondence_speed.py [--sizes 10000 60000] [--pair tr_reg_000 tr_reg_011]``
+Usage: ``python benchmarks/correspondence_speed.py [--sizes 10000 60000] [--pair tr_reg_000 tr_reg_011 [--pair A B ...]]``;
+with several pairs it also prints, per size, the mean error, the mirrored count and the slowest times over them.
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -53,7 +55,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=_data_root())
     ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 60000])
-    ap.add_argument("--pair", nargs=2, default=["tr_reg_000", "tr_reg_011"])
+    ap.add_argument("--pair", nargs=2, action="append", metavar=("A", "B"),
+                    help="a FAUST pair (repeat for several; default tr_reg_000 tr_reg_011)")
     ap.add_argument("--no-peer", action="store_true", help="skip pyfmaps")
     ap.add_argument("--peer-max", type=int, default=20000,
                     help="run pyfmaps only up to this many vertices (default %(default)s; at 60,000 its spectra alone "
@@ -71,10 +74,9 @@ def main(argv=None) -> int:
     vtx = a.data / "faust_5k" / "vtx_5k"
     if not vtx.is_dir():
         ap.error(f"{vtx} not found (set --data)")
-    x, y = a.pair
-    small = [load_mesh(vtx / f"{n}.off") for n in (x, y)]
     rows = []
-    for n in a.sizes:
+    for (x, y), n in itertools.product(a.pair or [("tr_reg_000", "tr_reg_011")], a.sizes):
+        small = [load_mesh(vtx / f"{m}.off") for m in (x, y)]
         ma, mb = (resized(m, n) for m in small)
         src = truth_on(ma, small[0], tosca_vts(vtx, x))
         dst = truth_on(mb, small[1], tosca_vts(vtx, y))
@@ -107,7 +109,7 @@ def main(argv=None) -> int:
         t_plain = time.perf_counter() - t0
         err, mirrored = errors(mb, res.map[src], dst, sym)
         perr, pmirrored = errors(mb, plain.map[src], dst, sym)
-        row = {"n": (ma.n_vertices, mb.n_vertices), "copies": (sa.coarse.n_vertices, sb.coarse.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
+        row = {"pair": f"{x} → {y}", "size": n, "n": (ma.n_vertices, mb.n_vertices), "copies": (sa.coarse.n_vertices, sb.coarse.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
                "orient": t_orient, "plain": t_plain, "err": err, "mirrored": mirrored, "conf": res.orientation_confidence,
                "plain_err": perr, "plain_mirrored": pmirrored}
         if not a.no_peer and max(row["n"]) <= a.peer_max:
@@ -133,20 +135,28 @@ def main(argv=None) -> int:
                 row["peer_failed"] = f"{type(exc).__name__} after {time.perf_counter() - t0:.0f} s: {exc}"
         rows.append(row)
         print(row, flush=True)
-    print("\n| vertices (A, B) | matched through (copies) | copies and their spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
+    print("\n| pair | vertices (A, B) | matched through (copies) | copies and their spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
           "compare, warm | oriented ZoomOut | plain ZoomOut | oriented / plain | end to end, spectra cached | "
           "error √area (mirrored), confidence | plain: error (mirrored) | pyfmaps set-up | pyfmaps match | "
           "pyfmaps error (mirrored) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         peer = (f"{r['peer_setup']:.1f} s | {r['peer']:.1f} s | {r['peer_err']:.3f} ({'yes' if r['peer_mirrored'] else 'no'})"
                 if "peer" in r else f"failed: {r['peer_failed'][:80]} | – | –" if "peer_failed" in r else "– | – | –")
         ca, cb = r["copies"]
         through = "themselves" if r["copies"] == r["n"] else f"{ca:,}, {cb:,}"
-        print(f"| {r['n'][0]:,}, {r['n'][1]:,} | {through} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
+        print(f"| {r['pair']} | {r['n'][0]:,}, {r['n'][1]:,} | {through} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
               f"{r['orient']:.1f} s | {r['plain']:.1f} s | {r['orient'] / r['plain']:.2f}x | "
               f"{r['compare'] + r['orient']:.1f} s | {r['err']:.3f} ({'yes' if r['mirrored'] else 'no'}), "
               f"{r['conf']:.2f} | {r['plain_err']:.3f} ({'yes' if r['plain_mirrored'] else 'no'}) | {peer} |")
+    for n in a.sizes:
+        at = [r for r in rows if r["size"] == n]
+        if len(at) > 1:
+            cold = [r["spectra"] + r["first"] for r in at]
+            print(f"\n{len(at)} pairs at {n:,} vertices: error √area mean {np.mean([r['err'] for r in at]):.3f} (plain "
+                  f"{np.mean([r['plain_err'] for r in at]):.3f}), mirrored {sum(r['mirrored'] for r in at)} "
+                  f"(plain {sum(r['plain_mirrored'] for r in at)}), cold total median {np.median(cold):.1f} s, max "
+                  f"{max(cold):.1f} s, end to end with spectra cached max {max(r['compare'] + r['orient'] for r in at):.1f} s")
     return 0
 
 

@@ -127,7 +127,9 @@ def test_a_spectral_signature_of_a_large_mesh_is_its_copys_blended_to_every_vert
 
 def test_the_copy_is_made_once_and_a_small_mesh_is_seen_as_it_is(big):
     s = _wks(1200)
-    assert s.copy_of(big) is s.copy_of(big)
+    assert s.copy_of(big) is s.copy_of(big) is simplify(big, 1200)  # the copy zoomout(max_vertices=1200) refines through
+    renamed = Mesh(big.vertices, big.faces, name="renamed")
+    assert simplify(renamed, 1200).full is renamed and simplify(renamed, 1200).coarse is s.copy_of(big).coarse
     small = mirror_symmetric(300, seed=1)
     assert s.copy_of(small) is None and s.spectral_mesh(small) is small
     import pickle

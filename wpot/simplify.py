@@ -15,12 +15,14 @@ answer carried back to every vertex:
   where the corners' images lie apart (a seam of the map, where a blend would fall between two limbs).
 
 Decimation is deterministic, so the copy of a mesh is the same mesh on every call, and its spectrum is read from
-the cache (`wpot.cache`) after the first.
+the cache (`wpot.cache`) after the first; the last few copies are kept (`KEEP_COPIES`), so the steps of one
+comparison that each need a mesh's copy (the spectral signatures, `wpot.zoomout`) make it once.
 """
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
@@ -121,6 +123,24 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simpl
         w = np.zeros((mesh.n_vertices, 3))
         w[:, 0] = 1.0
         return Simplified(mesh, mesh, np.repeat(ident[:, None], 3, axis=1), w, ident)
+    key = (mesh.fingerprint, n, str(resolve_device(device)))
+    made = _COPIES.pop(key, None)
+    if made is None:
+        made = _simplified(mesh, n, device)
+    _COPIES[key] = made
+    while len(_COPIES) > KEEP_COPIES:
+        _COPIES.popitem(last=False)
+    return made if made.full is mesh else replace(made, full=mesh)
+
+
+#: the copies `simplify` keeps, the most recent last: a comparison's signatures and its ZoomOut each ask for the
+#: same two, which are then made once
+KEEP_COPIES = 4
+_COPIES: "OrderedDict[tuple, Simplified]" = OrderedDict()
+
+
+def _simplified(mesh: Mesh, n: int, device: str | None) -> Simplified:
+    """`simplify` of a mesh of more than ``n`` vertices, computed."""
     import fast_simplification
     from scipy.spatial import cKDTree
 

@@ -160,35 +160,22 @@ class SpectralSignature(Signature):
     from the shapes' eigenvalues (`fit_input`; the subclass's `fit_from` builds its grid from them)."""
 
     needs_fit = True
-    #: how many simplified copies an instance keeps (`copy_of`): a comparison's two meshes
-    KEEP_COPIES = 2
 
     def copy_of(self, mesh: Mesh) -> Any:
         """The `wpot.simplify.Simplified` copy ``mesh`` is seen through, or None when it is seen as it is (at most
-        `SpectralOptions.copy_vertices` vertices, or ``max_vertices`` 0). The last `KEEP_COPIES` copies are kept, so fitting and
-        evaluating a mesh simplify it once."""
+        `SpectralOptions.copy_vertices` vertices, or ``max_vertices`` 0). `wpot.simplify` keeps its last copies, so
+        fitting and evaluating a mesh simplify it once."""
         n = self.options.copy_vertices
         if not n or mesh.n_vertices <= n:
             return None
-        copies = self.__dict__.setdefault("_copies", {})
-        key = (mesh.fingerprint, n)
-        if key not in copies:
-            from wpot.simplify import simplify  # imports Warp: only for large meshes
+        from wpot.simplify import simplify  # imports Warp: only for large meshes
 
-            while len(copies) >= self.KEEP_COPIES:
-                copies.pop(next(iter(copies)))
-            copies[key] = simplify(mesh, n, device=self.device)
-        return copies[key]
+        return simplify(mesh, n, device=self.device)
 
     def spectral_mesh(self, mesh: Mesh) -> Mesh:
         """The mesh whose spectrum stands for ``mesh``'s: its simplified copy (`copy_of`), or itself."""
         s = self.copy_of(mesh)
         return mesh if s is None else s.coarse
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state.pop("_copies", None)  # large; a worker process simplifies again
-        return state
 
     def fit_input(self, mesh: Any) -> Spectrum:
         """The eigenvalues of ``mesh`` (a `Spectrum` with a placeholder for the eigenvectors, `spectrum_summary`),
