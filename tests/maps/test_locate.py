@@ -88,6 +88,26 @@ def test_a_whole_with_a_second_component(partial):
     assert np.median(err) < 1.5 and np.all(np.isfinite(pm.residual)) and not pm.region()[full.n_vertices:].any()
 
 
+def test_kept_geodesics_and_a_prepared_whole_give_the_same_map(partial):
+    """The distances kept from an earlier part, or all of the whole's computed up front, are the ones a cold call
+    computes: the maps agree exactly."""
+    from wpot.maps.locate import clear_geodesics, prepare_whole
+
+    sp, sw = _planted_signatures(partial, outliers=0.3, seed=4)
+    clear_geodesics()
+    cold = locate_part(partial.part, partial.full, sp, sw)
+    again = locate_part(partial.part, partial.full, sp, sw)
+    clear_geodesics()
+    prepare_whole(partial.full)
+    prepared = locate_part(partial.part, partial.full, sp, sw)
+    for pm in (again, prepared):
+        np.testing.assert_array_equal(pm.correspondence, cold.correspondence)
+        np.testing.assert_array_equal(pm.residual, cold.residual)
+        assert pm.placement_confidence == cold.placement_confidence and pm.orientation == cold.orientation
+    with pytest.raises(TypeError, match="whole must be a wpot.Mesh"):
+        prepare_whole(partial.full.vertices)
+
+
 def test_rigid_motion_of_the_whole_changes_nothing(partial):
     sp, sw = _planted_signatures(partial, outliers=0.3, seed=2)
     base = locate_part(partial.part, partial.full, sp, sw, options=LocateOptions(orient=False))

@@ -49,12 +49,15 @@ Assumptions: the part and the whole are at the same scale (a part of the same ob
 geodesics inside the part are those of the whole, which holes or a cut across a narrow neck bend (the
 part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
 per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine`` dimensions, plus, the
-first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached).
+first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached). The
+geodesic distances computed on a whole are kept for the next part located in it (`KEEP_GEODESICS`), and
+`prepare_whole` computes them all at once for a whole that many parts will be located in.
 Timings and accuracy: the docs' Results page (Parts across poses).
 """
 from __future__ import annotations
 
 import warnings
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,7 +71,7 @@ from wpot.maps.orientation import local_orientation, orientation_score
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
-__all__ = ["LocateOptions", "PartMap", "locate_part", "LocateWarning", "PLACEMENT_DOUBT"]
+__all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning", "PLACEMENT_DOUBT", "KEEP_GEODESICS"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -184,9 +187,37 @@ class PartMap:
                 f"{self.placement_confidence:.2f})")
 
 
-def _geodesics(mesh: Mesh):
+#: meshes whose geodesic distances (`wpot.evaluate.GeodesicDistances`, the rows computed so far) `locate_part` keeps
+#: between calls, the most recently used last: a whole that parts are located in one after another keeps the rows
+#: of the earlier parts (rows are ``N`` float32 each, so a whole's are at most N² float32: 100 MB at 5,000 vertices)
+KEEP_GEODESICS = 3
+_GEODESICS: "OrderedDict[str, GeodesicDistances]" = OrderedDict()
 
-    return GeodesicDistances(mesh)
+
+def _geodesics(mesh: Mesh) -> GeodesicDistances:
+    """The kept `GeodesicDistances` of ``mesh`` (by its fingerprint), or new ones (`KEEP_GEODESICS`)."""
+    g = _GEODESICS.pop(mesh.fingerprint, None)
+    _GEODESICS[mesh.fingerprint] = g = GeodesicDistances(mesh) if g is None else g
+    while len(_GEODESICS) > KEEP_GEODESICS:
+        _GEODESICS.popitem(last=False)
+    return g
+
+
+def clear_geodesics() -> None:
+    """Forget the geodesic distances kept between calls (`KEEP_GEODESICS`), freeing their memory."""
+    _GEODESICS.clear()
+
+
+def prepare_whole(whole: Mesh, *, symmetry: bool = True) -> None:
+    """The one-off set-up of a whole that many parts will be located in: its left/right symmetry (step 4;
+    `wpot.maps.symmetry.reflection_symmetry`, cached) and its geodesic distances from every vertex, kept for the
+    next `locate_part` calls (`KEEP_GEODESICS`; N heat-method solves and N² float32). Without it, each call
+    computes the rows it needs and keeps them for the next; the maps are the same either way."""
+    if not isinstance(whole, Mesh):
+        raise TypeError(f"whole must be a wpot.Mesh, got {type(whole).__name__}")
+    if symmetry:
+        reflection_symmetry(whole)
+    _geodesics(whole).from_sources(np.arange(whole.n_vertices))
 
 
 def _candidates(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
