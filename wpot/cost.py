@@ -173,17 +173,13 @@ def prepare_signatures(S1, S2, metric: str, dev, names: tuple[str, str] = ("S1",
     Raises ValueError (naming the argument by ``names``) for an unknown metric, non-2-D input, mismatched
     D, empty input, NaN/inf values, negative values with ``metric="wks"`` or a wp.array on another device.
     """
-    n1, n2 = names
-    a = _as_signatures(n1, S1, dev, metric)
-    b = _as_signatures(n2, S2, dev, metric)
+    a, b = _prepared(names[0], S1, metric, dev), _prepared(names[1], S2, metric, dev)
     _check_pair(a, b, names)
-    _check_values(n1, a, metric, dev)
-    _check_values(n2, b, metric, dev)
     return a, b
 
 
 def _prepared(name: str, s, metric: str, dev) -> wp.array:
-    """One side of `prepare_signatures`: checked alone (its shape is checked against the other's by `_check_pair`)."""
+    """One side of `prepare_signatures`: checked alone (its width is checked against the other's by `_check_pair`)."""
     a = _as_signatures(name, s, dev, metric)
     if a.shape[0] == 0 or a.shape[1] == 0:
         raise ValueError(f"empty signatures: {name} has shape {a.shape}")
@@ -192,11 +188,9 @@ def _prepared(name: str, s, metric: str, dev) -> wp.array:
 
 
 def _check_pair(a: wp.array, b: wp.array, names: tuple[str, str]) -> None:
-    n1, n2 = names
     if a.shape[1] != b.shape[1]:
-        raise ValueError(f"{n1} and {n2} must have the same signature length D, got {a.shape[1]} and {b.shape[1]}")
-    if a.shape[0] == 0 or b.shape[0] == 0 or a.shape[1] == 0:
-        raise ValueError(f"empty signatures: {n1} has shape {a.shape}, {n2} has shape {b.shape}")
+        raise ValueError(f"{names[0]} and {names[1]} must have the same signature length D, got {a.shape[1]} and "
+                         f"{b.shape[1]}")
 
 
 def cost_matrix(
