@@ -217,7 +217,9 @@ def prepare_whole(whole: Mesh, *, symmetry: bool = True) -> None:
         raise TypeError(f"whole must be a wpot.Mesh, got {type(whole).__name__}")
     if symmetry:
         reflection_symmetry(whole)
-    _geodesics(whole).from_sources(np.arange(whole.n_vertices))
+    g = _geodesics(whole)
+    for start in range(0, whole.n_vertices, 256):  # the rows are kept; each block's stacked copy is dropped
+        g.from_sources(np.arange(start, min(start + 256, whole.n_vertices)))
 
 
 def _candidates(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
