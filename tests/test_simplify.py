@@ -146,7 +146,8 @@ def test_spectral_max_vertices_is_checked_and_kept_out_of_keys_at_its_default():
         WKSOptions(max_vertices=999)
     assert WKSOptions(n_eigen=40, max_vertices=1200).copy_vertices == 1200
     assert WKSOptions(n_eigen=800, max_vertices=1200).copy_vertices == 1600  # the copy resolves the eigenpairs
-    assert WKSOptions(max_vertices=0).copy_vertices == 0
+    assert WKSOptions(max_vertices=0).copy_vertices == 0 and not WKSOptions(max_vertices=0).copies(10**6)
+    assert WKSOptions(n_eigen=40, max_vertices=1200).copies(1201) and not WKSOptions(n_eigen=40, max_vertices=1200).copies(1200)
     with pytest.raises(ValueError, match="spectral_max_vertices"):
         WKSOptions(max_vertices=-1)
     assert WKSOptions().max_vertices == SPECTRAL_MAX_VERTICES

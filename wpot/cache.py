@@ -40,7 +40,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-__all__ = ["Cache", "CacheWarning", "cache_key", "canonical_json", "digest", "default_cache_dir", "FORMAT_VERSION"]
+__all__ = ["Cache", "Kept", "CacheWarning", "cache_key", "canonical_json", "digest", "default_cache_dir", "FORMAT_VERSION"]
 
 #: bumped when the stored layout changes; part of every key, so old entries are simply not found
 FORMAT_VERSION = 1
@@ -282,6 +282,28 @@ class Cache:
             f"Cache({self.namespace!r}, entries={len(self._mem)}/{self.max_entries}, "
             f"bytes={self._mem_bytes}/{self.max_bytes}, directory={self.directory})"
         )
+
+
+class Kept:
+    """The last ``keep`` objects made, by key, in memory only: for objects that are not dictionaries of arrays
+    (a `Cache` entry), such as a mesh's simplified copy or its geodesic distances. The least recently used goes
+    first."""
+
+    def __init__(self, keep: int) -> None:
+        self.keep = int(keep)
+        self._items: OrderedDict[Any, Any] = OrderedDict()
+
+    def get(self, key: Any, make: Callable[[], Any]) -> Any:
+        """The object kept under ``key``, or ``make()``, kept."""
+        item = self._items.pop(key) if key in self._items else make()
+        self._items[key] = item
+        while len(self._items) > self.keep:
+            self._items.popitem(last=False)
+        return item
+
+    def clear(self) -> None:
+        """Forget every kept object."""
+        self._items.clear()
 
 
 def _frozen(entry: Mapping[str, Any]) -> dict[str, np.ndarray]:

@@ -234,9 +234,9 @@ def _fit_step(stage: Any, label: str, mesh: Mesh) -> str:
     """The progress line of one mesh's share of fitting a signature (for a spectral signature, its spectrum)."""
 
     if isinstance(stage, SpectralSignature):
-        cap = stage.options.copy_vertices
-        size = (f"{mesh.n_vertices} vertices" if not cap or mesh.n_vertices <= cap
-                else f"{mesh.n_vertices} vertices, through a simplified copy of {cap}")
+        o = stage.options
+        size = (f"{mesh.n_vertices} vertices, through a simplified copy of {o.copy_vertices}"
+                if o.copies(mesh.n_vertices) else f"{mesh.n_vertices} vertices")
         return f"Laplace-Beltrami spectrum of {label} ({size}, {min(int(stage.options.n_eigen), mesh.n_vertices)} eigenpairs)"
     return f"fitting {stage.title} to {label} ({mesh.n_vertices} vertices)"
 

@@ -21,7 +21,6 @@ comparison that each need a mesh's copy (the spectral signatures, `wpot.zoomout`
 from __future__ import annotations
 
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -29,6 +28,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from wpot._validate import integer_at_least
+from wpot.cache import Kept
 from wpot._warp import launch_rows, resolve_device
 from wpot.mesh import Mesh, MeshWarning
 
@@ -123,20 +123,14 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simpl
         w = np.zeros((mesh.n_vertices, 3))
         w[:, 0] = 1.0
         return Simplified(mesh, mesh, np.repeat(ident[:, None], 3, axis=1), w, ident)
-    key = (mesh.fingerprint, n, str(resolve_device(device)))
-    made = _COPIES.pop(key, None)
-    if made is None:
-        made = _simplified(mesh, n, device)
-    _COPIES[key] = made
-    while len(_COPIES) > KEEP_COPIES:
-        _COPIES.popitem(last=False)
+    made = _COPIES.get((mesh.fingerprint, n, str(resolve_device(device))), lambda: _simplified(mesh, n, device))
     return made if made.full is mesh else replace(made, full=mesh)
 
 
-#: the copies `simplify` keeps, the most recent last: a comparison's signatures and its ZoomOut each ask for the
-#: same two, which are then made once
+#: the copies `simplify` keeps: a comparison's signatures and its ZoomOut each ask for the same two, which are then
+#: made once
 KEEP_COPIES = 4
-_COPIES: "OrderedDict[tuple, Simplified]" = OrderedDict()
+_COPIES = Kept(KEEP_COPIES)
 
 
 def _simplified(mesh: Mesh, n: int, device: str | None) -> Simplified:

@@ -386,3 +386,23 @@ def test_the_components_warning_is_given_once_per_mesh_not_once_per_use(tmp_path
     # a computation (here without the cache) warns again: the warning belongs to computing the spectrum
     with pytest.warns(SpectralWarning, match="2 connected components"):
         eigenpairs(m, k=12, cache=False)
+
+
+def test_kept_makes_each_object_once_and_forgets_the_least_recently_used():
+    from wpot.cache import Kept
+
+    made = []
+    kept = Kept(2)
+
+    def make(k):
+        return lambda: made.append(k) or object()
+
+    a = kept.get("a", make("a"))
+    kept.get("b", make("b"))
+    assert kept.get("a", make("a")) is a  # kept: not made again, and now the most recent
+    kept.get("c", make("c"))  # "b", the least recently used, goes
+    assert kept.get("a", make("a")) is a
+    kept.get("b", make("b"))
+    assert made == ["a", "b", "c", "b"]
+    kept.clear()
+    assert kept.get("a", make("a")) is not a and made[-1] == "a"

@@ -57,13 +57,13 @@ Timings and accuracy: the docs' Results page (Parts across poses).
 from __future__ import annotations
 
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
+from wpot.cache import Kept
 from wpot.mesh import Mesh, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
@@ -191,16 +191,12 @@ class PartMap:
 #: between calls, the most recently used last: a whole that parts are located in one after another keeps the rows
 #: of the earlier parts (rows are ``N`` float32 each, so a whole's are at most N² float32: 100 MB at 5,000 vertices)
 KEEP_GEODESICS = 3
-_GEODESICS: "OrderedDict[str, GeodesicDistances]" = OrderedDict()
+_GEODESICS = Kept(KEEP_GEODESICS)
 
 
 def _geodesics(mesh: Mesh) -> GeodesicDistances:
     """The kept `GeodesicDistances` of ``mesh`` (by its fingerprint), or new ones (`KEEP_GEODESICS`)."""
-    g = _GEODESICS.pop(mesh.fingerprint, None)
-    _GEODESICS[mesh.fingerprint] = g = GeodesicDistances(mesh) if g is None else g
-    while len(_GEODESICS) > KEEP_GEODESICS:
-        _GEODESICS.popitem(last=False)
-    return g
+    return _GEODESICS.get(mesh.fingerprint, lambda: GeodesicDistances(mesh))
 
 
 def clear_geodesics() -> None:

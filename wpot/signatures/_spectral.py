@@ -154,6 +154,10 @@ class SpectralOptions(SignatureOptions):
         so that the copy resolves the eigenpairs asked; 0 when off."""
         return max(self.max_vertices, 2 * self.n_eigen) if self.max_vertices else 0
 
+    def copies(self, n_vertices: int) -> bool:
+        """Whether a mesh of ``n_vertices`` vertices is seen through a simplified copy (of `copy_vertices`)."""
+        return 0 < self.copy_vertices < n_vertices
+
 
 class SpectralSignature(Signature):
     """A signature computed from ``options.n_eigen`` Laplace–Beltrami eigenpairs and fitted to a dataset
@@ -165,12 +169,11 @@ class SpectralSignature(Signature):
         """The `wpot.simplify.Simplified` copy ``mesh`` is seen through, or None when it is seen as it is (at most
         `SpectralOptions.copy_vertices` vertices, or ``max_vertices`` 0). `wpot.simplify` keeps its last copies, so
         fitting and evaluating a mesh simplify it once."""
-        n = self.options.copy_vertices
-        if not n or mesh.n_vertices <= n:
+        if not self.options.copies(mesh.n_vertices):
             return None
         from wpot.simplify import simplify  # imports Warp: only for large meshes
 
-        return simplify(mesh, n, device=self.device)
+        return simplify(mesh, self.options.copy_vertices, device=self.device)
 
     def spectral_mesh(self, mesh: Mesh) -> Mesh:
         """The mesh whose spectrum stands for ``mesh``'s: its simplified copy (`copy_of`), or itself."""
