@@ -181,7 +181,7 @@ def choose_cost_mode(solver: Any, n1: int, n2: int, dim: int, budget_bytes: floa
 
 
 #: above this many pairs of points (20,000 a side), a transport over every vertex warns on a CPU device
-#: (`check_transport_size`): the exact solver's time there grows from about a minute (the docs' Results page, §1)
+#: (`check_transport_size`; the exact solver's times by size: the docs' Results page, §1)
 LARGE_TRANSPORT_PAIRS = 20_000 ** 2
 
 
