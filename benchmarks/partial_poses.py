@@ -269,7 +269,7 @@ class Part:
 def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
     """The mesh parts of ``source`` are cut from (``--remesh``), and its carrier (N_S,), the nearest of its vertices
     to each vertex of S: ``"none"``, S itself (carrier None); ``"lowres"``, the same pose in ``tosca_lowres``
-    (meshed apart, about 0.7x the density; None when that folder lacks it); a number F other than 1, S
+    (meshed apart, about 0.7x the density; None when that folder lacks it); a number F, S
     subdivided and decimated to F times its vertices (`benchmarks.remesh.resized`: every vertex moves, no edge
     is S's)."""
     from scipy.spatial import cKDTree

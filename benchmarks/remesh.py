@@ -7,14 +7,15 @@ import numpy as np
 
 
 def resized(mesh, n_vertices: int):
-    """``mesh`` subdivided (each triangle into 4) until it has at least ``n_vertices`` vertices, then decimated
-    to about ``n_vertices`` (quadric error, fast-simplification)."""
+    """``mesh`` subdivided (each triangle into 4) at least once and until it has at least ``n_vertices`` vertices,
+    then decimated to about ``n_vertices`` (quadric error, fast-simplification): another triangulation at any
+    ratio, 1 included (every edge of ``mesh`` is split before the decimation)."""
     import fast_simplification
     import trimesh
 
     from wpot.mesh import Mesh, MeshWarning
 
-    v, f = mesh.vertices, mesh.faces
+    v, f = trimesh.remesh.subdivide(mesh.vertices, mesh.faces)
     while len(v) < n_vertices:
         v, f = trimesh.remesh.subdivide(v, f)
     if len(v) > 1.05 * n_vertices:
