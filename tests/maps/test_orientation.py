@@ -16,14 +16,6 @@ from wpot.mesh import winding
 from wpot.maps.zoomout import CHOICE_K, ORIENTATION_DOUBT, zoomout
 from helpers import mirror_symmetric
 
-#: bumps of a shape symmetric under x -> -x only: pairs mirrored in x, unequal along y and z
-
-
-
-
-
-
-
 
 def _nearest(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
     d = ((queries[:, None, :] - points[None, :, :]) ** 2).sum(-1)
