@@ -45,14 +45,14 @@ def test_standardised_every_vertex_weighs_the_same():
 
 
 def test_a_class_is_the_union_of_its_nearest_members():
-    """Class a's two members each explain half of the part; class b's one member explains all of it fairly.
-    By its nearest member a loses (mean 1.5 against 1.2); as the union of two it wins (1.0)."""
+    """Class a's two members each explain half of the part; class b's two members each explain all of it
+    fairly. By its nearest member a loses (mean 1.5 against 1.2); as the union of two it wins (1.0)."""
     n = 10
-    c = np.empty((n, 3))
+    c = np.empty((n, 4))
     c[:, 0] = np.r_[np.full(5, 1.0), np.full(5, 2.0)]  # a, first half
     c[:, 1] = np.r_[np.full(5, 2.0), np.full(5, 1.0)]  # a, second half
-    c[:, 2] = 1.2  # b
-    labels = ["a", "a", "b"]
+    c[:, 2:] = 1.2  # b
+    labels = ["a", "a", "b", "b"]
     one = rank_classes(c, labels, options=RetrievalOptions(k_nearest=1, standardize=False))
     two = rank_classes(c, labels, options=RetrievalOptions(k_nearest=2, standardize=False))
     assert one.classes == ("b", "a") and np.allclose(one.scores, [1.2, 1.5])
@@ -61,8 +61,25 @@ def test_a_class_is_the_union_of_its_nearest_members():
     assert two.margin == pytest.approx(0.2) and one.margin == pytest.approx(0.3)
     with pytest.raises(ValueError, match="labels name one class"):  # one class: no answer to give, not a sure one
         rank_classes(c[:, :2], labels[:2])
+    # with b down to one member, every class is scored by its nearest member alone
+    three = rank_classes(c[:, :3], labels[:3], options=RetrievalOptions(k_nearest=2, standardize=False))
+    assert three.classes == ("b", "a") and np.allclose(three.scores, [1.2, 1.5])
     with pytest.raises(ValueError, match="'z' is not in the library"):
         two.rank("z")
+
+
+def test_no_class_gains_from_its_size_alone():
+    """Costs that no whole explains better than another (independent draws): the least of three costs is lower
+    than the least of two, so were a class of three members scored by all three and a class of two by both,
+    the larger would come first for almost every part (5 % of 200 parts went to the smaller). Scored by two
+    members each, the smaller comes first for about a third: the larger still picks its two nearest of three,
+    as the nearest whole's class favours a larger class."""
+    rng = np.random.default_rng(3)
+    labels = ["big", "big", "big", "small", "small"]
+    firsts = [rank_classes(rng.normal(size=(50, 5)), labels).label for _ in range(200)]
+    assert 0.25 < firsts.count("small") / len(firsts) < 0.6
+    r = rank_classes(rng.normal(size=(50, 5)), labels, options=RetrievalOptions(k_nearest=3))
+    assert all(len(m) == 2 for m in r.members)
 
 
 @pytest.mark.parametrize("kwargs, match", [

@@ -16,7 +16,9 @@ away from them:
    cost over the class's ``k_nearest`` members nearest to the part (by their mean), so a part whose arm is
    posed as in one pose of its class and whose hand as in another is explained by the two together. A class's
    score is the mean of these costs over the part's vertices; the smallest score ranks first. ``k_nearest``
-   stays small because a class with more members would otherwise gain from its size alone.
+   stays small because a class with more members would otherwise gain from its size alone, and every class is
+   scored by the union of the same number of members: ``k_nearest``, or the smallest class's size when that is
+   smaller (the least of three costs is lower than the least of two even when no member fits).
 
 With LD-SIFT and its thickness column at w = 2 (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k
 poses, each against the 75 other shapes) the two steps together rank the true class first more often than the
@@ -70,8 +72,8 @@ class RetrievalOptions:
     """Options of `rank_classes` (the module docstring says what each does).
 
     k_nearest : a class's score takes each vertex's least cost over this many of its members, those nearest to
-        the part by their mean cost (all of them when the class has fewer); 1 scores a class by its nearest
-        member alone
+        the part by their mean cost; the smallest class's size instead when that is smaller, for every class
+        alike; 1 scores a class by its nearest member alone
     standardize : turn each vertex's costs into z-scores over the library's wholes first
     max_points : a part of more vertices stands for this many of them (`retrieval_sample`: Euclidean
         farthest-point samples, each weighing its cell's vertex count), so the cost of a lookup stops growing
@@ -213,10 +215,12 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, weights: ArrayLike 
     means = w @ z
     names = sorted(set(labels))
     lab = np.asarray(labels)
+    # the same number of members for every class, so that none gains from its size alone
+    k = min(o.k_nearest, min(int(np.sum(lab == name)) for name in names))
     scores, members = [], []
     for name in names:
         cols = np.flatnonzero(lab == name)
-        cols = cols[np.argsort(means[cols], kind="stable")[:o.k_nearest]]
+        cols = cols[np.argsort(means[cols], kind="stable")[:k]]
         scores.append(float(w @ z[:, cols].min(axis=1)))
         members.append(tuple(int(j) for j in cols))
     order = np.argsort(scores, kind="stable")
