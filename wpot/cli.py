@@ -132,6 +132,10 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="also locate A in B by geodesic consistency (wpot.maps.locate: A a part of a shape like B, in any "
                    "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
                    "saved as correspondence_locate, confidence_locate and region_locate, and drawn in the picture")
+    p.add_argument("--locate-edge", choices=("own", "whole"), default=None,
+                   help="LD-SIFT's edge length for --locate (with --signature ldsift): own (default) each mesh's own, "
+                   "the paper's; whole: B's for both, for a part meshed at another density than B (a scan, a part "
+                   "re-meshed): the docs' Results page compares the two")
 
 
 class _Located(NamedTuple):
@@ -163,9 +167,9 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     transform that places it)."""
     if not getattr(a, "locate", False):
         return None
-    from wpot.maps.locate import PLACEMENT_DOUBT
+    from wpot.maps.locate import PLACEMENT_DOUBT, LocateOptions
 
-    pm = comparer.locate(ma, mb)
+    pm = comparer.locate(ma, mb, options=None if a.locate_edge is None else LocateOptions(edge=a.locate_edge))
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
@@ -185,6 +189,11 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
 
 
 def _check_zoomout(a: argparse.Namespace) -> None:
+    if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):
+        raise CliError("--locate-edge sets the edge length of --locate; add --locate, or drop --locate-edge")
+    if getattr(a, "locate_edge", None) == "whole" and a.signature != "ldsift":
+        raise CliError(f"--locate-edge whole sets LD-SIFT's edge length; with --signature {a.signature} it would "
+                       "change nothing: add --signature ldsift, or drop --locate-edge")
     if a.zoomout and getattr(a, "locate", False):
         raise CliError("--zoomout and --locate each give a refined correspondence; choose one (--zoomout for two "
                        "whole shapes, --locate for a part against a whole)")

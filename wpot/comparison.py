@@ -697,8 +697,12 @@ class Comparer:
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
         vertices; ``options`` is a `wpot.maps.locate.LocateOptions` (with ``edge="whole"``, LD-SIFT at the whole's
         edge length for both meshes). Returns a `wpot.maps.locate.PartMap`."""
+        whole_edge = options is not None and getattr(options, "edge", None) == "whole"
+        if whole_edge and self.config.signature != "ldsift":
+            raise ValueError(f"LocateOptions(edge='whole') sets LD-SIFT's edge length; this comparer uses "
+                             f"signature={self.config.signature!r}, on which it would change nothing")
         self._fit_to_pair(part, whole, ("part", "whole"))
-        c = at_common_edge(self, [whole]) if options is not None and options.edge == "whole" else self
+        c = at_common_edge(self, [whole]) if whole_edge else self
         return locate_part(part, whole, c.signatures(part), c.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
 

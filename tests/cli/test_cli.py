@@ -274,6 +274,8 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["report", "no-such-run"], ["no wpot run"]),
         (["compare", "a.off", "b.off", "--transport", "partial", "--ot-method", "ipm"], ["--ot-method ipm", "balanced"]),
         (["compare", "a.off", "b.off", "--transport", "partial", "--zoomout"], ["--zoomout", "whole", "--transport partial"]),
+        (["compare", "a.off", "b.off", "--locate-edge", "whole"], ["--locate-edge", "add --locate"]),
+        (["compare", "a.off", "b.off", "--locate", "--locate-edge", "whole"], ["--signature wks", "--signature ldsift"]),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):

@@ -256,6 +256,12 @@ def test_bad_input_is_named(partial):
         LocateOptions(tol=0.0)
     with pytest.raises(TypeError, match="LocateOptions"):
         locate_part(partial.part, partial.full, sp, sw, options={"n_anchors": 10})
+    import wpot
+
+    # the whole's edge length is LD-SIFT's: asked of another signature, it is refused, not ignored
+    with pytest.raises(ValueError, match="edge='whole'.*signature='wks'"):
+        wpot.Comparer(signature="wks", device="cpu", cache_dir=False).locate(
+            partial.part, partial.full, options=LocateOptions(edge="whole"))
 
 
 def test_a_part_of_several_components_is_refused_naming_the_remedy(partial):
