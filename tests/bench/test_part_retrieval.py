@@ -22,8 +22,9 @@ def test_both_scorings_of_one_part(pr):
 
     costs = np.column_stack([np.r_[np.full(9, 1.1), 1.0],   # dog3
                              np.r_[np.full(9, 0.9), 5.0],   # cat2
-                             np.full(10, 3.0)])             # cat4
-    wholes = ["dog3", "cat2", "cat4"]
+                             np.full(10, 3.0),              # cat4
+                             np.full(10, 3.0)])             # dog5
+    wholes = ["dog3", "cat2", "cat4", "dog5"]
     r = pr.score_part(costs, wholes, "cat", RetrievalOptions())
     assert r["nearest whole"] == {"top1": False, "rank": 2, "taken_for": "dog3"}
     assert r["retrieve"].pop("margin") > 0
