@@ -697,12 +697,8 @@ class Comparer:
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
         vertices; ``options`` is a `wpot.maps.locate.LocateOptions` (with ``edge="whole"``, LD-SIFT at the whole's
         edge length for both meshes). Returns a `wpot.maps.locate.PartMap`."""
-        whole_edge = options is not None and getattr(options, "edge", None) == "whole"
-        if whole_edge and self.config.signature != "ldsift":
-            raise ValueError(f"LocateOptions(edge='whole') sets LD-SIFT's edge length; this comparer uses "
-                             f"signature={self.config.signature!r}, on which it would change nothing")
+        c = locating_comparer(self, whole, options)
         self._fit_to_pair(part, whole, ("part", "whole"))
-        c = at_common_edge(self, [whole]) if whole_edge else self
         return locate_part(part, whole, c.signatures(part), c.signatures(whole), metric=self.stage.metric,
                            options=options, device=self.device)
 
@@ -720,6 +716,18 @@ def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: S
         comparer = at_common_edge(comparer, wholes)
     costs = library_costs(comparer, part, wholes, rows=rows)
     return _as_calibrated(rank_classes(costs, labels, weights=weights, options=options), comparer.config)
+
+
+def locating_comparer(comparer: "Comparer", whole: Mesh, options: Any) -> "Comparer":
+    """The comparer whose signatures `Comparer.locate` reads: ``comparer``, or with ``options.edge == "whole"`` its
+    copy at the whole's edge length (`at_common_edge`). ValueError when the whole's edge length is asked of a
+    comparer whose signature is not LD-SIFT, on which it would change nothing."""
+    if options is None or getattr(options, "edge", None) != "whole":
+        return comparer
+    if comparer.config.signature != "ldsift":
+        raise ValueError(f"LocateOptions(edge='whole') sets LD-SIFT's edge length; this comparer uses "
+                         f"signature={comparer.config.signature!r}, on which it would change nothing")
+    return at_common_edge(comparer, [whole])
 
 
 def at_common_edge(comparer: "Comparer", meshes: Sequence[Mesh]) -> "Comparer":

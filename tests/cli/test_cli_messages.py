@@ -381,6 +381,7 @@ BAD_VALUES = {
     "--transport": (["--transport", "half"], "argument --transport: invalid choice"),
     "--pooling": (["--pooling", "max"], "argument --pooling: invalid choice"),
     "--ot-method": (["--ot-method", "sinkhorn"], "argument --ot-method: invalid choice"),
+    "--locate-edge": (["--locate-edge", "half"], "argument --locate-edge: invalid choice"),
 }
 #: flags of the other commands
 OTHER_BAD_VALUES = [
