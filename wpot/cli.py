@@ -188,7 +188,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     return _Located(pm, reg)
 
 
-def _check_zoomout(a: argparse.Namespace) -> None:
+def _check_refinements(a: argparse.Namespace) -> None:
+    """Refuse, in the CLI's words, the --zoomout and --locate settings that cannot go together."""
     if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):
         raise CliError("--locate-edge sets the edge length of --locate; add --locate, or drop --locate-edge")
     if getattr(a, "locate_edge", None) == "whole" and a.signature != "ldsift":
@@ -848,7 +849,7 @@ def cmd_demo(a: argparse.Namespace) -> None:
 
     t0 = time.perf_counter()
     config = config_from_args(a)
-    _check_zoomout(a)
+    _check_refinements(a)
     _check_out_folder(a.out)
     # equal vertex counts, so that a balanced plan can match vertex to vertex (G > 0.9 m1) and a
     # registration can be fitted
@@ -900,7 +901,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
     from wpot.mesh import repair_setting
 
     config = config_from_args(a)  # option errors before any file is read
-    _check_zoomout(a)
+    _check_refinements(a)
     _check_comparison_out(a.out, a.force)
     state, n_run, other = None, None, []
     if a.energies_from is not None:
