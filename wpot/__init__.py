@@ -43,6 +43,7 @@ _EXPORTS: dict[str, str] = {
     "wks": "wpot.signatures",
     "wks_energies": "wpot.signatures",
     "wks_from_eigenpairs": "wpot.signatures",
+    "wks_weights": "wpot.signatures",
     "EnergyGrid": "wpot.signatures",
     "ldsift": "wpot.signatures",
     "local_frames": "wpot.signatures",

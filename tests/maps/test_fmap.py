@@ -92,8 +92,14 @@ def test_bad_input():
         SpectralOperators(m, spec, 40)
     with pytest.raises(ValueError, match="different k"):
         functional_map(ops, SpectralOperators(m, spec, 12), d, d)
-    with pytest.raises(ValueError, match=r"desc_a and desc_b must be \(N_A, p\)"):
+    with pytest.raises(ValueError, match=r"desc_a and desc_b must hold the same number of descriptors"):
         functional_map(ops, ops, d, d[:, :5])
+    with pytest.raises(ValueError, match=r"desc_b must be \(200, p\) vertex descriptors, got shape \(199, 12\)"):
+        functional_map(ops, ops, d, d[1:])
+    with pytest.raises(ValueError, match="desc_a's DescriptorTerms are for k=12, the operators' k is 10"):
+        functional_map(ops, ops, SpectralOperators(m, spec, 12).terms(d), d)
+    with pytest.raises(ValueError, match="w_orient > 0 needs the descriptors' orientation operators"):
+        functional_map(ops, ops, ops.terms(d, orientation=False), d)
     with pytest.raises(ValueError, match="w_lap must be a finite number >= 0"):
         functional_map(ops, ops, d, d, w_lap=-1.0)
     flat = Mesh(np.c_[m.vertices[:, :2], np.zeros(200)], m.faces)
@@ -101,3 +107,31 @@ def test_bad_input():
     with pytest.raises(ValueError, match="encloses no volume"):
         functional_map(flat_ops, flat_ops, d, d)
     functional_map(flat_ops, flat_ops, d + np.arange(12), d + np.arange(12), w_orient=0.0)  # no outside needed
+
+
+def test_wks_terms_from_the_squared_eigenfunctions():
+    """The terms are linear in the descriptors and the WKS is linear in the squared eigenfunctions, so the
+    per-shape table of the φ_i² weighed by `wks_weights` gives the terms of the WKS descriptors themselves, on
+    any energy grid (two grids here), and an energy of the same functional map."""
+    from wpot.maps.fmap import FmapEnergy, squared_eigenfunction_terms, terms_cache
+    from wpot.signatures import wks_weights
+
+    a = wpot.example_mesh(500)
+    b = Mesh(a.vertices * np.array([1.0, 1.3, 0.8]), a.faces)  # not an isometry: the terms are not zero
+    sa, sb = wpot.eigenpairs(a, 60, cache=False), wpot.eigenpairs(b, 60, cache=False)
+    oa, ob = SpectralOperators(a, sa, 20), SpectralOperators(b, sb, 20)
+    terms_cache.clear()
+    table = [squared_eigenfunction_terms(o, s) for o, s in ((oa, sa), (ob, sb))]
+    assert squared_eigenfunction_terms(oa, sa).orientation is table[0].orientation  # cached
+    for p, spectra in ((20, (sa, sb)), (16, (sa.first(30), sb.first(30)))):
+        direct = FmapEnergy(oa, ob, *_descriptors(*spectra, p=p))
+        grid = wks_energies(spectra, n_energies=2 * p, scale_invariant=True)
+        combined = []
+        for t, s in zip(table, spectra):
+            w = wks_weights(s.nonzero_evals, grid.energies, grid.sigma)[:, ::2]
+            combined.append(t.combined(np.pad(w, ((0, t.coefficients.shape[1] - len(w)), (0, 0)))))
+        weighed = FmapEnergy(oa, ob, *combined)
+        c = direct.fit()
+        assert _rel(weighed.fit(), c) < 1e-9
+        for name, value in direct.terms(c).items():
+            assert abs(weighed.terms(c)[name] - value) <= 1e-9 * abs(value)

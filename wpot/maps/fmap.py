@@ -24,14 +24,18 @@ Results page, correspondence). The point map of C is read as in ZoomOut (`point_
 """
 from __future__ import annotations
 
-import numpy as np
-from scipy.sparse import csr_matrix
+from dataclasses import dataclass
 
+import hashlib
+
+import numpy as np
+
+from wpot.cache import Cache
 from wpot.cost import nearest_rows
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
 from wpot.spectral import laplace_beltrami
 
-__all__ = ["FmapEnergy", "SpectralOperators", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
+__all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
            "FMAP_SPECTRUM", "FMAP_WEIGHTS"]
 
 #: default spectral resolution of the fitted functional map
@@ -42,8 +46,8 @@ FMAP_DESCRIPTORS = 50
 #: uses all of them): energies beyond them carry detail a k = 30 basis cannot hold. Chosen on FAUST pairs outside
 #: its test list against 200 (pyfmaps') and 500 (WKS's), checked on TOSCA pairs (the docs' Results page)
 FMAP_SPECTRUM = 100
-#: faces per block of the orientation operators' per-face products (a block holds faces x k x k floats)
-_FACE_BLOCK = 4096
+#: bytes of one block of the orientation operators' per-face products (faces x descriptors x k floats)
+_BLOCK_BYTES = 64 << 20
 
 
 def point_map(phi_a: np.ndarray, phi_b: np.ndarray, fmap: np.ndarray) -> np.ndarray:
@@ -68,14 +72,43 @@ def _hat_gradients(mesh: Mesh, normals: np.ndarray) -> list[np.ndarray]:
     return [np.cross(normals, v[f[:, c]] - v[f[:, b]]) * inv[:, None] for b, c in ((1, 2), (2, 0), (0, 1))]
 
 
-def _face_gradients(mesh: Mesh, values: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(F, 3, m) per-face gradients of the piecewise-linear vertex functions ``values`` (N, m), on the mesh
-    scaled to area 1 (`_hat_gradients`)."""
-    f = mesh.faces
-    grad = np.zeros((len(f), 3, values.shape[1]))
-    for a, hat in enumerate(_hat_gradients(mesh, normals)):
-        grad += hat[:, :, None] * values[f[:, a]][:, None, :]
+def _face_gradients(faces: np.ndarray, hats: list[np.ndarray], values: np.ndarray) -> np.ndarray:
+    """(F, 3, m) per-face gradients of the piecewise-linear vertex functions ``values`` (N, m), from the hat
+    functions' gradients ``hats`` of the same F ``faces`` (`_hat_gradients`)."""
+    grad = np.zeros((len(faces), 3, values.shape[1]))
+    for a, hat in enumerate(hats):
+        grad += hat[:, :, None] * values[faces[:, a]][:, None, :]
     return grad
+
+
+@dataclass(frozen=True)
+class DescriptorTerms:
+    """What the functional-map terms need of p descriptors on one shape (`SpectralOperators.terms`). Each is
+    linear in the descriptors, so the terms of weighted sums of descriptors are the same sums of theirs
+    (`combined`): the WKS is a weighted sum of squared eigenfunctions (`wpot.signatures.wks_weights`), whose
+    terms can be computed once per shape and weighed for any energy grid.
+
+    Attributes
+    ----------
+    coefficients : (k, p) the descriptors' coefficients in the basis
+    multiplication : (p, k, k) the product by each descriptor in the basis
+    orientation : (p, k, k) the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` of each descriptor, or None when not asked for
+    """
+
+    coefficients: np.ndarray
+    multiplication: np.ndarray
+    orientation: np.ndarray | None = None
+
+    def combined(self, weights: np.ndarray) -> "DescriptorTerms":
+        """The terms of the q descriptors ``descriptors @ weights``, weights (p, q)."""
+        w = np.asarray(weights, dtype=np.float64)
+        k = self.coefficients.shape[0]
+
+        def stack(ops: np.ndarray) -> np.ndarray:
+            return (w.T @ ops.reshape(len(ops), k * k)).reshape(-1, k, k)
+
+        return DescriptorTerms(self.coefficients @ w, stack(self.multiplication),
+                               None if self.orientation is None else stack(self.orientation))
 
 
 class SpectralOperators:
@@ -104,7 +137,7 @@ class SpectralOperators:
         self.evals = np.asarray(spectrum.evals[:k], dtype=np.float64)
         mass = laplace_beltrami(mesh)[1].diagonal()
         self.pinv = (self.phi * (mass / mass.sum())[:, None]).T
-        self._orient_basis: np.ndarray | None = None
+        self._face_terms: tuple | None = None  # what `orientation` needs of the mesh and basis
 
     def coefficients(self, values: np.ndarray) -> np.ndarray:
         """(k, m) coefficients of the vertex functions ``values`` (N, m)."""
@@ -113,40 +146,74 @@ class SpectralOperators:
     def multiplication(self, values: np.ndarray) -> np.ndarray:
         """(m, k, k): for each function f of ``values`` (N, m), the product by f in the basis, ``Φᵀ M diag(f) Φ``
         (M over the area)."""
-        return np.stack([self.pinv @ (values[:, j, None] * self.phi) for j in range(values.shape[1])])
+        values = np.asarray(values, dtype=np.float64)
+        n, k = self.phi.shape
+        out = np.zeros((values.shape[1], k * k))
+        block = max(1, _BLOCK_BYTES // (8 * k * k))
+        for s in range(0, n, block):  # Σ_v f(v) [M/area Φ](v, k) Φ(v, l), by blocks of vertices
+            e = min(s + block, n)
+            out += values[s:e].T @ (self.pinv.T[s:e, :, None] * self.phi[s:e, None, :]).reshape(e - s, k * k)
+        return out.reshape(-1, k, k)
+
+    def terms(self, values: np.ndarray, *, orientation: bool = True) -> DescriptorTerms:
+        """`DescriptorTerms` of the vertex functions ``values`` (N, p): their `coefficients`, `multiplication`
+        and, when asked, `orientation` operators."""
+        return DescriptorTerms(self.coefficients(values), self.multiplication(values),
+                               self.orientation(values) if orientation else None)
 
     def orientation(self, values: np.ndarray) -> np.ndarray:
         """(m, k, k): for each function f of ``values`` (N, m), the operator ``g ↦ ⟨n, ∇f × ∇g⟩`` in the basis,
         with n the outward normal (per face, integrated over the faces: each face gives a third of its area to
-        each corner). Raises ValueError on a mesh whose outside cannot be read."""
-        if self._orient_basis is None:
-            self._orient_basis = self._orientation_basis()
-        k = self.phi.shape[1]
-        return (np.asarray(values, dtype=np.float64).T @ self._orient_basis).reshape(-1, k, k)
-
-    def _orientation_basis(self) -> np.ndarray:
-        """(N, k²): the operator is linear in f, so row v holds the operator of the hat function of vertex v
-        (entry (k, l) at k·K + l), computed once for all descriptors. Per face, with a the corner of v:
-        ``⟨n × ∇hat_a, ∇φ_l⟩`` (a constant on the face) times ``∫φ_k``, a third of the face's normalized area
-        on each corner. N·k² float64 (72 MB at N = 10,000 and k = 30)."""
+        each corner). Entry (k, l) is ``Σ_faces ⟨n × ∇f, ∇φ_l⟩ ∫φ_k``, both gradients constant on a face; the
+        faces go by blocks of `_BLOCK_BYTES` (faces × m × k floats). Raises ValueError on a mesh
+        whose outside cannot be read."""
         mesh = self.mesh
         side = winding(mesh)
         if side == 0:
             raise ValueError(f"the orientation operators need a closed, consistently wound surface: this mesh "
                              f"{NO_OUTSIDE}")
-        normals = mesh.face_normals * side
-        grad_phi = _face_gradients(mesh, self.phi, normals)  # (F, 3, k)
-        f, n, k = mesh.faces, mesh.n_vertices, self.phi.shape[1]
-        share = mesh.face_areas / mesh.area / 3.0
-        corners = (self.phi[f[:, 0]] + self.phi[f[:, 1]] + self.phi[f[:, 2]]) * share[:, None]  # (F, k)
-        out = np.zeros((n, k * k))
-        for a, hat in enumerate(_hat_gradients(mesh, normals)):  # ∇ of corner a's hat function, (F, 3)
-            g = np.einsum("fd,fdl->fl", np.cross(normals, hat), grad_phi)  # ⟨n × ∇hat_a, ∇φ_l⟩, (F, k)
-            for s in range(0, len(f), _FACE_BLOCK):
-                e = min(s + _FACE_BLOCK, len(f))
-                per_face = (corners[s:e, :, None] * g[s:e, None, :]).reshape(e - s, k * k)
-                out += csr_matrix((np.ones(e - s), (f[s:e, a], np.arange(e - s))), shape=(n, e - s)) @ per_face
-        return out
+        if self._face_terms is None:
+            normals = mesh.face_normals * side
+            share = mesh.face_areas / mesh.area / 3.0
+            corners = self.phi[mesh.faces].sum(axis=1) * share[:, None]  # ∫φ_k over each face, (F, k)
+            hats = _hat_gradients(mesh, normals)
+            self._face_terms = (normals, hats, corners, _face_gradients(mesh.faces, hats, self.phi))
+        normals, hats, corners, grad_phi = self._face_terms  # ∇φ_l: (F, 3, k)
+        values = np.asarray(values, dtype=np.float64)
+        k, m, f = self.phi.shape[1], values.shape[1], mesh.faces
+        out = np.zeros((k, m * k))
+        block = max(1, _BLOCK_BYTES // (8 * m * k))
+        for s in range(0, len(f), block):
+            e = min(s + block, len(f))
+            grad_f = _face_gradients(f[s:e], [h[s:e] for h in hats], values)  # (faces, 3, m)
+            rot = np.cross(normals[s:e, :, None], grad_f, axis=1)  # n × ∇f
+            g = np.matmul(rot.transpose(0, 2, 1), grad_phi[s:e])  # ⟨n × ∇f, ∇φ_l⟩, (faces, m, k)
+            out += corners[s:e].T @ g.reshape(e - s, m * k)
+        return out.reshape(k, m, k).transpose(1, 0, 2)
+
+
+#: each shape's `DescriptorTerms` of its squared eigenfunctions (`squared_eigenfunction_terms`), keyed by its
+#: content, k and a digest of its eigenpairs: an all-against-all computes them once per shape
+terms_cache = Cache("fmap_terms", max_entries=64, max_bytes=512 << 20)
+
+
+def squared_eigenfunction_terms(ops: SpectralOperators, spectrum) -> DescriptorTerms:
+    """`DescriptorTerms` (with the orientation operators) of the squared eigenfunctions φ_i² of the nonzero
+    eigenpairs of ``spectrum`` (a `wpot.Spectrum` of ``ops``' mesh, area-normalized), (N, K) as descriptors.
+    Every WKS descriptor of the shape is their weighted sum (`wpot.signatures.wks_weights`), so
+    ``terms.combined(weights)`` gives its terms for any energy grid at the cost of a few small products.
+    Cached in `terms_cache` (memory, and disk under ``$WPOT_CACHE_DIR``)."""
+    vec = spectrum.rescaled(normalized=True).nonzero_evecs
+    h = hashlib.sha1(np.ascontiguousarray(vec[::5]).tobytes())
+    h.update(np.ascontiguousarray(ops.phi[::5]).tobytes())
+    params = {"k": ops.phi.shape[1], "n_functions": vec.shape[1], "eigenpairs": h.hexdigest()[:16], "version": 1}
+
+    def compute() -> dict[str, np.ndarray]:
+        t = ops.terms(np.square(vec))
+        return {"coefficients": t.coefficients, "multiplication": t.multiplication, "orientation": t.orientation}
+
+    e = terms_cache.get_or_compute(ops.mesh.fingerprint, params, compute)
+    return DescriptorTerms(e["coefficients"], e["multiplication"], e["orientation"])
 
 
 def _normalized(xs: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -173,6 +240,14 @@ def _commutator_normal(xs: np.ndarray, qs: np.ndarray) -> np.ndarray:
     return h - kron_sum(xs, qs) - kron_sum(xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))
 
 
+def _descriptors(values, name: str, ops: SpectralOperators) -> np.ndarray:
+    """``values`` as an (N, p) float64 array of vertex functions of ``ops``' mesh; ValueError naming it otherwise."""
+    d = np.asarray(values, dtype=np.float64)
+    if d.ndim != 2 or d.shape[0] != ops.phi.shape[0]:
+        raise ValueError(f"{name} must be ({ops.phi.shape[0]}, p) vertex descriptors, got shape {d.shape}")
+    return d
+
+
 #: the terms' default weights (pyfmaps' quickstart): descriptors, Laplacian commutativity, descriptor
 #: commutativity, orientation
 FMAP_WEIGHTS = {"descr": 1.0, "lap": 0.1, "dcomm": 1.0, "orient": 1.0}
@@ -187,7 +262,8 @@ class FmapEnergy:
     ----------
     ops_a, ops_b : the two shapes' `SpectralOperators`, at the same k
     desc_a, desc_b : (N_A, p) and (N_B, p) descriptors, column f of one corresponding to column f of the other
-        (e.g. WKS on one shared energy grid)
+        (e.g. WKS on one shared energy grid), or their `DescriptorTerms` (computed by ``ops_a.terms``, or combined
+        from such terms; with the orientation operators unless w_orient = 0)
     w_descr, w_lap, w_dcomm, w_orient : the terms' weights (nonnegative; w_orient = 0 drops the orientation
         term and then needs no readable outside)
     """
@@ -198,15 +274,24 @@ class FmapEnergy:
         k = ops_a.phi.shape[1]
         if ops_b.phi.shape[1] != k:
             raise ValueError(f"the two shapes' operators have different k: {k} and {ops_b.phi.shape[1]}")
-        if desc_a.ndim != 2 or desc_b.ndim != 2 or desc_a.shape[1] != desc_b.shape[1]:
-            raise ValueError(f"desc_a and desc_b must be (N_A, p) and (N_B, p), got {desc_a.shape} and {desc_b.shape}")
         self.weights = {"descr": w_descr, "lap": w_lap, "dcomm": w_dcomm, "orient": w_orient}
         for name, w in self.weights.items():
             if not np.isfinite(w) or w < 0:
                 raise ValueError(f"w_{name} must be a finite number >= 0, got {w!r}")
-        self.k, self.p = k, desc_a.shape[1]
         self.ops_a, self.ops_b = ops_a, ops_b
-        a, b = ops_a.coefficients(desc_a), ops_b.coefficients(desc_b)
+        da, db = (d if isinstance(d, DescriptorTerms) else
+                  ops.terms(_descriptors(d, name, ops), orientation=bool(w_orient))
+                  for d, ops, name in ((desc_a, ops_a, "desc_a"), (desc_b, ops_b, "desc_b")))
+        for name, d in (("desc_a", da), ("desc_b", db)):
+            if d.coefficients.shape[0] != k:
+                raise ValueError(f"{name}'s DescriptorTerms are for k={d.coefficients.shape[0]}, the operators' k is {k}")
+        if da.coefficients.shape[1] != db.coefficients.shape[1]:
+            raise ValueError(f"desc_a and desc_b must hold the same number of descriptors (columns), got "
+                             f"{da.coefficients.shape[1]} and {db.coefficients.shape[1]}")
+        self.k, self.p = k, da.coefficients.shape[1]
+        if w_orient and (da.orientation is None or db.orientation is None):
+            raise ValueError("w_orient > 0 needs the descriptors' orientation operators: DescriptorTerms without them")
+        a, b = da.coefficients, db.coefficients
         s = np.maximum(0.5 * (np.linalg.norm(a, axis=0) + np.linalg.norm(b, axis=0)), 1e-300)
         self.a, self.b = a / s, b / s
         scale = max(float(ops_a.evals[-1]), float(ops_b.evals[-1]), 1e-300)
@@ -214,9 +299,9 @@ class FmapEnergy:
         self.pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {
             "lap": (np.diag(ops_b.evals / scale)[None], np.diag(ops_a.evals / scale)[None])}
         if w_dcomm:
-            self.pairs["dcomm"] = _normalized(ops_b.multiplication(desc_b), ops_a.multiplication(desc_a))
+            self.pairs["dcomm"] = _normalized(db.multiplication, da.multiplication)
         if w_orient:
-            self.pairs["orient"] = _normalized(ops_b.orientation(desc_b), ops_a.orientation(desc_a))
+            self.pairs["orient"] = _normalized(db.orientation, da.orientation)
 
     def _scale(self, name: str) -> float:
         return self.weights[name] / (1.0 if name == "lap" else self.p)

@@ -70,13 +70,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot._validate import boolean, integer_at_least, vertex_map
-from wpot.maps.fmap import FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map
+from wpot.maps.fmap import (FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map,
+                             squared_eigenfunction_terms)
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.maps.orientation import OrientationWarning
 from wpot.maps.symmetry import keep_orientation
 from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
-from wpot.signatures import wks
-from wpot.signatures._wks import wks_energies
+from wpot.signatures._wks import wks_energies, wks_weights
 from wpot.simplify import lift_map, simplify
 from wpot.spectral import SPECTRAL_MAX_VERTICES
 
@@ -294,10 +294,16 @@ def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: i
     specs = [spectral_basis(m, n_eigen) for m in meshes]
     ops = [SpectralOperators(m, s, k) for m, s in zip(meshes, specs)]
 
+    # the terms of every WKS descriptor are weighted sums of those of the squared eigenfunctions, once per shape
+    squares = [squared_eigenfunction_terms(o, s) for o, s in zip(ops, specs)]
+
     def problem(spectra) -> FmapEnergy:
         # scale-invariant WKS on one grid for both shapes, every second energy of a grid twice as fine (pyfmaps')
         grid = wks_energies(spectra, n_energies=2 * FMAP_DESCRIPTORS, scale_invariant=True)
-        desc = [wks(s, energies=grid.energies, sigma=grid.sigma, scale_invariant=True)[:, ::2] for s in spectra]
+        desc = []
+        for sq, s in zip(squares, spectra):
+            w = wks_weights(s.rescaled(normalized=True).nonzero_evals, grid.energies, grid.sigma)[:, ::2]
+            desc.append(sq.combined(np.pad(w, ((0, sq.coefficients.shape[1] - len(w)), (0, 0)))))
         return FmapEnergy(*ops, *desc)
 
     low = [s.first(FMAP_SPECTRUM) for s in specs]

@@ -25,7 +25,7 @@ from wpot.signatures.base import (
     unregister_signature,
 )
 # WKS first, then LD-SIFT: the registration order is the order of `signature_names` (and of the CLI's choices)
-from wpot.signatures._wks import WKS, EnergyGrid, wks, wks_energies, wks_from_eigenpairs
+from wpot.signatures._wks import WKS, EnergyGrid, wks, wks_energies, wks_from_eigenpairs, wks_weights
 from wpot.signatures._ldsift import LDSIFT, LocalFrames, ldsift, local_frames
 
 for _module in pkgutil.iter_modules(__path__):
@@ -33,7 +33,7 @@ for _module in pkgutil.iter_modules(__path__):
 del _module
 
 __all__ = [
-    "EnergyGrid", "LocalFrames", "ldsift", "local_frames", "wks", "wks_energies", "wks_from_eigenpairs",
+    "EnergyGrid", "LocalFrames", "ldsift", "local_frames", "wks", "wks_energies", "wks_from_eigenpairs", "wks_weights",
     "Signature", "SignatureOptions", "SIGNATURES", "get_signature", "signature_names", "register_signature",
     "unregister_signature", "signature_options", "add_signature_arguments", "signature_options_from_args",
     "WKS", "LDSIFT",

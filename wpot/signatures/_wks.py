@@ -51,7 +51,7 @@ from wpot._validate import integer_at_least
 from wpot.signatures.base import option, register_signature
 from wpot.signatures._spectral import SpectralOptions, SpectralSignature, check_eigenpairs, mesh_spectrum, positive_evals, spectrum_summary
 
-__all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA",
+__all__ = ["VERSION", "wks", "wks_energies", "wks_from_eigenpairs", "wks_weights", "sigma_of_grid", "EnergyGrid", "SIGMA_PER_DELTA",
            "WKSWarning", "WKS", "WKSOptions", "spectrum_summary"]
 
 #: bumped whenever this module's output changes; part of the signature cache keys (`WKS.params`)
@@ -183,11 +183,20 @@ def wks_from_eigenpairs(evals: ArrayLike, evecs: ArrayLike, energies: ArrayLike,
 
     Returns
     -------
-    (N, M) float64, ``WKS[x, m] = C_m Σ_k φ_k(x)² exp(−(e_m − log E_k)²/(2σ²))``. Computed with the
-    weights of each energy rescaled by their largest value (which C_m cancels exactly), so an energy far
-    from every eigenvalue gives finite values (the nearest eigenvalue's φ²), never NaN.
+    (N, M) float64, ``WKS[x, m] = C_m Σ_k φ_k(x)² exp(−(e_m − log E_k)²/(2σ²))``: the squared eigenvectors
+    times `wks_weights`.
     """
     ev, vec, e = check_eigenpairs(evals, evecs, energies, "energies")
+    return np.square(vec) @ wks_weights(ev, e, sigma)
+
+
+def wks_weights(evals: ArrayLike, energies: ArrayLike, sigma: float) -> np.ndarray:
+    """(K, M) float64: the weight of each squared eigenvector φ_k² in the WKS at each energy,
+    ``C_m exp(−(e_m − log E_k)²/(2σ²))`` (`wks_from_eigenpairs`; the WKS is linear in the φ_k², so whatever is
+    linear in a descriptor can be computed once per φ_k² and weighed). ``evals`` (K,) strictly positive,
+    ``energies`` (M,). Computed with the weights of each energy rescaled by their largest value (which C_m cancels
+    exactly), so an energy far from every eigenvalue gives finite values (the nearest eigenvalue's), never NaN."""
+    ev, e = np.asarray(evals, dtype=np.float64), np.asarray(energies, dtype=np.float64)
     sigma = float(sigma)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a positive finite number, got {sigma}")
@@ -198,13 +207,12 @@ def wks_from_eigenpairs(evals: ArrayLike, evecs: ArrayLike, energies: ArrayLike,
             f"[{log_e.min():.3g}, {log_e.max():.3g}]; WKS there only reflects the extreme eigenpairs. "
             "Build the grid with wks_energies from the same spectra.",
             WKSWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     expo = -((e[None, :] - log_e[:, None]) ** 2) / (2.0 * sigma * sigma)  # (K, M)
     expo -= expo.max(axis=0, keepdims=True)
     g = np.exp(expo)  # (K, M), column max = 1
-    g /= g.sum(axis=0, keepdims=True)  # C_e
-    return np.square(vec) @ g
+    return g / g.sum(axis=0, keepdims=True)  # C_e
 
 
 def wks(
