@@ -21,6 +21,12 @@ Each operator pair (and the descriptor coefficients) is scaled to a unit mean Fr
 are relative and independent of the meshes' size and sampling; the defaults (k = 30, 50 WKS descriptors,
 weights 1, 0.1, 1, 1) are those of pyfmaps' quickstart (its scores on the TOSCA test pairs: the docs'
 Results page, correspondence). The point map of C is read as in ZoomOut (`point_map`).
+
+The coefficients and both operator families are linear in the descriptor (`DescriptorTerms`), and a WKS
+descriptor is a weighted sum of the squared eigenfunctions φ_i² (`wpot.signatures.wks_weights`). So a shape's
+terms for its φ_i² (`squared_eigenfunction_terms`, K × k × k per operator family, computed once per shape and
+cached) give the terms of the WKS descriptors on any shared energy grid by small products: in an all-against-all
+no pair goes back to the faces.
 """
 from __future__ import annotations
 

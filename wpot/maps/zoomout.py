@@ -280,7 +280,8 @@ def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: i
     min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors from the first
     `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`, whose energy
     also ranks the candidates; one problem when there are no more). None, with an `OrientationWarning` that
-    names the mesh and its repair, when they cannot be built (`_unreadable`)."""
+    names the mesh and its repair, when they cannot be built (`_unreadable`). The descriptors' terms are each
+    shape's cached `wpot.maps.fmap.squared_eigenfunction_terms` weighed by the pair's WKS weights."""
 
     meshes = (mesh_a, mesh_b)
     for side, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
