@@ -425,8 +425,10 @@ def orientation_section(by_method: dict, common: set, out: Path, dataset: str) -
                  for r in recs if (r["source"], r["target"]) in plain]
         if ratio:
             lines.append(f"\nTime of the oriented refinement over plain ZoomOut (orient=False) on the same pair (each "
-                         "as stored: measured in the same run only when both were; benchmarks/correspondence_speed.py "
-                         "times both side by side): "
+                         "as stored: measured in the same run only when both were; the oriented time of a shape's "
+                         "first pair in a process holds its one-off set-up, its left/right symmetry and functional-map "
+                         "terms, unless $WPOT_CACHE_DIR had them; benchmarks/correspondence_speed.py times both side by "
+                         "side): "
                          f"median {np.median(ratio):.2f}x, 90th percentile {np.quantile(ratio, 0.9):.2f}x "
                          f"({len(ratio)} pairs).\n")
         lines.append(f"Decision signal: `orientation.png` ({len(true_e)} true-side and {len(mirror_e)} mirror-side "

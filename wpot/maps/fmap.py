@@ -200,7 +200,7 @@ class SpectralOperators:
 
 #: each shape's `DescriptorTerms` of its squared eigenfunctions (`squared_eigenfunction_terms`), keyed by its
 #: content, k and a digest of its eigenpairs: an all-against-all computes them once per shape
-terms_cache = Cache("fmap_terms", max_entries=64, max_bytes=512 << 20)
+terms_cache = Cache("fmap_terms", max_entries=64, max_bytes=256 << 20)
 
 
 def squared_eigenfunction_terms(ops: SpectralOperators, spectrum) -> DescriptorTerms:

@@ -248,9 +248,9 @@ def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, proble
     best, _, mended = keep_orientation(mesh_a, mesh_b, refine.full(cands[chosen][0]),
                                        refine=lambda m: refine.full(refine.coarse(m[sa], k_start, k_sel, step)[0]))
     k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
-    # the functional map of every vertex, once more at k_sel (as ZoomOut's last round does), then on to k_end
-    best = refine(best, k_sel, k_sel, step)
-    out = best if k_next > k_end else refine(best, k_next, k_end, step)
+    # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
+    # every vertex (as ZoomOut's last round does)
+    out = refine(best, k_sel, k_sel, step) if k_next > k_end else refine(best, k_next, k_end, step)
     return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
                          mended)
 
