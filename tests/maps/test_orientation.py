@@ -150,14 +150,17 @@ def test_a_fully_mirrored_start_is_detected_and_its_mirror_image_scores_as_the_t
 
 def test_zoomout_chooses_at_choice_k_and_refines_only_the_chosen_map_on():
     # the candidates are compared at CHOICE_K; beyond it the chosen one alone goes on, so the result is plain
-    # ZoomOut continued from the map chosen there, and keeps its orientation
+    # ZoomOut continued from the map chosen there, and keeps its orientation. (At k_end = CHOICE_K that map gets
+    # one more round with every vertex's functional map, which the continuation skips: the two continuations
+    # agree to well under ZoomOut's own error, not vertex for vertex)
     a, b, truth, _, start = _planted_mirror()
     opts = dict(n_eigen=150, samples=400)
     chosen = zoomout(a, b, start, k_end=CHOICE_K, **opts)
     final = zoomout(a, b, start, k_end=150, **opts)
     assert final.candidate == chosen.candidate and final.energies == chosen.energies
     continued = zoomout(a, b, chosen.map, k_start=CHOICE_K + 5, k_end=150, orient=False, **opts)
-    np.testing.assert_array_equal(final.map, continued.map)
+    apart = np.linalg.norm(b.vertices[final.map] - b.vertices[continued.map], axis=1) / np.sqrt(b.area)
+    assert apart.mean() < 0.01
     assert not np.array_equal(final.map, chosen.map)  # the last rounds did move it
     assert _error(b, final.map, truth) < 0.03 and orientation_score(a, b, final.map) > 0.5
 
