@@ -13,7 +13,7 @@ from wpot.mesh import Mesh
 from wpot.maps.orientation import OrientationWarning, orientation_score
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.mesh import winding
-from wpot.maps.zoomout import CHOICE_K, ORIENTATION_DOUBT, zoomout
+from wpot.maps.zoomout import CHOICE_K, ORIENTATION_DOUBT, _choose, _disagree, zoomout
 from helpers import mirror_symmetric
 
 
@@ -163,6 +163,22 @@ def test_zoomout_chooses_at_choice_k_and_refines_only_the_chosen_map_on():
     assert apart.mean() < 0.01
     assert not np.array_equal(final.map, chosen.map)  # the last rounds did move it
     assert _error(b, final.map, truth) < 0.03 and orientation_score(a, b, final.map) > 0.5
+
+
+def test_two_candidates_that_agree_outvote_a_third_of_lower_energy():
+    # the choice among zoomout's candidates: the lowest energy, except that a candidate disagreeing with two that
+    # agree is outvoted; with no single agreeing pair (all agree, none agree) the energy alone decides
+    b = mirror_symmetric(900, seed=0)
+    near = _nearest(b.vertices, b.vertices + 1e-3)  # the identity, up to ties
+    mirror = _nearest(b.vertices, b.vertices * np.array([-1.0, 1.0, 1.0]))
+    energies = {"given": 0.5, "descriptors": 0.9, "descriptors_full": 0.8}
+    images = {"given": mirror, "descriptors": near, "descriptors_full": near}
+    assert _choose(b, images, energies) == "descriptors_full"
+    assert _choose(b, {**images, "given": near}, energies) == "given"  # all agree
+    far = np.roll(near, b.n_vertices // 2)
+    assert _disagree(b, far, near) and _disagree(b, far, mirror) and _disagree(b, near, mirror)
+    assert _choose(b, {**images, "descriptors": far}, energies) == "given"  # none agree
+    assert _choose(b, {"given": mirror, "descriptors_full": near}, energies) == "given"  # two: no vote
 
 
 def test_zoomout_result_does_not_depend_on_vertex_order_or_rigid_motion():

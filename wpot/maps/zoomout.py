@@ -40,7 +40,10 @@ candidates are brought to k = `CHOICE_K`:
 
 Each is scored by the energy the second functional map minimizes (`wpot.maps.fmap.FmapEnergy`: descriptors,
 Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights), evaluated at the k =
-`wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end. The candidates
+`wpot.maps.fmap.FMAP_K` functional map of the candidate's point map; the lowest goes on to k_end, unless two
+candidates agree and the third disagrees with both (`AGREEMENT`): the third is then outvoted whatever its energy.
+The energy is mostly its orientation term, which a half turn keeps, so a half turn can score lowest; two
+candidates that agree with each other and not with it outweigh it (`_choose`). The candidates
 are refined and compared on the rounds' farthest-point samples (each functional map fitted to the samples' map
 by least squares), and only the chosen one is mapped at every vertex. Refining before
 comparing lets each candidate settle on one side everywhere, so that a map right on the body and mirrored on a
@@ -98,7 +101,7 @@ ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
-#: are on different sides (`ZoomOutResult.orientation_confidence`)
+#: are on different sides (`_choose`, `ZoomOutResult.orientation_confidence`)
 AGREEMENT = 0.1
 
 
@@ -113,7 +116,7 @@ class ZoomOutResult:
         (`wpot.maps.fmap.FmapEnergy`, at k = `wpot.maps.fmap.FMAP_K`) and E_other the lowest energy of a map on
         another side: its own mirror image (E with the orientation term reversed) or the other candidate when
         the two disagree (their images at the median vertex more than `AGREEMENT` sqrt(area(B)) apart). Near 0:
-        another side fits about as well, doubt the map. NaN when the orientation could not be weighed
+        another side fits about as well, doubt the map (0 when an outvoted candidate had the lower energy). NaN when the orientation could not be weighed
         (``orient=False``, several connected components, or a surface with no readable outside)
     candidate : the candidate chosen, ``"given"`` (the map passed in, refined), ``"descriptors"`` or
         ``"descriptors_full"`` (the orientation-aware functional maps'); ``"given"`` when there was no choice
@@ -238,7 +241,7 @@ def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, proble
     energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
     # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
     mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
-    chosen = min(cands, key=lambda n: (energies[n], n != "given"))
+    chosen = _choose(mesh_b, {n: c for n, (_, c) in cands.items()}, energies)
     others = [mirrors[chosen]] + [energies[n] for n in cands
                                   if n != chosen and _disagree(mesh_b, cands[n][1], cands[chosen][1])]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
@@ -266,6 +269,17 @@ def _unreadable(mesh: Mesh) -> str:
     if winding(mesh) == 0:
         return NO_OUTSIDE
     return ""
+
+
+def _choose(mesh_b: Mesh, images: dict[str, np.ndarray], energies: dict[str, float]) -> str:
+    """The candidate that goes on to k_end: of the lowest energy, among the two that agree when exactly two of
+    three agree (`_disagree`; the third is outvoted), else among all; on a tie ``"given"``. ``images``: each
+    candidate's images (vertices of B) of the same vertices of A. Chosen on FAUST pairs outside its test list,
+    checked on TOSCA pairs outside it (the docs' Results page)."""
+    names = list(images)
+    agree = [(p, q) for i, p in enumerate(names) for q in names[i + 1:] if not _disagree(mesh_b, images[p], images[q])]
+    pool = agree[0] if len(names) == 3 and len(agree) == 1 else names
+    return min(pool, key=lambda n: (energies[n], n != "given"))
 
 
 def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
