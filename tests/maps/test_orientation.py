@@ -13,7 +13,7 @@ from wpot.mesh import Mesh
 from wpot.maps.orientation import OrientationWarning, orientation_score
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.mesh import winding
-from wpot.maps.zoomout import CHOICE_K, ORIENTATION_DOUBT, _choose, _disagree, zoomout
+from wpot.maps.zoomout import CHOICE_K, ORIENTATION_DOUBT, _choose, _disagree, _disagreements, zoomout
 from helpers import mirror_symmetric
 
 
@@ -173,12 +173,16 @@ def test_two_candidates_that_agree_outvote_a_third_of_lower_energy():
     mirror = _nearest(b.vertices, b.vertices * np.array([-1.0, 1.0, 1.0]))
     energies = {"given": 0.5, "descriptors": 0.9, "descriptors_full": 0.8}
     images = {"given": mirror, "descriptors": near, "descriptors_full": near}
-    assert _choose(b, images, energies) == "descriptors_full"
-    assert _choose(b, {**images, "given": near}, energies) == "given"  # all agree
+
+    def choose(imgs):
+        return _choose(_disagreements(b, imgs), {n: energies[n] for n in imgs})
+
+    assert choose(images) == "descriptors_full"
+    assert choose({**images, "given": near}) == "given"  # all agree
     far = np.roll(near, b.n_vertices // 2)
     assert _disagree(b, far, near) and _disagree(b, far, mirror) and _disagree(b, near, mirror)
-    assert _choose(b, {**images, "descriptors": far}, energies) == "given"  # none agree
-    assert _choose(b, {"given": mirror, "descriptors_full": near}, energies) == "given"  # two: no vote
+    assert choose({**images, "descriptors": far}) == "given"  # none agree
+    assert choose({"given": mirror, "descriptors_full": near}) == "given"  # two: no vote
 
 
 def test_zoomout_result_does_not_depend_on_vertex_order_or_rigid_motion():

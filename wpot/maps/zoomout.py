@@ -116,8 +116,9 @@ class ZoomOutResult:
         (`wpot.maps.fmap.FmapEnergy`, at k = `wpot.maps.fmap.FMAP_K`) and E_other the lowest energy of a map on
         another side: its own mirror image (E with the orientation term reversed) or the other candidate when
         the two disagree (their images at the median vertex more than `AGREEMENT` sqrt(area(B)) apart). Near 0:
-        another side fits about as well, doubt the map (0 when an outvoted candidate had the lower energy). NaN when the orientation could not be weighed
-        (``orient=False``, several connected components, or a surface with no readable outside)
+        another side fits about as well, doubt the map (0 when an outvoted candidate had the lower energy). NaN
+        when the orientation could not be weighed (``orient=False``, several connected components, or a surface
+        with no readable outside)
     candidate : the candidate chosen, ``"given"`` (the map passed in, refined), ``"descriptors"`` or
         ``"descriptors_full"`` (the orientation-aware functional maps'); ``"given"`` when there was no choice
     energies : each candidate's energy, by name, and its mirror image's (``"<name>_mirror"``)
@@ -241,9 +242,9 @@ def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, proble
     energies = {n: sum(v for k, v in tm.items() if k != "orient_reversed") for n, tm in terms.items()}
     # a map composed with a left/right symmetry: the same intrinsic terms, the orientation term reversed
     mirrors = {n: energies[n] - tm["orient"] + tm["orient_reversed"] for n, tm in terms.items()}
-    chosen = _choose(mesh_b, {n: c for n, (_, c) in cands.items()}, energies)
-    others = [mirrors[chosen]] + [energies[n] for n in cands
-                                  if n != chosen and _disagree(mesh_b, cands[n][1], cands[chosen][1])]
+    apart = _disagreements(mesh_b, {n: c for n, (_, c) in cands.items()})
+    chosen = _choose(apart, energies)
+    others = [mirrors[chosen]] + [energies[n] for n in cands if n != chosen and apart[frozenset((n, chosen))]]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
     # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
     # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
@@ -271,14 +272,21 @@ def _unreadable(mesh: Mesh) -> str:
     return ""
 
 
-def _choose(mesh_b: Mesh, images: dict[str, np.ndarray], energies: dict[str, float]) -> str:
-    """The candidate that goes on to k_end: of the lowest energy, among the two that agree when exactly two of
-    three agree (`_disagree`; the third is outvoted), else among all; on a tie ``"given"``. ``images``: each
-    candidate's images (vertices of B) of the same vertices of A. Chosen on FAUST pairs outside its test list,
-    checked on TOSCA pairs outside it (the docs' Results page)."""
+def _disagreements(mesh_b: Mesh, images: dict[str, np.ndarray]) -> dict[frozenset, bool]:
+    """`_disagree` for every two candidates, keyed by the pair of names. ``images``: each candidate's images
+    (vertices of B) of the same vertices of A."""
     names = list(images)
-    agree = [(p, q) for i, p in enumerate(names) for q in names[i + 1:] if not _disagree(mesh_b, images[p], images[q])]
-    pool = agree[0] if len(names) == 3 and len(agree) == 1 else names
+    return {frozenset((p, q)): _disagree(mesh_b, images[p], images[q]) for i, p in enumerate(names)
+            for q in names[i + 1:]}
+
+
+def _choose(apart: dict[frozenset, bool], energies: dict[str, float]) -> str:
+    """The candidate that goes on to k_end: of the lowest energy, among the two that agree when exactly one pair
+    of candidates agrees (`_disagreements`; with three, the third is outvoted), else among all; on a tie
+    ``"given"``, then the first in ``energies``' order. Chosen on FAUST pairs outside its test list, checked on
+    TOSCA pairs outside it (the docs' Results page)."""
+    agree = [pair for pair, differ in apart.items() if not differ]
+    pool = [n for n in energies if len(agree) != 1 or n in agree[0]]
     return min(pool, key=lambda n: (energies[n], n != "given"))
 
 
