@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import os
 import signal
 import sys
@@ -325,10 +326,16 @@ def dask_setup(worker: Any) -> None:
     """Dask's preload hook (``LocalCluster(preload=["wpot.stopping"])``), run in each worker process's main
     thread when it starts: ignore SIGINT and SIGTERM (the coordinator closes the cluster when it stops), and say
     nothing about the tasks it cancels."""
-    import logging
-
     if threading.current_thread() is threading.main_thread():
         for s in SIGNALS:
             signal.signal(s, signal.SIG_IGN)
     # that logger's one warning is about a cancelled task, which a stopped run cancels by the dozen
     logging.getLogger("distributed.worker.state_machine").setLevel(logging.ERROR)
+    # a worker busy with a pair when the stopped coordinator closes the scheduler logs its next heartbeat's failure
+    # with a traceback; the scheduler of a local cluster only goes away with its coordinator, so that is no news
+    logging.getLogger("distributed.worker").addFilter(_scheduler_gone_filter)
+
+
+def _scheduler_gone_filter(record: logging.LogRecord) -> bool:
+    """False for a worker's report that its heartbeat found the scheduler gone (a `logging` filter)."""
+    return not str(record.msg).startswith("Failed to communicate with scheduler")

@@ -4,6 +4,7 @@ Also the per-worker device choice (a pure function) and ``wpot all-vs-all --sche
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import os
 import signal
 import subprocess
@@ -208,6 +209,13 @@ def test_embedded_local_cluster_workers_choose_their_device():
         assert ex.submit(_task_device, {"device": None}).result() == "cpu"  # its own choice: no CUDA here
         assert ex.submit(_task_device, {"device": "cpu"}).result() == "cpu"
         assert ex.max_in_flight() == 1  # one worker, one thread: one pair in flight
+        # a stopped run closes the scheduler under a busy worker: its heartbeat's failure is not printed, the rest is
+        passes = logging.getLogger("distributed.worker").filter  # a logger pickles by name: the worker's own
+        for msg, kept in [("Failed to communicate with scheduler during heartbeat.", False),
+                          ("Unexpected exception during heartbeat. Closing worker.", True)]:
+            record = logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, msg, None, None)
+            assert bool(ex.submit(passes, record).result()) is kept, msg
+        assert passes(record)  # and this process's logger is left as it was
     with pytest.raises(ValueError, match="scheduler must be"):
         with dask_executor("localhost:8786"):
             pass
