@@ -278,3 +278,20 @@ def test_vertex_areas_are_a_third_of_each_triangle_and_sum_to_the_area():
     np.testing.assert_allclose(m.face_areas, [0.5, 1.0])
     np.testing.assert_allclose(m.vertex_areas, [0.5 / 3, 1.5 / 3, 1.5 / 3, 1.0 / 3, 0.0])
     assert m.vertex_areas.sum() == pytest.approx(m.area) and not m.vertex_areas.flags.writeable
+
+
+def test_voronoi_areas_are_the_dual_cells_of_a_regular_grid_and_sum_to_the_area():
+    # a 6 x 6 grid of squares of side h, each cut into two right triangles: an interior vertex's Voronoi cell
+    # (the mixed area, circumcentres at the hypotenuses' midpoints) is the h x h square around it
+    h, n = 0.3, 7
+    x, y = np.meshgrid(np.arange(n) * h, np.arange(n) * h, indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    m = Mesh(v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])]), warn=False)
+    interior = idx[1:-1, 1:-1].ravel()
+    np.testing.assert_allclose(m.voronoi_areas[interior], h * h, rtol=1e-12)
+    assert m.voronoi_areas.sum() == pytest.approx(m.area) and not m.voronoi_areas.flags.writeable
+    from wpot.spectral import laplace_beltrami
+
+    np.testing.assert_array_equal(laplace_beltrami(m)[1].diagonal(), m.voronoi_areas)  # the mass matrix's diagonal

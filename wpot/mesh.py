@@ -244,6 +244,22 @@ class Mesh:
         return _ro(np.bincount(self._faces.ravel(), np.repeat(self.face_areas / 3.0, 3), minlength=self.n_vertices))
 
     @cached_property
+    def voronoi_areas(self) -> np.ndarray:
+        """(N,) float64 Voronoi (mixed) vertex areas (libigl's), the diagonal of the Laplace–Beltrami mass matrix
+        (`wpot.spectral.laplace_beltrami`, paper §3.2); they sum to `area`. Computed once per mesh: every
+        spectral operator of the mesh weighs its vertices by them."""
+        import igl  # local import: libigl is a heavy module
+
+        v = np.ascontiguousarray(self._vertices, dtype=np.float64)
+        f = np.ascontiguousarray(self._faces, dtype=np.int64)
+        return _ro(np.asarray(igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_VORONOI).diagonal(), dtype=np.float64))
+
+    @cached_property
+    def _winding(self) -> int:
+        """`winding` of this mesh, computed once (the map code reads it for every pair)."""
+        return _winding(self)
+
+    @cached_property
     def face_normals(self) -> np.ndarray:
         """(F, 3) unit normals (right-hand rule on the face order); zero for degenerate faces."""
         c = self._face_cross
@@ -624,6 +640,11 @@ def winding(mesh: Mesh) -> int:
     closed surface its boundary loops' caps make (`signed_volume`)."""
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
+    return mesh._winding
+
+
+def _winding(mesh: Mesh) -> int:
+    """`winding`, computed (`Mesh._winding` keeps it)."""
     vol = signed_volume(mesh)
     # a sphere of the same area encloses area^1.5 / (6 sqrt(pi))
     if abs(vol) < 0.01 * mesh.area ** 1.5 / (6.0 * np.sqrt(np.pi)):

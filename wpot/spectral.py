@@ -217,7 +217,7 @@ def laplace_beltrami(mesh: Mesh) -> tuple[sp.csr_matrix, sp.dia_matrix]:
     W = sp.csr_matrix(-L, dtype=np.float64)
     W.sum_duplicates()
     W.sort_indices()
-    mass = np.asarray(igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_VORONOI).diagonal(), dtype=np.float64)
+    mass = mesh.voronoi_areas
     if not np.all(np.isfinite(W.data)) or not np.all(np.isfinite(mass)):
         bad = int(np.count_nonzero(~np.isfinite(mass))) + int(np.count_nonzero(~np.isfinite(W.data)))
         raise ValueError(

@@ -39,7 +39,6 @@ import numpy as np
 from wpot.cache import Cache
 from wpot.cost import nearest_rows
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
-from wpot.spectral import laplace_beltrami
 
 __all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
            "FMAP_SPECTRUM", "FMAP_WEIGHTS"]
@@ -141,7 +140,7 @@ class SpectralOperators:
         self.mesh = mesh
         self.phi = np.ascontiguousarray(spectrum.evecs[:, :k])
         self.evals = np.asarray(spectrum.evals[:k], dtype=np.float64)
-        mass = laplace_beltrami(mesh)[1].diagonal()
+        mass = mesh.voronoi_areas
         self.pinv = (self.phi * (mass / mass.sum())[:, None]).T
         self._face_terms: tuple | None = None  # what `orientation` needs of the mesh and basis
 

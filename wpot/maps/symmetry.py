@@ -25,7 +25,7 @@ from wpot.maps.orientation import LOCAL_RADIUS, map_score, orientation_terms, sp
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, spectrum_size
 from wpot.mesh import Mesh, winding
 from wpot.signatures import wks
-from wpot.spectral import eigenpairs, laplace_beltrami
+from wpot.spectral import eigenpairs
 
 __all__ = ["EXCLUSION", "MIN_SCORE", "SYMMETRY_K_END", "Symmetry", "keep_orientation", "reflection_symmetry",
            "symmetry_cache"]
@@ -71,7 +71,7 @@ def _signature(spec) -> np.ndarray:
 
 
 def _commutator_residual(mesh: Mesh, spec, t: np.ndarray, k: int = 10) -> float:
-    mass = laplace_beltrami(mesh)[1].diagonal()
+    mass = mesh.voronoi_areas
     lo = spec.n_zero
     phi, lam = spec.evecs[:, lo:lo + k], spec.evals[lo:lo + k]
     c = (phi * (mass / mass.sum())[:, None]).T @ phi[t]

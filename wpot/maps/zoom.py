@@ -60,6 +60,8 @@ class Refiner:
 
     def __init__(self, mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, samples: int | None):
         self.mesh_a, self.mesh_b, self.n_eigen, self.samples = mesh_a, mesh_b, n_eigen, samples
+        self._bases: dict[int, np.ndarray] = {}  # each mesh's eigenvectors, read once
+        self._factors: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # `coarse`'s fits on A's points, by k
 
     def sample(self, mesh: Mesh) -> np.ndarray | None:
         """(samples,) int64 farthest-point samples (Euclidean) of ``mesh``, or None when every vertex is used."""
@@ -75,15 +77,19 @@ class Refiner:
         return np.arange(mesh.n_vertices) if s is None else s
 
     def _phi(self, mesh: Mesh, k: int) -> np.ndarray:
-        return spectral_basis(mesh, self.n_eigen).evecs[:, :k]
+        if id(mesh) not in self._bases:
+            self._bases[id(mesh)] = spectral_basis(mesh, self.n_eigen).evecs
+        return self._bases[id(mesh)][:, :k]
 
     def coarse(self, init: np.ndarray, k0: int, k1: int, dk: int) -> tuple[np.ndarray, np.ndarray]:
         """The rounds k0, k0 + dk, ..., k1 on the `points` of two connected meshes: ``init`` (n_A,) maps A's
         points to vertices of B. Returns the (k1, k1) functional map fitted (least squares) at k1, and A's points
         mapped by it onto B's."""
         a, b = self.points(self.mesh_a), self.points(self.mesh_b)
-        phi_a, phi_b = self._phi(self.mesh_a, k1)[a], self._phi(self.mesh_b, k1)
-        fmap = _sample_rounds(phi_a, phi_b, init, b, _schedule(k0, k1, dk))
+        phi_a, phi_b = np.ascontiguousarray(self._phi(self.mesh_a, k1)[a]), self._phi(self.mesh_b, k1)
+        if k1 not in self._factors:  # several maps brought to one k1 share it
+            self._factors[k1] = _least_squares(phi_a)
+        fmap = _sample_rounds(phi_a, phi_b, init, b, _schedule(k0, k1, dk), self._factors[k1])
         return fmap, b[point_map(phi_a, phi_b[b], fmap)]
 
     def full(self, fmap: np.ndarray) -> np.ndarray:
@@ -112,18 +118,25 @@ def _schedule(k_start: int, k_end: int, step: int) -> list[int]:
     return ks
 
 
-def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.ndarray, ks: list[int]
-                   ) -> np.ndarray:
+def _least_squares(phi_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Qᵀ, R⁻¹)`` of the QR factorization of ``phi_a`` (n, K), which serve the least-squares fits of
+    `_sample_rounds` at every k ≤ K: the first k columns of phi_a are Q[:, :k] R[:k, :k], and the leading k × k
+    block of R⁻¹ is the inverse of R's leading block (R is upper triangular)."""
+    q, r = np.linalg.qr(phi_a)
+    return np.ascontiguousarray(q.T), solve_triangular(r, np.eye(r.shape[0]))
+
+
+def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.ndarray, ks: list[int],
+                   factors: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """ZoomOut rounds on samples. ``phi_a`` (n_A, K): A's basis at its samples; ``phi_b`` (N_B, K): B's at every
     vertex; ``ts`` (n_A,): the samples' images (vertices of B); ``sb``: B's samples. At each k of ``ks``, the
     (k, k) functional map fitted to the samples' map by least squares, and but for the last k the samples
-    mapped by it onto B's samples. Returns the last functional map."""
-    # one QR serves every k: the first k columns of phi_a are Q[:, :k] R[:k, :k]
+    mapped by it onto B's samples. ``factors``: `_least_squares` of ``phi_a[:, :ks[-1]]`` when the caller has
+    it. Returns the last functional map."""
     phi_a, at_sb = np.ascontiguousarray(phi_a[:, :ks[-1]]), np.ascontiguousarray(phi_b[sb, :ks[-1]])
-    # the leading k x k block of R's inverse is the inverse of R's leading block (R is upper triangular), so one
-    # inverse serves every k, and each round is two small products (small BLAS calls are slow when threaded)
-    q, r = np.linalg.qr(phi_a)
-    qt, r_inv = np.ascontiguousarray(q.T), solve_triangular(r, np.eye(r.shape[0]))
+    # one factorization serves every k, and each round is two small products (small BLAS calls are slow when
+    # threaded)
+    qt, r_inv = _least_squares(phi_a) if factors is None else factors
     for n, k in enumerate(ks):
         fmap = r_inv[:k, :k] @ (qt[:k] @ phi_b[ts, :k])
         if n < len(ks) - 1:
