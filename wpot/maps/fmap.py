@@ -235,14 +235,14 @@ def _commutator_normal(xs: np.ndarray, qs: np.ndarray) -> np.ndarray:
     ``LᵀL = (X Xᵀ) ⊗ I + I ⊗ (QᵀQ) − X ⊗ Q − Xᵀ ⊗ Qᵀ``; the sums of Kronecker products over f are one matrix
     product each."""
     m, k, _ = xs.shape
-    eye = np.eye(k)
-    h = np.kron(np.einsum("fab,fcb->ac", xs, xs), eye) + np.kron(eye, np.einsum("fba,fbc->ac", qs, qs))
-
-    def kron_sum(x: np.ndarray, q: np.ndarray) -> np.ndarray:  # Σ_f x_f ⊗ q_f
+    h = np.zeros((k * k, k * k))
+    h4, d = h.reshape(k, k, k, k), np.arange(k)  # h4[a, i, c, j] = h[(a, i), (c, j)], a view
+    h4[:, d, :, d] = np.einsum("fab,fcb->ac", xs, xs)  # (X Xᵀ) ⊗ I, without forming it
+    h4[d, :, d, :] += np.einsum("fba,fbc->ac", qs, qs)  # + I ⊗ (QᵀQ)
+    for x, q in ((xs, qs), (xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))):  # − Σ_f x_f ⊗ q_f
         prod = x.reshape(m, k * k).T @ q.reshape(m, k * k)  # [(a, b), (c, e)] = Σ_f x[a, b] q[c, e]
-        return prod.reshape(k, k, k, k).transpose(0, 2, 1, 3).reshape(k * k, k * k)
-
-    return h - kron_sum(xs, qs) - kron_sum(xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))
+        h4 -= prod.reshape(k, k, k, k).transpose(0, 2, 1, 3)
+    return h
 
 
 def _descriptors(values, name: str, ops: SpectralOperators) -> np.ndarray:
