@@ -76,8 +76,8 @@ FMAPS_SETTINGS = {
 FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: three candidates ranked by the
 #: functional-map energy at k = 60, two that agree outvoting a third, the chosen one mended where mirrored on a
-#: part, refined on to k = 200; sampled rounds, the candidates compared on the samples)
-ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote"
+#: part, refined on to k = 200; sampled rounds, the candidates compared on 1,000 samples)
+ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote-c1000"
 #: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
 PLAIN_SUFFIX = "+zoomout-plain"
 #: the datasets the benchmark knows: folder under ``--data``

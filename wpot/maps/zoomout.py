@@ -44,8 +44,8 @@ Laplacian and descriptor commutativity, and orientation, with pyfmaps' weights),
 candidates agree and the third disagrees with both (`AGREEMENT`): the third is then outvoted whatever its energy.
 The energy is mostly its orientation term, which a half turn keeps, so a half turn can score lowest; two
 candidates that agree with each other and not with it outweigh it (`_choose`). The candidates
-are refined and compared on the rounds' farthest-point samples (each functional map fitted to the samples' map
-by least squares), and only the chosen one is mapped at every vertex. Refining before
+are refined and compared on `CHOICE_SAMPLES` farthest-point samples a mesh (each functional map fitted to the
+samples' map by least squares), and only the chosen one is mapped at every vertex. Refining before
 comparing lets each candidate settle on one side everywhere, so that a map right on the body and mirrored on a
 limb is not compared with maps that are still coarse. A map can still be right on the body and mirrored on a
 symmetric part (both hind legs of a quadruped), which the energy hardly sees: where the chosen map reverses
@@ -84,7 +84,7 @@ from wpot.simplify import lift_map, simplify
 from wpot.spectral import SPECTRAL_MAX_VERTICES
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
-           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "ZOOMOUT_MAX_VERTICES"]
+           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "CHOICE_SAMPLES", "ZOOMOUT_MAX_VERTICES"]
 
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
 #: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
@@ -98,6 +98,10 @@ CHOICE_K = 60
 #: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`): the spectral
 #: signatures' `wpot.spectral.SPECTRAL_MAX_VERTICES`, so that both read one cached spectrum of each copy
 ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
+#: farthest-point samples a mesh on which the candidates are brought to `CHOICE_K` and compared, and the mended
+#: map refined again (at most ``samples``; the rounds after the choice use ``samples``). Chosen on FAUST pairs
+#: outside its test list against 2,000, 1,500 and 700, checked on TOSCA pairs outside it (the docs' Results page)
+CHOICE_SAMPLES = 1000
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
@@ -171,7 +175,8 @@ def zoomout(
         energy (the module docstring). False: the plain ZoomOut of the given map, which settles
         on either side
     samples : vertices of each mesh (farthest-point samples) mapped in the rounds before the last, which maps
-        every vertex (default `ZOOMOUT_SAMPLES` = 2000); None maps every vertex in every round
+        every vertex (default `ZOOMOUT_SAMPLES` = 2000; the oriented candidates are compared on at most
+        `CHOICE_SAMPLES` of them); None maps every vertex in every round
     max_vertices : a mesh of more vertices is refined through a simplified copy of this many (`wpot.simplify`;
         default `ZOOMOUT_MAX_VERTICES`), and the map carried back to its every vertex; None: never. The other
         options then apply to the copies
@@ -222,20 +227,21 @@ def zoomout(
     problems = _oriented_problems(mesh_a, mesh_b, n_eigen, k_end)
     if problems is None:
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    return _oriented(refine, mesh_a, mesh_b, t, problems, k_start, k_end, step)
+    choice = refine if samples is None else Refiner(mesh_a, mesh_b, n_eigen, min(samples, CHOICE_SAMPLES))
+    return _oriented(refine, choice, mesh_a, mesh_b, t, problems, k_start, k_end, step)
 
 
-def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, problems: dict[str, FmapEnergy],
-              k_start: int, k_end: int, step: int) -> ZoomOutResult:
-    """`zoomout` with ``orient=True``: the candidates brought to `CHOICE_K` and compared, the chosen one mended and
-    refined on to k_end (the module docstring)."""
+def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray,
+              problems: dict[str, FmapEnergy], k_start: int, k_end: int, step: int) -> ZoomOutResult:
+    """`zoomout` with ``orient=True``: the candidates brought to `CHOICE_K` by ``choice`` (on its samples) and
+    compared, the chosen one mended and refined on to k_end by ``refine`` (the module docstring)."""
     k_sel = min(CHOICE_K, k_end)
-    # the candidates are brought to k_sel and compared on the rounds' samples; only the chosen one maps every vertex
-    sa, sb = refine.points(mesh_a), refine.points(mesh_b)
+    # the candidates are brought to k_sel and compared on the choice's samples; only the chosen one maps every vertex
+    sa, sb = choice.points(mesh_a), choice.points(mesh_b)
     starts = {"given": (t[sa], k_start)}
     for name, problem in problems.items():
         starts[name] = (sb[point_map(problem.ops_a.phi[sa], problem.ops_b.phi[sb], problem.fit())], problem.k + step)
-    cands = {n: refine.coarse(t0, min(k0, k_sel), k_sel, step) for n, (t0, k0) in starts.items()}
+    cands = {n: choice.coarse(t0, min(k0, k_sel), k_sel, step) for n, (t0, k0) in starts.items()}
     judge = problems[JUDGE]
     fit_a, phi_b = np.linalg.pinv(judge.ops_a.phi[sa]), judge.ops_b.phi  # least squares on the samples
     terms = {n: judge.terms(fit_a @ phi_b[c]) for n, (_, c) in cands.items()}
@@ -249,8 +255,8 @@ def _oriented(refine: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, proble
     # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
     # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
     # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
-    best, _, mended = keep_orientation(mesh_a, mesh_b, refine.full(cands[chosen][0]),
-                                       refine=lambda m: refine.full(refine.coarse(m[sa], k_start, k_sel, step)[0]))
+    best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]),
+                                       refine=lambda m: choice.full(choice.coarse(m[sa], k_start, k_sel, step)[0]))
     k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
     # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
     # every vertex (as ZoomOut's last round does)
