@@ -120,3 +120,21 @@ def test_wrong_device_is_named():
     a = wp.zeros((3, 4), dtype=wp.float64, device="cpu")
     with pytest.raises(ValueError, match="expected cuda"):
         cost_matrix(a, np.zeros((2, 4)), device="cuda")
+
+
+def test_nearest_rows_agrees_with_scipy_and_does_not_depend_on_the_block():
+    from scipy.spatial.distance import cdist
+
+    from wpot.cost import nearest_rows
+
+    rng = np.random.default_rng(3)
+    q, p = rng.standard_normal((300, 40)), rng.standard_normal((700, 40))
+    d = cdist(q, p, "sqeuclidean")
+    idx, best = nearest_rows(q, p, dtype=np.float64)
+    np.testing.assert_array_equal(idx, d.argmin(axis=1))
+    np.testing.assert_allclose(best, d.min(axis=1), rtol=1e-9)
+    got = [nearest_rows(q, p, block=b) for b in (None, 2, 7, 64, 1000)]  # float32: the same answer, any block
+    for i, b in got[1:]:
+        np.testing.assert_array_equal(i, got[0][0])
+        np.testing.assert_array_equal(b, got[0][1])
+    assert np.mean(got[0][0] == idx) > 0.99  # float32 differs from float64 only at near ties
