@@ -245,18 +245,12 @@ class Mesh:
 
     @cached_property
     def voronoi_areas(self) -> np.ndarray:
-        """(N,) float64 Voronoi (mixed) vertex areas (libigl's), the diagonal of the Laplace–Beltrami mass matrix
-        (`wpot.spectral.laplace_beltrami`, paper §3.2); they sum to `area`. Computed once per mesh: every
-        spectral operator of the mesh weighs its vertices by them."""
-        import igl  # local import: libigl is a heavy module
-
-        v = np.ascontiguousarray(self._vertices, dtype=np.float64)
-        f = np.ascontiguousarray(self._faces, dtype=np.int64)
-        return _ro(np.asarray(igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_VORONOI).diagonal(), dtype=np.float64))
+        """(N,) float64 Voronoi (mixed) vertex areas, the diagonal of the Laplace–Beltrami mass matrix
+        (`wpot.spectral.laplace_beltrami`, paper §3.2); they sum to `area`."""
+        return _ro(_voronoi_areas(self._vertices, self._faces))
 
     @cached_property
-    def _winding(self) -> int:
-        """`winding` of this mesh, computed once (the map code reads it for every pair)."""
+    def _winding(self) -> int:  # `winding`, kept: the map code reads it for every pair
         return _winding(self)
 
     @cached_property
@@ -323,26 +317,17 @@ class Mesh:
         take part). Empty for a consistently wound mesh; a Möbius band keeps the faces it cannot fix."""
         return _ro(_misoriented(self._half_edges, self.face_areas, self.n_vertices))
 
-    def _edge_matrix(self, values: np.ndarray) -> sp.csr_matrix:
-        """(N, N) symmetric CSR matrix with ``values[k]`` at both (i, j) and (j, i) of edge k, indices sorted."""
-        e = self.edges
-        n = self.n_vertices
-        m = sp.coo_matrix((np.r_[values, values], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                          shape=(n, n)).tocsr()
-        m.sort_indices()
-        return m
-
     @cached_property
     def adjacency(self) -> sp.csr_matrix:
         """(N, N) symmetric CSR vertex adjacency (one-ring), entries 1."""
-        return self._edge_matrix(np.ones(len(self.edges)))
+        return _edge_matrix(self, np.ones(len(self.edges)))
 
     @cached_property
     def edge_graph(self) -> sp.csr_matrix:
         """(N, N) symmetric CSR graph of the edges weighted by their lengths, for shortest paths along the
         surface (`scipy.sparse.csgraph`). A zero-length edge gets the smallest positive float instead, since
         csgraph reads 0 as no edge."""
-        return self._edge_matrix(np.maximum(self.edge_lengths, np.finfo(float).tiny))
+        return _edge_matrix(self, np.maximum(self.edge_lengths, np.finfo(float).tiny))
 
     def one_ring(self, i: int) -> np.ndarray:
         """Indices of the vertices sharing an edge with vertex ``i`` (sorted, read-only)."""
@@ -641,6 +626,26 @@ def winding(mesh: Mesh) -> int:
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
     return mesh._winding
+
+
+def _edge_matrix(mesh: Mesh, values: np.ndarray) -> sp.csr_matrix:
+    """(N, N) symmetric CSR matrix with ``values[k]`` at both (i, j) and (j, i) of edge k of ``mesh``, indices
+    sorted."""
+    e = mesh.edges
+    n = mesh.n_vertices
+    m = sp.coo_matrix((np.r_[values, values], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n, n)).tocsr()
+    m.sort_indices()
+    return m
+
+
+def _voronoi_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """`Mesh.voronoi_areas`: libigl's Voronoi (mixed) mass matrix's diagonal, (N,) float64."""
+    import igl  # local import: libigl is a heavy module
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    return np.asarray(igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_VORONOI).diagonal(), dtype=np.float64)
 
 
 def _winding(mesh: Mesh) -> int:
