@@ -245,8 +245,7 @@ class Mesh:
 
     @cached_property
     def voronoi_areas(self) -> np.ndarray:
-        """(N,) float64 Voronoi (mixed) vertex areas, the diagonal of the Laplace–Beltrami mass matrix
-        (`wpot.spectral.laplace_beltrami`, paper §3.2); they sum to `area`."""
+        """(N,) float64 Voronoi vertex areas: `wpot.spectral.laplace_beltrami`'s mass matrix's diagonal."""
         return _ro(_voronoi_areas(self._vertices, self._faces))
 
     @cached_property
