@@ -2,6 +2,8 @@
 the functional map of an exact isometry."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -123,6 +125,9 @@ def test_wks_terms_from_the_squared_eigenfunctions():
     terms_cache.clear()
     table = [squared_eigenfunction_terms(o, s) for o, s in ((oa, sa), (ob, sb))]
     assert squared_eigenfunction_terms(oa, sa).orientation is table[0].orientation  # cached
+    # another spectrum of the same mesh, the same eigenvalues, one eigenvector turned around: not that entry
+    turned = dataclasses.replace(sa, evecs=sa.evecs * np.where(np.arange(sa.k) == 7, -1.0, 1.0))
+    assert squared_eigenfunction_terms(oa, turned).orientation is not table[0].orientation
     for p, spectra in ((20, (sa, sb)), (16, (sa.first(30), sb.first(30)))):
         direct = FmapEnergy(oa, ob, *_descriptors(*spectra, p=p))
         grid = wks_energies(spectra, n_energies=2 * p, scale_invariant=True)

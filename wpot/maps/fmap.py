@@ -208,10 +208,15 @@ def squared_eigenfunction_terms(ops: SpectralOperators, spectrum) -> DescriptorT
     Every WKS descriptor of the shape is their weighted sum (`wpot.signatures.wks_weights`), so
     ``terms.combined(weights)`` gives its terms for any energy grid at the cost of a few small products.
     Cached in `terms_cache` (memory, and disk under ``$WPOT_CACHE_DIR``)."""
-    vec = spectrum.rescaled(normalized=True).nonzero_evecs
-    h = hashlib.sha1(np.ascontiguousarray(vec[::5]).tobytes())
-    h.update(np.ascontiguousarray(ops.phi[::5]).tobytes())
-    params = {"k": ops.phi.shape[1], "n_functions": vec.shape[1], "eigenpairs": h.hexdigest()[:16], "version": 1}
+    spectrum = spectrum.rescaled(normalized=True)
+    vec = spectrum.nonzero_evecs
+    # the eigenpairs' digest: their eigenvalues and about a hundred rows of each basis (two spectra of one mesh
+    # that agree there are the same), a few hundred kB to hash rather than the whole (N, K)
+    step = max(1, len(vec) // 100)
+    h = hashlib.sha1(np.ascontiguousarray(spectrum.evals))
+    for rows in (vec[::step], ops.phi[::step]):
+        h.update(np.ascontiguousarray(rows))
+    params = {"k": ops.phi.shape[1], "n_functions": vec.shape[1], "eigenpairs": h.hexdigest()[:16], "version": 2}
 
     def compute() -> dict[str, np.ndarray]:
         t = ops.terms(np.square(vec))
