@@ -18,8 +18,8 @@ from benchmarks.fault_campaign import signal_run, store_consistent
 from wpot.runs.loop import run_all_vs_all
 from wpot.runs.store import RunStore
 
-TINY = {"n_eigen": 30, "n_energies": 30, "max_vertices": 50, "device": "cpu"}
-TINY_CLI = ["--n-eigen", "30", "--n-energies", "30", "--max-vertices", "50", "--device", "cpu", "--no-progress"]
+TINY = {"n_eigen": 30, "n_energies": 30, "max_vertices": 300, "device": "cpu"}
+TINY_CLI = ["--n-eigen", "30", "--n-energies", "30", "--max-vertices", "300", "--device", "cpu", "--no-progress"]
 MODES = {"inline": ["--jobs", "1"], "jobs2": ["--jobs", "2"], "dask": ["--scheduler", "local", "--jobs", "2"]}
 
 pytestmark = pytest.mark.slow
@@ -27,8 +27,10 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    """8 shapes, 28 pairs: the pairs take a few seconds, so a signal sent after the first lands mid-run."""
-    return make_dataset(tmp_path_factory.mktemp("signals") / "data", n_per_class=4, n=60)
+    """8 shapes of 300 vertices, 28 pairs, each transported at every vertex: the pairs after the first take about
+    2 s, ten times `signal_run`'s poll, so a signal sent once the first is stored lands mid-run (with 60-vertex
+    shapes they took 0.4 s, and a run once finished before the signal came)."""
+    return make_dataset(tmp_path_factory.mktemp("signals") / "data", n_per_class=4, n=300)
 
 
 @pytest.fixture(scope="module")
