@@ -63,6 +63,15 @@ class Refiner:
         self._bases: dict[int, np.ndarray] = {}  # each mesh's eigenvectors, read once
         self._factors: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # `coarse`'s fits on A's points, by k
 
+    def with_samples(self, samples: int | None) -> "Refiner":
+        """This refiner on ``samples`` samples a mesh (itself when that is its own count), sharing the bases it
+        has read."""
+        if samples == self.samples:
+            return self
+        other = Refiner(self.mesh_a, self.mesh_b, self.n_eigen, samples)
+        other._bases = self._bases
+        return other
+
     def sample(self, mesh: Mesh) -> np.ndarray | None:
         """(samples,) int64 farthest-point samples (Euclidean) of ``mesh``, or None when every vertex is used."""
         if self.samples is None or self.samples >= mesh.n_vertices:

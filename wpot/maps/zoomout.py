@@ -227,7 +227,7 @@ def zoomout(
     problems = _oriented_problems(mesh_a, mesh_b, n_eigen, k_end)
     if problems is None:
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    choice = refine if samples is None else Refiner(mesh_a, mesh_b, n_eigen, min(samples, CHOICE_SAMPLES))
+    choice = refine.with_samples(None if samples is None else min(samples, CHOICE_SAMPLES))
     return _oriented(refine, choice, mesh_a, mesh_b, t, problems, k_start, k_end, step)
 
 
