@@ -12,7 +12,8 @@ a vertex of Y with
   k = 10 to 200 in steps of 5, the full meshes' Laplace-Beltrami eigenpairs that WKS computed), with its
   defaults: ``orient=True`` (three candidates, the given map and the maps of two orientation-aware functional
   maps fitted from WKS, refined to k = 60 and ranked by the functional-map energy, the chosen one mended through
-  the shape's symmetry where it is mirrored on a part; `wpot.maps.zoomout`) and
+  the shape's symmetry where it is mirrored on a part, and the regions its seams cut off mapped again from the
+  rest; `wpot.maps.zoomout`) and
   ``samples=2000`` (rounds before the last on farthest-point samples). Its time per pair is the transport and
   the refinement (``info.zoomout_seconds`` the refinement alone).
 * **fmaps** (the peer a user would pick instead): pyfmaps (pyFM) 1.3.1 on the full meshes, with the settings
@@ -76,8 +77,9 @@ FMAPS_SETTINGS = {
 FMAPS_TAG = "fmaps-wks-zoomout"
 #: the store's tag of wpot + ZoomOut is wpot's tag and this (orient=True: three candidates ranked by the
 #: functional-map energy at k = 60, two that agree outvoting a third, the chosen one mended where mirrored on a
-#: part, refined on to k = 200; sampled rounds, the candidates compared on 1,000 samples)
-ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote-c1000"
+#: part, the regions its seams cut off mapped again from the rest, refined on to k = 200; sampled rounds, the
+#: candidates compared on 1,000 samples)
+ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote-c1000-seams"
 #: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
 PLAIN_SUFFIX = "+zoomout-plain"
 #: the datasets the benchmark knows: folder under ``--data``
@@ -188,7 +190,8 @@ class ZoomOutMatcher:
         res = zoomout(self.base.meshes[x], self.base.meshes[y], pred, **self.options)
         dz = time.perf_counter() - t0
         return res.map, dt + dz, {**info, "zoomout_seconds": dz, "orientation_confidence": res.orientation_confidence,
-                                  "candidate": res.candidate, "energies": res.energies, "mended": res.mended}
+                                  "candidate": res.candidate, "energies": res.energies, "mended": res.mended,
+                                  "reanchored": res.reanchored}
 
 
 class FmapsMatcher:
@@ -418,8 +421,8 @@ def orientation_section(by_method: dict, common: set, out: Path, dataset: str) -
                   f"| {len(recs)} | {flipped.sum()} ({flipped.mean():.1%}) | {(~trusted).sum()} | "
                   f"{flipped[trusted].sum()} of {trusted.sum()} | {flipped[top90].sum()} of {top90.sum()} | "
                   + ", ".join(f"{n} {c}" for n, c in sorted(Counter(r["info"]["candidate"] for r in recs).items()))
-                  + (f"; mended {sum(bool(r['info']['mended']) for r in recs)}"
-                     if all("mended" in r["info"] for r in recs) else "") + " |"]
+                  + "".join(f"; {key} {sum(bool(r['info'][key]) for r in recs)}" for key in ("mended", "reanchored")
+                            if all(key in r["info"] for r in recs)) + " |"]
         plain = by_method.get(m[:-len(ZOOMOUT_SUFFIX)] + PLAIN_SUFFIX, {})
         ratio = [r["info"]["zoomout_seconds"] / plain[(r["source"], r["target"])]["info"]["zoomout_seconds"]
                  for r in recs if (r["source"], r["target"]) in plain]

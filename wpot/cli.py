@@ -124,6 +124,9 @@ def _zoomout(a: argparse.Namespace, ma, mb, c: Any) -> Any:
     if res.mended:
         print("ZoomOut: the chosen map was mirrored on a part (e.g. both legs), which was mended through the "
               "shape's left/right symmetry")
+    if res.reanchored:
+        print("ZoomOut: the chosen map had seams (a region turned round, e.g. the upper body or the legs); the "
+              "regions they cut off were mapped again from the rest of the shape")
     return res
 
 
@@ -748,6 +751,7 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         conf = refined.orientation_confidence
         info["zoomout_orientation_confidence"] = None if np.isnan(conf) else conf
         info["zoomout_mended"] = bool(refined.mended)
+        info["zoomout_reanchored"] = bool(refined.reanchored)
     files = [out / "comparison.json", out / "correspondence.npz", out / "correspondence.png"]
     files[0].write_text(json.dumps(info, indent=2))
 

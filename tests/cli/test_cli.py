@@ -122,6 +122,7 @@ def test_compare_zoomout_saves_the_refinement_of_the_saved_map(dataset, tmp_path
     info = json.loads((tmp_path / "z" / "comparison.json").read_text())
     assert info["zoomout_orientation_confidence"] == pytest.approx(res.orientation_confidence)
     assert info["zoomout_mended"] is res.mended and ("was mended" in r.stdout) is res.mended
+    assert info["zoomout_reanchored"] is res.reanchored and ("mapped again" in r.stdout) is res.reanchored
     changed = float(re.search(r"^ZoomOut: (\S+)% of A's vertices changed their match", r.stdout, re.M).group(1))
     assert changed == pytest.approx(100 * np.mean(expected != z["correspondence"]), abs=0.05)
     assert json.loads((tmp_path / "z" / "comparison.json").read_text())["zoomout"] is True

@@ -77,6 +77,7 @@ from wpot.maps.fmap import (FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy,
                              squared_eigenfunction_terms)
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
 from wpot.maps.orientation import OrientationWarning
+from wpot.maps.seams import reanchor
 from wpot.maps.symmetry import keep_orientation
 from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
 from wpot.signatures._wks import wks_energies, wks_weights
@@ -84,7 +85,7 @@ from wpot.simplify import lift_map, simplify
 from wpot.spectral import SPECTRAL_MAX_VERTICES
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
-           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "CHOICE_SAMPLES", "ZOOMOUT_MAX_VERTICES"]
+           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "CHOICE_SAMPLES", "SEAM_K", "ZOOMOUT_MAX_VERTICES"]
 
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
 #: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
@@ -102,6 +103,9 @@ ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
 #: map refined again (at most ``samples``; the rounds after the choice use ``samples``). Chosen on FAUST pairs
 #: outside its test list against 2,000, 1,500 and 700, checked on TOSCA pairs outside it (the docs' Results page)
 CHOICE_SAMPLES = 1000
+#: the resolution from which a map whose seams' regions were mapped again is refined back to `CHOICE_K`
+#: (`wpot.maps.seams.reanchor`; chosen on FAUST pairs outside its test list, the docs' Results page)
+SEAM_K = 20
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
 JUDGE = "descriptors_full"
 #: two candidate maps whose images lie, at the median vertex, farther apart than this (times sqrt(area(B)))
@@ -130,6 +134,8 @@ class ZoomOutResult:
         symmetry (the confidence weighs the choice made before)
     coarse_vertices : (n_A, n_B), the vertex counts of the simplified copies the map was refined on
         (``max_vertices``); None when it was refined on the meshes themselves
+    reanchored : whether regions cut off by the chosen map's seams (a half turn of the upper body, swapped
+        legs) were mapped again from the rest of it (`wpot.maps.seams.reanchor`)
     """
 
     map: np.ndarray
@@ -138,6 +144,7 @@ class ZoomOutResult:
     energies: dict = field(default_factory=dict)
     mended: bool = False
     coarse_vertices: tuple[int, int] | None = None
+    reanchored: bool = False
 
     def __array__(self, dtype=None, copy=None):
         return self.map if dtype is None else self.map.astype(dtype)
@@ -257,12 +264,18 @@ def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: n
     # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
     best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]),
                                        refine=lambda m: choice.full(choice.coarse(m[sa], k_start, k_sel, step)[0]))
-    k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
+    # right on most of the body and turned half round on a region (the upper body, both legs): the orientation
+    # keeps it, the map's seams give it away; the regions they cut off are mapped again from the largest one
+    # (`wpot.maps.seams.reanchor`) and refined again to CHOICE_K from a low resolution
+    k_seam = min(SEAM_K, k_sel)
+    best, reanchored = reanchor(mesh_a, mesh_b, best,
+                                refine=lambda m: choice.full(choice.coarse(m[sa], k_seam, k_sel, step)[0]))
+    k_next = k_sel + step if mended or reanchored else max(k_sel + step, starts[chosen][1])
     # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
     # every vertex (as ZoomOut's last round does)
     out = refine(best, k_sel, k_sel, step) if k_next > k_end else refine(best, k_next, k_end, step)
     return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
-                         mended)
+                         mended, reanchored=reanchored)
 
 
 def _unreadable(mesh: Mesh) -> str:
