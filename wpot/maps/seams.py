@@ -6,8 +6,8 @@ region keeps the map's orientation, so neither the functional-map energy nor the
 (`wpot.maps.symmetry.keep_orientation`) sees it; what gives it away is its border. Across it, neighbouring
 vertices of A land on far-apart places of B: a **seam**. So
 
-1. `map_regions`: the edges of A whose two ends the map sends more than `SEAM_JUMP` sqrt(area(B)) apart are
-   seams; the connected regions of A that remain once they are cut are the map's regions, each with its share
+1. `map_regions`: the edges of A whose two ends the map sends more than `SEAM_JUMP` sqrt(area(B)) farther
+   apart than the edge is long (scaled to B's area) are seams; the connected regions of A that remain once they are cut are the map's regions, each with its share
    of A's area;
 2. `reanchor`: when a region other than the largest holds at least `SEAM_REGION` of A's area, the vertices
    outside the largest region are mapped again from it. `SEAM_ANCHORS` vertices spread over the largest region
@@ -35,7 +35,7 @@ from wpot.mesh import Mesh
 
 __all__ = ["SEAM_ANCHORS", "SEAM_JUMP", "SEAM_REGION", "map_regions", "reanchor"]
 
-#: an edge of A whose ends the map sends farther apart than this (times sqrt(area(B))) is a seam. Chosen on
+#: an edge of A whose ends the map sends farther apart than its length by this (times sqrt(area(B))) is a seam. Chosen on
 #: FAUST pairs outside its test list, checked on TOSCA pairs outside it (the docs' Results page)
 SEAM_JUMP = 0.05
 #: a region cut off by seams, other than the largest, with at least this share of A's area makes `reanchor`
@@ -59,8 +59,12 @@ def map_regions(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike) -> tuple[
     t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
     e = mesh_a.edges
     pos = mesh_b.vertices
-    jump = np.linalg.norm(pos[t[e[:, 0]]] - pos[t[e[:, 1]]], axis=1)
-    kept = e[jump <= SEAM_JUMP * np.sqrt(mesh_b.area)]
+    scale = np.sqrt(mesh_b.area)
+    # how much farther apart than the edge itself (scaled to B's area) its ends land: an isometry keeps each
+    # edge's length, so long edges (coarse or anisotropic meshes) are no seams by themselves
+    stretch = (np.linalg.norm(pos[t[e[:, 0]]] - pos[t[e[:, 1]]], axis=1)
+               - mesh_a.edge_lengths * (scale / np.sqrt(mesh_a.area)))
+    kept = e[stretch <= SEAM_JUMP * scale]
     n = mesh_a.n_vertices
     graph = coo_matrix((np.ones(len(kept)), (kept[:, 0], kept[:, 1])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
