@@ -50,8 +50,12 @@ comparing lets each candidate settle on one side everywhere, so that a map right
 limb is not compared with maps that are still coarse. A map can still be right on the body and mirrored on a
 symmetric part (both hind legs of a quadruped), which the energy hardly sees: where the chosen map reverses
 orientation locally, its vertices are sent through the shape's left/right symmetry
-(`wpot.maps.symmetry.keep_orientation`, which keeps the mended map only when it orients better), before the
-last rounds. The same energy gives the result's
+(`wpot.maps.symmetry.keep_orientation`, which keeps the mended map only when it orients better). A map can also
+be right on most of the body and turned half round on a region (the upper body, or both legs swapped), which
+keeps orientation: the region's border is then a seam, where neighbouring vertices land far apart, and the
+regions the seams cut off are mapped again from the largest one by geodesic distances to anchors on it
+(`wpot.maps.seams.reanchor`) and refined again from k = `SEAM_K`, before the last rounds. The same energy gives
+the result's
 orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
 terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
 mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
