@@ -47,7 +47,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
-from benchmarks.partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts  # noqa: E402
+from benchmarks.partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts, shape_class  # noqa: E402
 
 
 def method(w: float, slab: float | None = None, edge: str = "own") -> str:
@@ -95,10 +95,9 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options, sample=N
     those of ``sample`` (the part's `wpot.maps.retrieval.retrieval_sample`, weighted by its cells), or every row
     when it is None. Per scoring: top-1, the rank of class ``cls`` (None when the library has none of it) and
     what the part was taken for (the first whole or class)."""
-    from wpot.datasets import class_label
     from wpot.maps.retrieval import rank_classes
 
-    labels = [class_label(n) for n in wholes]
+    labels = [shape_class(n) for n in wholes]
     if sample is not None:
         costs, weights = costs[sample.indices], sample.counts
     else:

@@ -129,13 +129,20 @@ def _natural_key(s: str) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
-def class_members(folder: Path) -> dict[str, list[str]]:
-    """Shape names of ``vtx_5k`` by class, each in natural order."""
+def shape_class(name: str) -> str:
+    """A shape's class: FAUST's person (``tr_reg_NNN``: ``person`` + NNN div 10), else `wpot.class_label`
+    (TOSCA's ``cat10`` -> ``cat``)."""
     from wpot.datasets import class_label
 
+    m = re.fullmatch(r"tr_reg_(\d+)", name)
+    return f"person{int(m.group(1)) // 10}" if m else class_label(name)
+
+
+def class_members(folder: Path) -> dict[str, list[str]]:
+    """Shape names of ``vtx_5k`` by class (`shape_class`), each in natural order."""
     out: dict[str, list[str]] = {}
     for p in sorted(_vtx(folder).glob("*.off"), key=lambda p: _natural_key(p.stem)):
-        out.setdefault(class_label(p.stem), []).append(p.stem)
+        out.setdefault(shape_class(p.stem), []).append(p.stem)
     return out
 
 
@@ -179,11 +186,11 @@ class Landmarks:
     limbs: dict[str, int] = field(default_factory=dict)  # "foot0", "hand_left", ... -> template point
 
 
-def _foot_vertices(mesh, n_feet: int) -> list[int]:
-    """Centres of the ``n_feet`` largest ground-contact patches (z within `FOOT_BAND` of the height above the
-    lowest point), ordered by x then y."""
+def _foot_vertices(mesh, n_feet: int, up: int = 2) -> list[int]:
+    """Centres of the ``n_feet`` largest ground-contact patches (height along axis ``up`` within `FOOT_BAND` of
+    the height above the lowest point), ordered by x then y."""
     v = mesh.vertices
-    z = v[:, 2]
+    z = v[:, up]
     low = z <= z.min() + FOOT_BAND * (z.max() - z.min())
     lab = _components(mesh, low)
     areas = mesh.vertex_areas
@@ -210,10 +217,11 @@ def landmarks(folder: Path, cls: str, members: list[str]) -> Landmarks:
     vts = tosca_vts(_vtx(folder), ref)
     v = mesh.vertices
     human = cls not in QUADRUPEDS
-    head = int(np.argmax(v[:, 2])) if human else int(np.argmin(v[:, 1]))
+    up = 1 if cls.startswith("person") else 2  # FAUST is y-up, TOSCA z-up
+    head = int(np.argmax(v[:, up])) if human else int(np.argmin(v[:, 1]))
     limbs: dict[str, int] = {}
-    n_feet = 2 if cls in ("david", "michael", "victoria") else 4
-    for k, f in enumerate(_foot_vertices(mesh, n_feet)):
+    n_feet = 2 if cls in ("david", "michael", "victoria") or cls.startswith("person") else 4
+    for k, f in enumerate(_foot_vertices(mesh, n_feet, up)):
         limbs[f"foot{k}"] = f
     if human:  # the centaur and the humans: hands at the extremes along x (arms held out in the reference)
         limbs["hand_xmin"] = int(np.argmin(v[:, 0]))
@@ -655,8 +663,6 @@ def read_parts(out: Path) -> dict[str, dict]:
 # ----------------------------------------------------------------------------- plan
 def plan(a, members: dict[str, list[str]]) -> tuple[list[str], dict, dict]:
     """Sources (classes interleaved), their same-class targets and their other-class wholes."""
-    from wpot.datasets import class_label
-
     classes = [c for c in (a.classes or sorted(members)) if c in members]
     unknown = sorted(set(a.classes or []) - set(members))
     if unknown:
@@ -666,7 +672,7 @@ def plan(a, members: dict[str, list[str]]) -> tuple[list[str], dict, dict]:
                for s in per_class[c][k:k + 1]]
     targets, others = {}, {}
     for s in sources:
-        c = class_label(s)
+        c = shape_class(s)
         targets[s] = _spread([m for m in members[c] if m != s], a.targets_per_source)
         rng = _rng(a.seed, s, "others")
         others[s] = [members[o][int(rng.integers(len(members[o])))] for o in sorted(members) if o != c]
@@ -689,8 +695,6 @@ def _group_rows(recs: list[dict], parts: dict) -> dict[str, list[dict]]:
 def _retrieval(by_method: dict, method: str) -> tuple[dict[tuple[str, str], bool], dict[str, int]]:
     """Per same-class pair (part, T): is T nearer the part than every other-class whole (strictly); and, over
     the pairs where it is not, how often each other class held the nearest whole."""
-    from wpot.datasets import class_label
-
     recs = by_method.get(method, {})
     other: dict[str, list[tuple[float, str]]] = {}
     for (part, t), r in recs.items():
@@ -702,7 +706,7 @@ def _retrieval(by_method: dict, method: str) -> tuple[dict[tuple[str, str], bool
             d, w = min(other[part])
             out[(part, t)] = r["info"]["distance"] < d
             if not out[(part, t)]:
-                lost[class_label(w)] = lost.get(class_label(w), 0) + 1
+                lost[shape_class(w)] = lost.get(shape_class(w), 0) + 1
     return out, lost
 
 
@@ -984,7 +988,6 @@ def main(argv=None) -> int:
 
 
 def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets, others) -> set:
-    from wpot.datasets import class_label
     from wpot.evaluate import GeodesicDistances
     from wpot.io import load_mesh
 
@@ -992,7 +995,7 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
     lms = {}
     parts: list[Part] = []
     for s in sources:
-        c = class_label(s)
+        c = shape_class(s)
         if c not in lms:
             lms[c] = landmarks(a.tosca, c, members[c])
             log(f"{c}: landmarks on {lms[c].reference}: head = template point {lms[c].head}, limbs {lms[c].limbs}")
