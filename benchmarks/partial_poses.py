@@ -3,7 +3,8 @@
 What a user faces: a piece of a shape (a scan that saw only the head, a limb, one side of a cut, or the whole
 with holes) to be located in a complete shape of the same kind that stands in another pose, and told apart
 from shapes of other kinds. Built from ``tosca_isometric_5k``, whose ``.vts`` ground truth relates every
-pose of a class (and david/michael) through a 5,000-point template.
+pose of a class (and david/michael) through a 5,000-point template; or, with ``--tosca`` naming ``faust_5k``,
+from FAUST's people, a shape's class its person (`shape_class`; y is up there).
 
 **Parts** (deterministic: every random choice is seeded by ``--seed`` and the part's name). For each class,
 ``--sources-per-class`` source shapes S (evenly spaced over the class's shapes in natural name order); from
