@@ -171,3 +171,25 @@ def test_bad_locate_options_are_refused_before_anything_runs(pp, tmp_path, capsy
     err = capsys.readouterr().err
     assert "--locate-options" in err and says in err
     assert not (tmp_path / "run").exists()  # refused before the results folder is made
+
+
+def test_faust_family_classes_are_people_and_its_landmarks_read_y_up(pp, shared_data):
+    """faust_5k as a part family: a shape's class is its person (number div 10), and the landmarks of a person's
+    reference pose are read with y up: the head is its highest point, the two feet its lowest patches."""
+    from wpot.datasets import tosca_vts
+    from wpot.io import load_mesh
+
+    faust = shared_data / "faust_5k"
+    if not (faust / "vtx_5k").is_dir():
+        pytest.skip(f"{faust} is absent")
+    assert pp.shape_class("tr_reg_037") == "person3" and pp.shape_class("cat10") == "cat"
+    members = pp.class_members(faust)
+    assert sorted(members) == [f"person{k}" for k in range(10)]
+    assert members["person3"] == [f"tr_reg_{30 + k:03d}" for k in range(10)]
+    lm = pp.landmarks(faust, "person3", members["person3"])
+    mesh = load_mesh(faust / "vtx_5k" / "tr_reg_030.off")
+    y = mesh.vertices[tosca_vts(faust / "vtx_5k", "tr_reg_030"), 1]
+    height = np.ptp(mesh.vertices[:, 1])
+    assert y[lm.head] > mesh.vertices[:, 1].max() - 0.02 * height
+    feet = [lm.limbs[k] for k in lm.limbs if k.startswith("foot")]
+    assert len(feet) == 2 and all(y[f] < mesh.vertices[:, 1].min() + 2 * pp.FOOT_BAND * height for f in feet)
