@@ -7,15 +7,21 @@ region keeps the map's orientation, so neither the functional-map energy nor the
 vertices of A land on far-apart places of B: a **seam**. So
 
 1. `map_regions`: the edges of A whose two ends the map sends more than `SEAM_JUMP` sqrt(area(B)) farther
-   apart than the edge is long (scaled to B's area) are seams; the connected regions of A that remain once they are cut are the map's regions, each with its share
-   of A's area;
+   apart than the edge is long (scaled to B's area) are seams; the connected regions of A that remain once
+   they are cut are the map's regions, each with its share of A's area;
 2. `reanchor`: when a region other than the largest holds at least `SEAM_REGION` of A's area, the vertices
    outside the largest region are mapped again from it. `SEAM_ANCHORS` vertices spread over the largest region
-   (geodesic farthest-point samples) and their images are the anchors; each vertex of A is described by its
-   geodesic distances to the anchors of A, each vertex of B by its distances to their images, and each vertex
-   outside the largest region goes to the vertex of B with the nearest description (distances on the two
-   shapes agree for a near-isometry; the anchors' spread tells left from right and front from back). The map
-   is then refined again (e.g. ZoomOut from a low resolution, which smooths the new borders).
+   (geodesic farthest-point samples) and their images are the anchors; an anchor whose distances to the other
+   anchors disagree with its image's (a finger the map has wrong inside the largest region) is left out
+   (`ANCHOR_OUTLIER`). Each vertex of A is described by its log geodesic distances to the anchors of A, each
+   vertex of B by its distances to their images, and each vertex outside the largest region goes to the vertex
+   of B with the nearest description (distances on the two shapes agree for a near-isometry, and the log
+   weighs the near anchors most, whose distances a stretched pose changes least; the anchors' spread tells left
+   from right and front from back). The map is then refined again (e.g. ZoomOut from a low resolution, which
+   smooths the new borders).
+
+Which region is right is decided by size alone: when the larger of two near-equal regions is the wrong one, the
+whole map ends up on the wrong side (the docs' Results page).
 
 The geodesic distances are the heat method's (`wpot.evaluate.GeodesicDistances`): one factorization and one
 solve per anchor on each shape, done only for maps with a seam.
@@ -35,15 +41,16 @@ from wpot.mesh import Mesh
 
 __all__ = ["SEAM_ANCHORS", "SEAM_JUMP", "SEAM_REGION", "map_regions", "reanchor"]
 
-#: an edge of A whose ends the map sends farther apart than its length by this (times sqrt(area(B))) is a seam. Chosen on
-#: FAUST pairs outside its test list, checked on TOSCA pairs outside it (the docs' Results page)
+#: an edge of A whose ends the map sends farther apart than its length by this (times sqrt(area(B))) is a
+#: seam. Chosen on FAUST pairs outside its test list, checked on TOSCA pairs outside it (the docs' Results page)
 SEAM_JUMP = 0.05
 #: a region cut off by seams, other than the largest, with at least this share of A's area makes `reanchor`
 #: map everything outside the largest region again (chosen with `SEAM_JUMP`)
 SEAM_REGION = 0.03
 #: anchors on the largest region (geodesic farthest-point samples) whose distances describe the other vertices
 SEAM_ANCHORS = 32
-#: an anchor whose distortion is more than this many times the median anchor's is not used (`_consistent`)
+#: an anchor whose distortion is more than this many times the median anchor's is not used (`_consistent`;
+#: with `LOG_OFFSET`, set on TOSCA's development failures, checked on FAUST's and on both test sets)
 ANCHOR_OUTLIER = 2.0
 #: anchors always kept (the least distorted)
 MIN_ANCHORS = 8
