@@ -4,8 +4,9 @@
 ``parts/<part>.npz``): heads, limbs, plane cuts and holes cut from TOSCA 5k poses.
 
 **Library**: every shape of ``tosca_isometric_5k`` (76 shapes, eight classes) except the part's own source pose,
-which holds the part itself (with ``--tosca`` naming ``faust_5k``: its 100 shapes, a shape's class its person). The part's class has other poses there (2 to 19 of them), and so has every other
-class: what a user faces who looks a part up in a dataset of whole shapes.
+which holds the part itself (with ``--tosca`` naming ``faust_5k``: its 100 shapes, a shape's class its person).
+The part's class has other poses there (2 to 19 of them), and so has every other class: what a user faces who
+looks a part up in a dataset of whole shapes.
 
 **Costs**: for each part and each whole of its library, the cost from each vertex of the part to the nearest
 signature of the whole (`Comparer.nearest_costs`), LD-SIFT at one edge length for the part and the library, the

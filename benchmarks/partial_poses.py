@@ -217,11 +217,11 @@ def landmarks(folder: Path, cls: str, members: list[str]) -> Landmarks:
     mesh = load_mesh(_vtx(folder) / f"{ref}.off")
     vts = tosca_vts(_vtx(folder), ref)
     v = mesh.vertices
-    human = cls not in QUADRUPEDS
-    up = 1 if cls.startswith("person") else 2  # FAUST is y-up, TOSCA z-up
+    human, person = cls not in QUADRUPEDS, cls.startswith("person")  # person: FAUST's (`shape_class`)
+    up = 1 if person else 2  # FAUST is y-up, TOSCA z-up
     head = int(np.argmax(v[:, up])) if human else int(np.argmin(v[:, 1]))
     limbs: dict[str, int] = {}
-    n_feet = 2 if cls in ("david", "michael", "victoria") or cls.startswith("person") else 4
+    n_feet = 2 if cls in ("david", "michael", "victoria") or person else 4
     for k, f in enumerate(_foot_vertices(mesh, n_feet, up)):
         limbs[f"foot{k}"] = f
     if human:  # the centaur and the humans: hands at the extremes along x (arms held out in the reference)

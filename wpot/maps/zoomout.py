@@ -263,17 +263,17 @@ def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: n
     chosen = _choose(apart, energies)
     others = [mirrors[chosen]] + [energies[n] for n in cands if n != chosen and apart[frozenset((n, chosen))]]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
+    def again(k0: int):  # a repaired map (N_A,), refined again from k0 to k_sel on the choice's samples
+        return lambda m: choice.full(choice.coarse(m[sa], min(k0, k_sel), k_sel, step)[0])
+
     # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
     # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
     # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
-    best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]),
-                                       refine=lambda m: choice.full(choice.coarse(m[sa], k_start, k_sel, step)[0]))
+    best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]), refine=again(k_start))
     # right on most of the body and turned half round on a region (the upper body, both legs): the orientation
     # keeps it, the map's seams give it away; the regions they cut off are mapped again from the largest one
     # (`wpot.maps.seams.reanchor`) and refined again to CHOICE_K from a low resolution
-    k_seam = min(SEAM_K, k_sel)
-    best, reanchored = reanchor(mesh_a, mesh_b, best,
-                                refine=lambda m: choice.full(choice.coarse(m[sa], k_seam, k_sel, step)[0]))
+    best, reanchored = reanchor(mesh_a, mesh_b, best, refine=again(SEAM_K))
     k_next = k_sel + step if mended or reanchored else max(k_sel + step, starts[chosen][1])
     # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
     # every vertex (as ZoomOut's last round does)
