@@ -79,7 +79,7 @@ FMAPS_TAG = "fmaps-wks-zoomout"
 #: functional-map energy at k = 60, two that agree outvoting a third, the chosen one mended where mirrored on a
 #: part, the regions its seams cut off mapped again from the rest, refined on to k = 200; sampled rounds, the
 #: candidates compared on 1,000 samples)
-ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote-c1000-seams"
+ZOOMOUT_SUFFIX = "+zoomout-choose60-mend-sampled-vote-c1000-seams-edges"
 #: the same without orienting (``orient=False``): plain ZoomOut of wpot's map, for the cost of orienting
 PLAIN_SUFFIX = "+zoomout-plain"
 #: the datasets the benchmark knows: folder under ``--data``

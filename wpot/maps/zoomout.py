@@ -53,8 +53,8 @@ orientation locally, its vertices are sent through the shape's left/right symmet
 (`wpot.maps.symmetry.keep_orientation`, which keeps the mended map only when it orients better). A map can also
 be right on most of the body and turned half round on a region (the upper body, or both legs swapped), which
 keeps orientation: the region's border is then a seam, where neighbouring vertices land far apart, and the
-regions the seams cut off are mapped again from the largest one by geodesic distances to anchors on it
-(`wpot.maps.seams.reanchor`) and refined again from k = `SEAM_K`, before the last rounds. The same energy gives
+regions the seams cut off are mapped again from the largest one by distances along the surface to anchors on
+it (`wpot.maps.seams.reanchor`), and the last rounds start again from k = `SEAM_K`. The same energy gives
 the result's
 orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
 terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
@@ -107,7 +107,7 @@ ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
 #: map refined again (at most ``samples``; the rounds after the choice use ``samples``). Chosen on FAUST pairs
 #: outside its test list against 2,000, 1,500 and 700, checked on TOSCA pairs outside it (the docs' Results page)
 CHOICE_SAMPLES = 1000
-#: the resolution from which a map whose seams' regions were mapped again is refined back to `CHOICE_K`
+#: the resolution from which a map whose seams' regions were mapped again is refined to k_end
 #: (`wpot.maps.seams.reanchor`; chosen on FAUST pairs outside its test list, the docs' Results page)
 SEAM_K = 20
 #: the candidate whose energy (descriptors from every eigenpair of `spectral_basis`) ranks all candidates
@@ -263,18 +263,19 @@ def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: n
     chosen = _choose(apart, energies)
     others = [mirrors[chosen]] + [energies[n] for n in cands if n != chosen and apart[frozenset((n, chosen))]]
     confidence = float(np.clip(1.0 - energies[chosen] / max(min(others), 1e-300), 0.0, 1.0))
-    def again(k0: int):  # a repaired map (N_A,), refined again from k0 to k_sel on the choice's samples
-        return lambda m: choice.full(choice.coarse(m[sa], min(k0, k_sel), k_sel, step)[0])
-
     # right on the body and mirrored on a symmetric part (both hind legs): the energy hardly sees it, the local
     # orientation does; those vertices go through the shape's left/right symmetry, and the map, refined again
-    # to CHOICE_K, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
-    best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]), refine=again(k_start))
+    # to CHOICE_K on the choice's samples, is kept when it orients better (`wpot.maps.symmetry.keep_orientation`)
+    best, _, mended = keep_orientation(mesh_a, mesh_b, choice.full(cands[chosen][0]), refine=lambda m: choice.full(
+        choice.coarse(m[sa], min(k_start, k_sel), k_sel, step)[0]))
     # right on most of the body and turned half round on a region (the upper body, both legs): the orientation
     # keeps it, the map's seams give it away; the regions they cut off are mapped again from the largest one
-    # (`wpot.maps.seams.reanchor`) and refined again to CHOICE_K from a low resolution
-    best, reanchored = reanchor(mesh_a, mesh_b, best, refine=again(SEAM_K))
-    k_next = k_sel + step if mended or reanchored else max(k_sel + step, starts[chosen][1])
+    # (`wpot.maps.seams.reanchor`), and the last rounds start again from a low resolution, SEAM_K
+    best, reanchored = reanchor(mesh_a, mesh_b, best)
+    if reanchored:
+        k_next = min(SEAM_K, k_sel)
+    else:
+        k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
     # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
     # every vertex (as ZoomOut's last round does)
     out = refine(best, k_sel, k_sel, step) if k_next > k_end else refine(best, k_next, k_end, step)
