@@ -424,16 +424,20 @@ def orientation_section(by_method: dict, common: set, out: Path, dataset: str) -
                   + "".join(f"; {key} {sum(bool(r['info'][key]) for r in recs)}" for key in ("mended", "reanchored")
                             if all(key in r["info"] for r in recs)) + " |"]
         plain = by_method.get(m[:-len(ZOOMOUT_SUFFIX)] + PLAIN_SUFFIX, {})
+        timed = [r for r in recs if (r["source"], r["target"]) in plain]
         ratio = [r["info"]["zoomout_seconds"] / plain[(r["source"], r["target"])]["info"]["zoomout_seconds"]
-                 for r in recs if (r["source"], r["target"]) in plain]
+                 for r in timed]
+        repaired = [x for x, r in zip(ratio, timed) if r["info"].get("reanchored")]
         if ratio:
             lines.append(f"\nTime of the oriented refinement over plain ZoomOut (orient=False) on the same pair (each "
                          "as stored: measured in the same run only when both were; the oriented time of a shape's "
                          "first pair in a process holds its one-off set-up, its left/right symmetry and functional-map "
                          "terms, unless $WPOT_CACHE_DIR had them; benchmarks/correspondence_speed.py times both side by "
                          "side): "
-                         f"median {np.median(ratio):.2f}x, 90th percentile {np.quantile(ratio, 0.9):.2f}x "
-                         f"({len(ratio)} pairs).\n")
+                         f"median {np.median(ratio):.2f}x, 90th percentile {np.quantile(ratio, 0.9):.2f}x, "
+                         f"largest {max(ratio):.2f}x ({len(ratio)} pairs)"
+                         + (f"; on the {len(repaired)} re-anchored pairs {min(repaired):.2f}x to {max(repaired):.2f}x "
+                            f"(median {np.median(repaired):.2f}x)" if repaired else "") + ".\n")
         lines.append(f"Decision signal: `orientation.png` ({len(true_e)} true-side and {len(mirror_e)} mirror-side "
                      f"energies; largest true-side {max(true_e):.2f}, smallest mirror-side {min(mirror_e):.2f}).\n")
         orientation_figure(np.array(true_e), np.array(mirror_e), out / "orientation.png", dataset, len(recs))
