@@ -25,9 +25,8 @@ whole map ends up on the wrong side (the docs' Results page).
 
 The distances are shortest paths along the edges (Dijkstra on `wpot.mesh.Mesh.edge_graph`, as in the geodesic
 farthest-point sampling of `wpot.sampling`): a few per cent longer than the geodesics, alike on both shapes, and
-with no factorization to make, one pass per anchor on each shape, done only for maps with a seam. They placed the
-vertices of the development pairs as well as the heat method's geodesics, at a third of the cost (the docs'
-Results page).
+with no factorization to make, one pass per anchor on each shape, done only for maps with a seam. They place the
+vertices as well as the heat method's geodesics did, for less time (the docs' Results page).
 """
 from __future__ import annotations
 
