@@ -320,3 +320,31 @@ def test_placement_confidence_separates_a_unique_place_a_second_place_and_no_pla
         warnings.simplefilter("ignore", LocateWarning)  # few consistent matches: warned about, and low
         nowhere = locate_part(partial.part, full, noise, sw)
     assert nowhere.placement_confidence < PLACEMENT_DOUBT
+
+
+def test_a_part_wound_against_itself_is_named_and_not_oriented(partial):
+    """A patch of the part's triangles wound the wrong way turns every orientation read there: locate names the
+    part and the repair (`Mesh.cleaned`), leaves the side unchecked (orientation NaN), and places the part as
+    well as the rewound one does without its orientation step; the rewound part is oriented again."""
+    import warnings
+
+    from wpot.maps.locate import LocateWarning
+
+    part = partial.part
+    faces = part.faces.copy()
+    patch = np.argsort(np.linalg.norm(part.vertices[part.faces].mean(axis=1) - part.vertices[0], axis=1))[:40]
+    faces[patch] = faces[patch][:, ::-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MeshWarning)  # the mesh says so too, when it is made
+        wound = Mesh(part.vertices, faces, name="scan-7")
+    assert wound.misoriented_faces.size > 0
+    sp, sw = _planted_signatures(partial, outliers=0.2)
+    with pytest.warns(LocateWarning, match=r"scan-7.*part has \d+ triangles wound against.*Mesh\.cleaned\(\)"):
+        pm = locate_part(wound, partial.full, sp, sw)
+    assert np.isnan(pm.orientation)
+    plain = locate_part(part, partial.full, sp, sw, options=LocateOptions(orient=False))
+    np.testing.assert_array_equal(pm.correspondence, plain.correspondence)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LocateWarning)
+        fixed = locate_part(wound.cleaned()[0], partial.full, sp, sw)
+    assert np.isfinite(fixed.orientation)

@@ -32,7 +32,9 @@ geodesic distances to choose among them and to fill in the map:
    on the ground truth of the development benchmark (`benchmarks/partial_poses.py`) the true side's mean
    signature cost was below the mirror side's in nearly every pair (the docs' Results page). So of the
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
-   kept. A whole whose symmetry is not detected gets (a) and (b) only.
+   kept. A whole whose symmetry is not detected gets (a) and (b) only. A part or whole whose orientation
+   cannot be read (triangles wound against their neighbours, or no outside: `wpot.maps.orientation.unreadable`)
+   skips this step, with a `LocateWarning` that names it and its repair.
 
 5. **Rival placement.** The candidate matches that lie neither where the map sends their anchors nor at the
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
@@ -67,7 +69,7 @@ from wpot.cache import Kept
 from wpot.mesh import Mesh, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
-from wpot.maps.orientation import local_orientation, orientation_score
+from wpot.maps.orientation import local_orientation, orientation_score, unreadable
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
@@ -429,13 +431,21 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     def cost(t: np.ndarray) -> float:
         return float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device)))
 
+    unread = [(name, m, why) for name, m in (("part", part), ("whole", whole)) if (why := unreadable(m))]
+    if unread and opt.orient:
+        name, m, why = unread[0]
+        warnings.warn(named(m.name, f"the {name} {why}, so locate cannot tell left from right: the map is not "
+                            "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
-        if opt.orient:
-            t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds)
+        if unread:  # a patch wound the wrong way reverses every orientation read on it
+            score, mean_cost, local = float("nan"), cost(t), np.zeros(part.n_vertices)
         else:
-            score, mean_cost = orientation_score(part, whole, t), cost(t)
-        local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
+            if opt.orient:
+                t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds)
+            else:
+                score, mean_cost = orientation_score(part, whole, t), cost(t)
+            local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0, fw0 = _distances(g_part, a).T, _distances(g_whole, b).T

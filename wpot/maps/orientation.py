@@ -35,7 +35,7 @@ from wpot._validate import vertex_map
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
 
 __all__ = ["LOCAL_RADIUS", "OrientationWarning", "local_orientation", "map_score", "orientation_score",
-           "orientation_terms", "spread", "terms_score", "winding"]
+           "orientation_terms", "spread", "terms_score", "unreadable", "winding"]
 
 #: `local_orientation`'s neighbourhood, times sqrt(area)
 LOCAL_RADIUS = 0.1
@@ -43,6 +43,18 @@ LOCAL_RADIUS = 0.1
 
 class OrientationWarning(UserWarning):
     """A mesh whose orientation cannot be read (inconsistent winding, or no enclosed volume)."""
+
+
+def unreadable(mesh: Mesh) -> str:
+    """Why the orientation of a map from or onto ``mesh`` cannot be read ("" when it can), with the repair: faces
+    wound against their neighbours (a patch of them reverses the sign of every map there), or no enclosed
+    volume to tell the outside by (`winding`)."""
+    wound = mesh.misoriented_faces.size
+    if wound:
+        return f"has {wound} triangles wound against their neighbours (Mesh.cleaned() rewinds them)"
+    if winding(mesh) == 0:
+        return NO_OUTSIDE
+    return ""
 
 
 def orientation_score(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike) -> float:

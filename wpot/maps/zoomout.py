@@ -80,10 +80,10 @@ from wpot._validate import boolean, integer_at_least, vertex_map
 from wpot.maps.fmap import (FMAP_DESCRIPTORS, FMAP_K, FMAP_SPECTRUM, FmapEnergy, SpectralOperators, point_map,
                              squared_eigenfunction_terms)
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, positive_int, spectral_basis, spectrum_size
-from wpot.maps.orientation import OrientationWarning
+from wpot.maps.orientation import OrientationWarning, unreadable
 from wpot.maps.seams import reanchor
 from wpot.maps.symmetry import keep_orientation
-from wpot.mesh import NO_OUTSIDE, Mesh, named, winding
+from wpot.mesh import Mesh, named
 from wpot.signatures._wks import wks_energies, wks_weights
 from wpot.simplify import lift_map, simplify
 from wpot.spectral import SPECTRAL_MAX_VERTICES
@@ -284,16 +284,12 @@ def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: n
 
 
 def _unreadable(mesh: Mesh) -> str:
-    """Why the orientation of ``mesh`` cannot be read ("" when it can)."""
+    """Why the orientation-aware candidates cannot be built on ``mesh`` ("" when they can): several connected
+    components, or an orientation that cannot be read (`wpot.maps.orientation.unreadable`)."""
     if mesh.n_components != 1:
         return (f"has {mesh.n_components} connected components (Mesh.cleaned(keep_largest_component=True) keeps "
                 "the largest)")
-    wound = mesh.misoriented_faces.size
-    if wound:
-        return f"has {wound} triangles wound against their neighbours (Mesh.cleaned() rewinds them)"
-    if winding(mesh) == 0:
-        return NO_OUTSIDE
-    return ""
+    return unreadable(mesh)
 
 
 def _disagreements(mesh_b: Mesh, images: dict[str, np.ndarray]) -> dict[frozenset, bool]:
