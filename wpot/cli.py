@@ -139,6 +139,11 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="LD-SIFT's edge length for --locate (with --signature ldsift): own (default) each mesh's own, "
                    "the paper's; whole: B's for both, for a part meshed at another density than B (a scan, a part "
                    "re-meshed): the docs' Results page compares the two")
+    p.add_argument("--locate-orient-weight", type=float, default=None, metavar="W",
+                   help="how --locate chooses left from right: by default, of the maps that keep orientation about as "
+                   "well as the best, the one whose signatures fit best; W: the one of least relative signature cost "
+                   "less W times its orientation score (0.3 for a part meshed apart from B, with --locate-edge whole: "
+                   "the docs' Results page)")
 
 
 class _Located(NamedTuple):
@@ -172,7 +177,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
         return None
     from wpot.maps.locate import PLACEMENT_DOUBT, LocateOptions
 
-    pm = comparer.locate(ma, mb, options=None if a.locate_edge is None else LocateOptions(edge=a.locate_edge))
+    given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight)) if v is not None}
+    pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None)
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
@@ -195,6 +201,12 @@ def _check_refinements(a: argparse.Namespace) -> None:
     """Refuse, in the CLI's words, the --zoomout and --locate settings that cannot go together."""
     if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):
         raise CliError("--locate-edge sets the edge length of --locate; add --locate, or drop --locate-edge")
+    w = getattr(a, "locate_orient_weight", None)
+    if w is not None and not getattr(a, "locate", False):
+        raise CliError("--locate-orient-weight sets how --locate tells left from right; add --locate, or drop "
+                       "--locate-orient-weight")
+    if w is not None and not (np.isfinite(w) and w >= 0):
+        raise CliError(f"--locate-orient-weight must be a finite number >= 0, got {w:g}")
     if getattr(a, "locate_edge", None) == "whole" and a.signature != "ldsift":
         raise CliError(f"--locate-edge whole sets LD-SIFT's edge length; with --signature {a.signature} it would "
                        "change nothing: add --signature ldsift, or drop --locate-edge")

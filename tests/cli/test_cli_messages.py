@@ -382,6 +382,8 @@ BAD_VALUES = {
     "--pooling": (["--pooling", "max"], "argument --pooling: invalid choice"),
     "--ot-method": (["--ot-method", "sinkhorn"], "argument --ot-method: invalid choice"),
     "--locate-edge": (["--locate-edge", "half"], "argument --locate-edge: invalid choice"),
+    "--locate-orient-weight": (["--locate", "--locate-orient-weight", "-1"],
+                               "--locate-orient-weight must be a finite number >= 0, got -1"),
 }
 #: flags of the other commands
 OTHER_BAD_VALUES = [

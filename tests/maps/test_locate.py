@@ -242,6 +242,25 @@ def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
     assert _pick([0.5, 0.5], [1.0, 1.0]) == 0
 
 
+def test_orientation_weight_trades_relative_cost_against_orientation():
+    from wpot.maps.locate import ORIENT_WEIGHT, _pick
+
+    w = ORIENT_WEIGHT
+    # a cost 1 % above the least is worth 0.01 / w of orientation score
+    assert _pick([0.5, 0.5 + 0.02 / w], [100.0, 101.0], w) == 1
+    assert _pick([0.5, 0.5 + 0.005 / w], [100.0, 101.0], w) == 0
+    assert _pick([0.9, 0.3, 0.95], [3.0, 1.0, 2.0], w) == 1  # the others cost 100 % and 200 % more
+    assert _pick([np.nan, 0.8, 0.6], [100.0, 100.0, 100.0], w) == 1  # NaN reads as -1
+    assert _pick([0.5, 0.5], [1.0, 1.0], w) == 0  # a tie: the first
+    # the costs' scale does not matter; weight 0 is the least cost whatever the orientation
+    assert _pick([0.2, 0.6, 0.1], [5.0, 5.2, 4.9], w) == _pick([0.2, 0.6, 0.1], [500.0, 520.0, 490.0], w) == 1
+    assert _pick([0.9, -0.9], [1.01, 1.0], 0.0) == 1
+    # the margin rule (the default) would take the cheaper of the two well-oriented maps here
+    assert _pick([0.9, 0.6], [1.0, 0.99]) == 1 and _pick([0.9, 0.6], [1.0, 0.99], w) == 0
+    with pytest.raises(ValueError, match="orient_weight"):
+        LocateOptions(orient_weight=-1.0)
+
+
 def test_bad_input_is_named(partial):
     sp, sw = _planted_signatures(partial, outliers=0.0)
     with pytest.raises(ValueError, match="part_signatures must be"):

@@ -32,7 +32,9 @@ geodesic distances to choose among them and to fill in the map:
    on the ground truth of the development benchmark (`benchmarks/partial_poses.py`) the true side's mean
    signature cost was below the mirror side's in nearly every pair (the docs' Results page). So of the
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
-   kept. A whole whose symmetry is not detected gets (a) and (b) only. A part or whole whose orientation
+   kept. Those parts were cut from meshes that share the whole's connectivity; on a part meshed apart the costs
+   tell less, and ``orient_weight`` instead keeps the candidate of least ``cost / least cost − 1 −
+   orient_weight · orientation score`` (`ORIENT_WEIGHT`). A whole whose symmetry is not detected gets (a) and (b) only. A part or whole whose orientation
    cannot be read (triangles wound against their neighbours, or no outside: `wpot.maps.orientation.unreadable`)
    skips this step, with a `LocateWarning` that names it and its repair.
 
@@ -73,11 +75,16 @@ from wpot.maps.orientation import local_orientation, orientation_score, unreadab
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
-__all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning", "PLACEMENT_DOUBT", "KEEP_GEODESICS"]
+__all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning", "PLACEMENT_DOUBT",
+           "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
 ORIENT_MARGIN = 0.5
+#: `LocateOptions.orient_weight` for parts meshed apart from the whole: a mean signature cost 1 % above another's
+#: weighs as much as 0.033 of orientation score. Chosen on parts re-meshed at the whole's density, checked on
+#: parts meshed apart (TOSCA's low-res poses) and on FAUST's people (the docs' Results page)
+ORIENT_WEIGHT = 0.3
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
 
@@ -106,6 +113,10 @@ class LocateOptions:
         ``"whole"`` the whole's (`wpot.signatures._frames.common_edge`) for both meshes, so that a part meshed at
         another density sees images of its whole's size. "whole" locates parts meshed apart better and parts cut
         from a mesh like the whole's worse, which decided the default (the docs' Results page)
+    orient_weight : None (default): step 4 keeps, of the candidates oriented within `ORIENT_MARGIN` of the best,
+        the one of least mean signature cost; a number w >= 0: the one of least ``cost / least cost − 1 − w ·
+        orientation score``. For a part meshed apart from the whole, ``edge="whole", orient_weight=ORIENT_WEIGHT``
+        (the docs' Results page)
     """
 
     n_anchors: int = 64
@@ -118,6 +129,7 @@ class LocateOptions:
     region_tol: float = 0.03
     rival_tol: float = 0.1
     edge: str = "own"
+    orient_weight: float | None = None
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -127,6 +139,8 @@ class LocateOptions:
         _validate.integer_at_least("n_refine", self.n_refine, 3)
         _validate.integer_at_least("n_rounds", self.n_rounds, 0)
         _validate.boolean("orient", self.orient)
+        if self.orient_weight is not None:
+            _validate.nonnegative_finite("orient_weight", self.orient_weight)
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
         _validate.one_of("edge", self.edge, ("whole", "own"))
@@ -311,7 +325,8 @@ class _Redraw:
         return self.rounds(t, 1)
 
 
-def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarray, float, float]:
+def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None
+            ) -> tuple[np.ndarray, float, float]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
     score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
 
@@ -323,15 +338,19 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int) -> tuple[np.ndarr
         cands.append(draw.unfold(sym.map[t], n))
     scores = [orientation_score(part, whole, c) for c in cands]
     costs = [cost(c) for c in cands]
-    best = _pick(scores, costs)
+    best = _pick(scores, costs, weight)
     return cands[best], float(scores[best]), float(costs[best])
 
 
-def _pick(scores, costs) -> int:
-    """Of the candidates whose orientation score is within `ORIENT_MARGIN` of the best (NaN: -1), the index of
-    the one with the least cost (the first on a tie)."""
+def _pick(scores, costs, weight: float | None = None) -> int:
+    """The candidate step 4 keeps (a NaN score reads as -1; the first on a tie): with ``weight`` None, of those
+    whose orientation score is within `ORIENT_MARGIN` of the best, the one with the least cost; else the one of
+    least ``cost / least cost - 1 - weight * score`` (``costs`` positive mean signature costs)."""
     o = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-1.0)
-    return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, np.asarray(costs, dtype=np.float64), np.inf)))
+    c = np.asarray(costs, dtype=np.float64)
+    if weight is None:
+        return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, c, np.inf)))
+    return int(np.argmin(c / max(float(c.min()), 1e-300) - 1.0 - weight * o))
 
 
 def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: np.ndarray, d_anchor: np.ndarray,
@@ -442,7 +461,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
             score, mean_cost, local = float("nan"), cost(t), np.zeros(part.n_vertices)
         else:
             if opt.orient:
-                t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds)
+                t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
             else:
                 score, mean_cost = orientation_score(part, whole, t), cost(t)
             local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
