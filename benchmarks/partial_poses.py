@@ -296,8 +296,8 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a few non-manifold edges in TOSCA's low-resolution meshes
             r = load_mesh(path)
-        # repaired as the mesh's warning tells a user to: david0's and michael0's have a patch of about 150
-        # triangles wound against their neighbours, which turns every orientation read there
+        # repaired as the mesh's warning tells a user to: 47 of these meshes (most david and michael poses, about
+        # 150 triangles each) have a patch wound against its neighbours, which turns every orientation read there
         r = r.cleaned(keep_largest_component=True)[0]
     else:
         from benchmarks.remesh import resized

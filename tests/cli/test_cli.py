@@ -151,8 +151,8 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     assert info["placement_confidence"] == pytest.approx(pm.placement_confidence)
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
     # --locate-orient-weight is LocateOptions(orient_weight=...)
-    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-orient-weight", "0.3",
-             "--out", str(tmp_path / "w"))
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-orient-weight",
+             "0.3", "--out", str(tmp_path / "w"))
     assert r.returncode == 0, r.stderr
     weighed = c.locate(ma, mb, options=w.LocateOptions(orient_weight=0.3))
     np.testing.assert_array_equal(np.load(tmp_path / "w" / "correspondence.npz")["correspondence_locate"],

@@ -34,9 +34,10 @@ geodesic distances to choose among them and to fill in the map:
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
    kept. Those parts were cut from meshes that share the whole's connectivity; on a part meshed apart the costs
    tell less, and ``orient_weight`` instead keeps the candidate of least ``cost / least cost − 1 −
-   orient_weight · orientation score`` (`ORIENT_WEIGHT`). A whole whose symmetry is not detected gets (a) and (b) only. A part or whole whose orientation
-   cannot be read (triangles wound against their neighbours, or no outside: `wpot.maps.orientation.unreadable`)
-   skips this step, with a `LocateWarning` that names it and its repair.
+   orient_weight · orientation score`` (`ORIENT_WEIGHT`). A whole whose symmetry is not detected gets (a) and
+   (b) only. A part or whole whose orientation cannot be read (triangles wound against their neighbours, or no
+   outside: `wpot.maps.orientation.unreadable`) skips this step, with a `LocateWarning` that names it and its
+   repair.
 
 5. **Rival placement.** The candidate matches that lie neither where the map sends their anchors nor at the
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
@@ -75,8 +76,8 @@ from wpot.maps.orientation import local_orientation, orientation_score, unreadab
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
-__all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning", "PLACEMENT_DOUBT",
-           "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
+__all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
+           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -458,13 +459,13 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         if unread:  # a patch wound the wrong way reverses every orientation read on it
-            score, mean_cost, local = float("nan"), cost(t), np.zeros(part.n_vertices)
+            score, mean_cost = float("nan"), cost(t)
+        elif opt.orient:
+            t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
         else:
-            if opt.orient:
-                t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
-            else:
-                score, mean_cost = orientation_score(part, whole, t), cost(t)
-            local = np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
+            score, mean_cost = orientation_score(part, whole, t), cost(t)
+        local = (np.zeros(part.n_vertices) if unread
+                 else np.nan_to_num(local_orientation(part, whole, t), nan=0.0))
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0, fw0 = _distances(g_part, a).T, _distances(g_whole, b).T

@@ -55,8 +55,7 @@ be right on most of the body and turned half round on a region (the upper body, 
 keeps orientation: the region's border is then a seam, where neighbouring vertices land far apart, and the
 regions the seams cut off are mapped again from the largest one by distances along the surface to anchors on
 it (`wpot.maps.seams.reanchor`), and the last rounds start again from k = `SEAM_K`. The same energy gives
-the result's
-orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
+the result's orientation confidence (`ZoomOutResult`): a map composed with a left/right symmetry has the same intrinsic
 terms, with the orientation term replaced by its reversed form (``orient_reversed``), so the energy of the
 mirrored map is known without finding the symmetry, and the confidence compares the chosen map's energy with
 that of its mirror and of a candidate on another side.
