@@ -7,7 +7,9 @@ where that overshoots, simplified to the target vertex count by quadric decimati
 independent triangulations of the two shapes at the size asked. It runs what ``wpot compare A B --zoomout`` runs:
 `wpot.Comparer` on the meshes themselves, whose WKS of a mesh above `wpot.spectral.SPECTRAL_MAX_VERTICES` vertices is
 its simplified copy's (`wpot.simplify`) blended to every vertex, then `wpot.zoomout`, which refines through the same
-copies. For each size it times
+copies and decides left from right on smaller copies still (`wpot.maps.zoomout.ORIENT_MAX_VERTICES`; the table
+gives their sizes, and the time to make them, which an all-against-all pays each time a copy is not kept). For each
+size it times
 
 * **cold**: the copies and their Laplace-Beltrami spectra (computed, not read from a cache; run with a fresh
   ``$WPOT_CACHE_DIR``), then the comparison and the refinement (the cold total is the sum of the two columns);
@@ -72,7 +74,8 @@ def main(argv=None) -> int:
     from wpot.comparison import Comparer
     from wpot.datasets import tosca_vts
     from wpot.io import load_mesh
-    from wpot.maps.zoomout import zoomout
+    from wpot.maps.zoomout import ORIENT_MAX_VERTICES, zoomout
+    from wpot.mesh import Mesh
     from wpot.simplify import simplify
     from wpot.spectral import SPECTRAL_MAX_VERTICES
 
@@ -114,11 +117,18 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             plain = zoomout(ma, mb, start, orient=False)
             t_plain = min(t_plain, time.perf_counter() - t0)
+        decided = res.orientation_vertices
+        t0 = time.perf_counter()
+        if decided is not None:  # the copies left and right are decided on, made afresh as for a new shape: each
+            for m in (ma, mb):  # mesh moved (another content, so not the copy kept), at the same cost
+                simplify(Mesh(m.vertices + 1.0, m.faces), ORIENT_MAX_VERTICES)
+        t_copies = time.perf_counter() - t0
         err, mirrored = errors(mb, res.map[src], dst, sym)
         perr, pmirrored = errors(mb, plain.map[src], dst, sym)
         row = {"pair": f"{x} → {y}", "size": n, "n": (ma.n_vertices, mb.n_vertices), "copies": (sa.coarse.n_vertices, sb.coarse.n_vertices), "spectra": t_spec, "first": t_first, "compare": t_cmp,
                "orient": t_orient, "plain": t_plain, "err": err, "mirrored": mirrored, "conf": res.orientation_confidence,
-               "plain_err": perr, "plain_mirrored": pmirrored}
+               "plain_err": perr, "plain_mirrored": pmirrored, "decided": decided, "reanchored": res.reanchored,
+               "t_copies": t_copies}
         if not a.no_peer and max(row["n"]) <= a.peer_max:
             from pyFM.functional import FunctionalMapping
             from pyFM.mesh import TriMesh
@@ -142,17 +152,18 @@ def main(argv=None) -> int:
                 row["peer_failed"] = f"{type(exc).__name__} after {time.perf_counter() - t0:.0f} s: {exc}"
         rows.append(row)
         print(row, flush=True)
-    print("\n| pair | vertices (A, B) | matched through (copies) | copies and their spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
+    print("\n| pair | vertices (A, B) | matched through (copies) | left/right decided on (copies, made in) | copies and their spectra, cold (2 shapes) | compare + oriented ZoomOut, first (signatures) | "
           "compare, warm | oriented ZoomOut | plain ZoomOut | oriented / plain | end to end, spectra cached | "
           "error √area (mirrored), confidence | plain: error (mirrored) | pyfmaps set-up | pyfmaps match | "
           "pyfmaps error (mirrored) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         peer = (f"{r['peer_setup']:.1f} s | {r['peer']:.1f} s | {r['peer_err']:.3f} ({'yes' if r['peer_mirrored'] else 'no'})"
                 if "peer" in r else f"failed: {r['peer_failed'][:80]} | – | –" if "peer_failed" in r else "– | – | –")
         ca, cb = r["copies"]
         through = "themselves" if r["copies"] == r["n"] else f"{ca:,}, {cb:,}"
-        print(f"| {r['pair']} | {r['n'][0]:,}, {r['n'][1]:,} | {through} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
+        dec = "the same" if r["decided"] is None else f"{r['decided'][0]:,}, {r['decided'][1]:,} ({r['t_copies']:.2f} s)"
+        print(f"| {r['pair']} | {r['n'][0]:,}, {r['n'][1]:,} | {through} | {dec} | {r['spectra']:.1f} s | {r['first']:.1f} s | {r['compare']:.1f} s | "
               f"{r['orient']:.1f} s | {r['plain']:.1f} s | {r['orient'] / r['plain']:.2f}x | "
               f"{r['compare'] + r['orient']:.1f} s | {r['err']:.3f} ({'yes' if r['mirrored'] else 'no'}), "
               f"{r['conf']:.2f} | {r['plain_err']:.3f} ({'yes' if r['plain_mirrored'] else 'no'}) | {peer} |")

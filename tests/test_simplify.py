@@ -30,6 +30,25 @@ def test_a_small_mesh_is_its_own_copy_and_every_map_is_kept():
     np.testing.assert_allclose(s.interpolate(m.vertices), m.vertices)
 
 
+def test_the_copy_is_cached_by_content_and_read_back_as_made(tmp_path):
+    """A copy stored on disk and read back by another cache (as by another process) is the copy made afresh:
+    the same mesh and the same places of the original's vertices on it."""
+    from wpot.cache import Cache
+
+    m = mirror_symmetric(1500, seed=11)
+    made = simplify(m, 400, cache=Cache("simplified-test", cache_dir=tmp_path))
+    assert len(list(tmp_path.rglob("*.npz"))) == 1
+    back = simplify(Mesh(m.vertices, m.faces), 400, cache=Cache("simplified-test", cache_dir=tmp_path))
+    fresh = simplify(m, 400, cache=False)
+    for other in (back, fresh):
+        assert other.coarse.fingerprint == made.coarse.fingerprint
+        for name in ("corners", "weights", "nearest"):
+            np.testing.assert_array_equal(getattr(other, name), getattr(made, name))
+    assert len(list(tmp_path.rglob("*.npz"))) == 1  # read, not stored again
+    with pytest.raises(TypeError, match="cache"):
+        simplify(m, 400, cache="yes")
+
+
 def test_the_copy_has_the_size_asked_and_places_every_vertex_on_itself(big, copy):
     """About n vertices, one closed surface; each original vertex lies on its triangle of the copy: the
     barycentric blend of the corners is its closest point, within a fraction of the copy's edge length."""

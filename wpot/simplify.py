@@ -15,8 +15,10 @@ answer carried back to every vertex:
   where the corners' images lie apart (a seam of the map, where a blend would fall between two limbs).
 
 Decimation is deterministic, so the copy of a mesh is the same mesh on every call, and its spectrum is read from
-the cache (`wpot.cache`) after the first; the last few copies are kept (`KEEP_COPIES`), so the steps of one
-comparison that each need a mesh's copy (the spectral signatures, `wpot.zoomout`) make it once.
+the cache (`wpot.cache`) after the first. The copy itself is cached too (`copy_cache`: memory, and disk under
+``$WPOT_CACHE_DIR``), so an all-against-all simplifies each shape once, and the last few copies are kept as meshes
+(`KEEP_COPIES`), so the steps of one comparison that each need a mesh's copy (the spectral signatures,
+`wpot.zoomout`) share one.
 """
 from __future__ import annotations
 
@@ -28,11 +30,11 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from wpot._validate import integer_at_least
-from wpot.cache import Kept
+from wpot.cache import Cache, Kept
 from wpot._warp import launch_rows, resolve_device
 from wpot.mesh import Mesh, MeshWarning
 
-__all__ = ["Simplified", "simplify", "lift_map", "SEAM_EDGES"]
+__all__ = ["Simplified", "simplify", "lift_map", "SEAM_EDGES", "copy_cache"]
 
 wp.set_module_options({"enable_backward": False})
 
@@ -101,7 +103,7 @@ class Simplified:
         return target.heaviest[t[self.nearest]]
 
 
-def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simplified:
+def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None, cache: Cache | bool = True) -> Simplified:
     """``mesh`` with a copy of about ``n_vertices`` vertices to match it through (the module docstring); a mesh of
     at most ``n_vertices`` vertices is its own copy.
 
@@ -110,6 +112,8 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simpl
     mesh : the original (N vertices)
     n_vertices : the copy's size (decimation lands within a few vertices of it; repairs may remove a few more)
     device : Warp device of the closest-point queries; None means Warp's default device
+    cache : True (default): `copy_cache`, and the last `KEEP_COPIES` copies kept as meshes; a `wpot.cache.Cache`:
+        that one (nothing kept); False: computed every time
 
     Raises
     ------
@@ -123,14 +127,38 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None) -> Simpl
         w = np.zeros((mesh.n_vertices, 3))
         w[:, 0] = 1.0
         return Simplified(mesh, mesh, np.repeat(ident[:, None], 3, axis=1), w, ident)
-    made = _COPIES.get((mesh.fingerprint, n, str(resolve_device(device))), lambda: _simplified(mesh, n, device))
-    return made if made.full is mesh else replace(made, full=mesh)
+    dev = str(resolve_device(device))
+    if cache is False:
+        return _simplified(mesh, n, dev)
+    if cache is True:
+        made = _COPIES.get((mesh.fingerprint, n, dev), lambda: _stored(mesh, n, dev, copy_cache))
+        return made if made.full is mesh else replace(made, full=mesh)
+    if not isinstance(cache, Cache):
+        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
+    return _stored(mesh, n, dev, cache)
+
+
+def _stored(mesh: Mesh, n: int, device: str, cache: Cache) -> Simplified:
+    """`simplify` of a mesh of more than ``n`` vertices, read from ``cache`` or computed and stored there."""
+    def compute() -> dict[str, np.ndarray]:
+        made = _simplified(mesh, n, device)
+        return {"vertices": made.coarse.vertices, "faces": made.coarse.faces, "corners": made.corners,
+                "weights": made.weights, "nearest": made.nearest}
+
+    e = cache.get_or_compute(mesh.fingerprint, {"n_vertices": n, "device": device, "version": 1}, compute)
+    # the copy's defects were reported when it was made (`Mesh.cleaned`); the same mesh read back stays quiet
+    coarse = Mesh(e["vertices"], e["faces"], warn=False,
+                  name=f"{mesh.name or 'mesh'} (simplified to {len(e['vertices'])} vertices)")
+    return Simplified(mesh, coarse, np.asarray(e["corners"]), np.asarray(e["weights"]), np.asarray(e["nearest"]))
 
 
 #: the copies `simplify` keeps: a comparison's signatures and its ZoomOut each ask for the same two, which are then
 #: made once
 KEEP_COPIES = 4
 _COPIES = Kept(KEEP_COPIES)
+#: each copy's arrays (its vertices and faces, and where the original's vertices lie on it), keyed by the
+#: original's content, the size asked and the device of the closest-point queries
+copy_cache = Cache("simplified", max_entries=64, max_bytes=256 << 20)
 
 
 def _simplified(mesh: Mesh, n: int, device: str | None) -> Simplified:

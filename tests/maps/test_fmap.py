@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import wpot
-from wpot.maps.fmap import SpectralOperators, functional_map, point_map
+from wpot.maps.fmap import FmapEnergy, SpectralOperators, functional_map, point_map
 from wpot.mesh import Mesh
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
@@ -66,6 +66,26 @@ def test_fit_recovers_a_relabelled_rotated_scaled_copy():
         assert np.abs(c.T @ c - np.eye(30))[:20, :20].max() < 0.05
         t = point_map(oa.phi, ob.phi, c)
         assert np.mean(t == inv) > 0.95
+
+
+def test_fit_is_the_stationary_point_of_the_terms_it_reports():
+    # the energy is quadratic in C, so at its minimizer the linear part vanishes: E(C + D) = E(C - D) > E(C) for
+    # any D. The fit builds its normal matrix from Kronecker identities (a diagonal one for the Laplacian's term),
+    # `terms` evaluates each term directly: the two must agree
+    a, b = mirror_symmetric(500, seed=0), mirror_symmetric(600, seed=5)
+    sa, sb = wpot.eigenpairs(a, 40, cache=False), wpot.eigenpairs(b, 40, cache=False)
+    da, db = _descriptors(sa, sb, p=20)
+    energy = FmapEnergy(SpectralOperators(a, sa, 10), SpectralOperators(b, sb, 10), da, db)
+    c = energy.fit()
+
+    def total(x: np.ndarray) -> float:
+        return sum(v for name, v in energy.terms(x).items() if name != "orient_reversed")
+
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        d = 0.05 * rng.standard_normal(c.shape)
+        up, down, at = total(c + d), total(c - d), total(c)
+        assert up == pytest.approx(down, rel=1e-9) and min(up, down) > at
 
 
 def test_orientation_term_keeps_left_from_right():

@@ -148,6 +148,25 @@ def test_a_fully_mirrored_start_is_detected_and_its_mirror_image_scores_as_the_t
     assert e["given_mirror"] == pytest.approx(e[res.candidate], rel=0.5)
 
 
+def test_left_and_right_decided_on_simplified_copies_carry_back_to_the_meshes():
+    # above orient_vertices, the candidates, the choice, the mending and the re-anchoring run between copies of
+    # that many vertices; the chosen map, carried back, is refined on the meshes themselves
+    a, b, truth, mirror, start = _planted_mirror()
+    res = zoomout(a, b, start, k_end=40, orient_vertices=500)
+    assert res.orientation_vertices is not None and max(res.orientation_vertices) <= 505
+    assert res.coarse_vertices is None and res.map.shape == (a.n_vertices,)
+    assert _error(b, res.map, truth) < 0.03 and orientation_score(a, b, res.map) > 0.5
+    assert res.orientation_confidence > ORIENTATION_DOUBT
+    # a fully mirrored start: the copies' descriptor candidate wins there too
+    flipped = zoomout(a, b, mirror, k_end=40, orient_vertices=500)
+    assert flipped.candidate.startswith("descriptors") and _error(b, flipped.map, truth) < 0.03
+    # at or below the size, on the meshes themselves; plain ZoomOut decides nothing
+    assert zoomout(a, b, start, k_end=40, orient_vertices=b.n_vertices).orientation_vertices is None
+    assert zoomout(a, b, start, k_end=40, orient=False, orient_vertices=500).orientation_vertices is None
+    with pytest.raises(ValueError, match="orient_vertices"):
+        zoomout(a, b, start, k_end=40, orient_vertices=50)
+
+
 def test_zoomout_chooses_at_choice_k_and_refines_only_the_chosen_map_on():
     # the candidates are compared at CHOICE_K; beyond it the chosen one alone goes on, so the result is plain
     # ZoomOut continued from the map chosen there, and keeps its orientation. (At k_end = CHOICE_K that map gets

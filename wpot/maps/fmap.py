@@ -233,21 +233,27 @@ def _normalized(xs: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return xs / s, qs / s
 
 
-def _commutator_normal(xs: np.ndarray, qs: np.ndarray) -> np.ndarray:
-    """``Σ_f Lᵀ L`` for the linear maps ``L(C) = C X_f − Q_f C`` on vec(C) (column-major), (k², k²).
+def _commutator_normal(xs: np.ndarray, qs: np.ndarray, out: np.ndarray, weight: float) -> None:
+    """Add ``weight Σ_f Lᵀ L`` to ``out`` (k², k²), for the linear maps ``L(C) = C X_f − Q_f C`` on vec(C)
+    (column-major).
 
     With ``vec(C X) = (Xᵀ ⊗ I) vec C`` and ``vec(Q C) = (I ⊗ Q) vec C``:
-    ``LᵀL = (X Xᵀ) ⊗ I + I ⊗ (QᵀQ) − X ⊗ Q − Xᵀ ⊗ Qᵀ``; the sums of Kronecker products over f are one matrix
-    product each."""
+    ``LᵀL = (X Xᵀ) ⊗ I + I ⊗ (QᵀQ) − X ⊗ Q − Xᵀ ⊗ Qᵀ``; the last two are one matrix product, read in two orders.
+    A single pair of diagonal operators (the Laplacian's eigenvalues) gives a diagonal ``(x_a − q_i)²``."""
     m, k, _ = xs.shape
-    h = np.zeros((k * k, k * k))
-    h4, d = h.reshape(k, k, k, k), np.arange(k)  # h4[a, i, c, j] = h[(a, i), (c, j)], a view
-    h4[:, d, :, d] = np.einsum("fab,fcb->ac", xs, xs)  # (X Xᵀ) ⊗ I, without forming it
-    h4[d, :, d, :] += np.einsum("fba,fbc->ac", qs, qs)  # + I ⊗ (QᵀQ)
-    for x, q in ((xs, qs), (xs.transpose(0, 2, 1), qs.transpose(0, 2, 1))):  # − Σ_f x_f ⊗ q_f
-        prod = x.reshape(m, k * k).T @ q.reshape(m, k * k)  # [(a, b), (c, e)] = Σ_f x[a, b] q[c, e]
-        h4 -= prod.reshape(k, k, k, k).transpose(0, 2, 1, 3)
-    return h
+    h4, d = out.reshape(k, k, k, k), np.arange(k)  # h4[a, i, c, j] = out[(a, i), (c, j)], a view
+    if m == 1 and not (np.any(xs[0] - np.diag(np.diag(xs[0]))) or np.any(qs[0] - np.diag(np.diag(qs[0])))):
+        x, q = np.diag(xs[0]), np.diag(qs[0])
+        out[d[:, None] * k + d, d[:, None] * k + d] += weight * (x[:, None] - q[None, :]) ** 2
+        return
+    h4[:, d, :, d] += weight * np.einsum("fab,fcb->ac", xs, xs)  # (X Xᵀ) ⊗ I, without forming it
+    h4[d, :, d, :] += weight * np.einsum("fba,fbc->ac", qs, qs)  # + I ⊗ (QᵀQ)
+    # Σ_f x_f ⊗ q_f: [(a, b), (c, e)] = Σ_f x[a, b] q[c, e], entry [(a, c), (b, e)] of X ⊗ Q and [(b, a), (e, c)]
+    # of Xᵀ ⊗ Qᵀ
+    prod = (xs.reshape(m, k * k).T @ qs.reshape(m, k * k)).reshape(k, k, k, k)
+    prod *= weight
+    h4 -= prod.transpose(0, 2, 1, 3)
+    h4 -= prod.transpose(1, 3, 0, 2)
 
 
 def _descriptors(values, name: str, ops: SpectralOperators) -> np.ndarray:
@@ -325,7 +331,7 @@ class FmapEnergy:
         rhs = self._scale("descr") * (self.a @ self.b.T).reshape(-1, order="F")
         for name, (xs, qs) in self.pairs.items():
             if self.weights[name]:
-                h += self._scale(name) * _commutator_normal(xs, qs)
+                _commutator_normal(xs, qs, h, self._scale(name))
         h += 1e-12 * np.trace(h) / h.shape[0] * np.eye(h.shape[0])  # guards a rank-deficient descriptor set
         return np.linalg.solve(h, rhs).reshape(k, k, order="F")
 

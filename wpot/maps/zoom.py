@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
 from wpot.cache import Cache
 from wpot.maps.fmap import SpectralOperators, point_map
@@ -132,7 +131,9 @@ def _least_squares(phi_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     `_sample_rounds` at every k ≤ K: the first k columns of phi_a are Q[:, :k] R[:k, :k], and the leading k × k
     block of R⁻¹ is the inverse of R's leading block (R is upper triangular)."""
     q, r = np.linalg.qr(phi_a)
-    return np.ascontiguousarray(q.T), solve_triangular(r, np.eye(r.shape[0]))
+    # numpy's own LAPACK: a call into SciPy's (a second OpenBLAS with its own threads) leaves those threads
+    # competing with numpy's for the rounds' products that follow
+    return np.ascontiguousarray(q.T), np.linalg.inv(r)
 
 
 def _sample_rounds(phi_a: np.ndarray, phi_b: np.ndarray, ts: np.ndarray, sb: np.ndarray, ks: list[int],

@@ -63,7 +63,12 @@ that of its mirror and of a candidate on another side.
 Large meshes: above ``max_vertices`` (`ZOOMOUT_MAX_VERTICES`) vertices a mesh is matched through a simplified
 copy (`wpot.simplify`): the given map is carried to the copies, refined there, and carried back to every vertex
 (`wpot.simplify.lift_map`). The spectra, the candidates and every nearest-neighbour search then cost what they
-cost at the copy's size.
+cost at the copy's size. Left and right are decided at a smaller size still: above ``orient_vertices``
+(`ORIENT_MAX_VERTICES`) vertices, the candidates, their choice, the mending and the re-anchoring run between
+simplified copies of that many vertices, and only the rounds after them (from k = `CHOICE_K` + step, or
+`SEAM_K` for a re-anchored map) run on the meshes themselves, from the chosen map carried back to them. Those
+steps read the map at every vertex and on every face, which at the meshes' own size costs more than the choice
+they serve; the copies keep what they look at (limbs, the left/right symmetry, seams at 0.05 sqrt(area)).
 
 """
 from __future__ import annotations
@@ -82,13 +87,14 @@ from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_N_EIGEN, ZOOMOUT_SAMPLES, ZO
 from wpot.maps.orientation import OrientationWarning, unreadable
 from wpot.maps.seams import reanchor
 from wpot.maps.symmetry import keep_orientation
-from wpot.mesh import Mesh, named
+from wpot.mesh import Mesh, MeshWarning, named
 from wpot.signatures._wks import wks_energies, wks_weights
 from wpot.simplify import lift_map, simplify
 from wpot.spectral import SPECTRAL_MAX_VERTICES
 
 __all__ = ["zoomout", "ZoomOutResult", "spectrum_size", "ZOOMOUT_N_EIGEN", "ZOOMOUT_K_END", "ZOOMOUT_SAMPLES",
-           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "CHOICE_SAMPLES", "SEAM_K", "ZOOMOUT_MAX_VERTICES"]
+           "AGREEMENT", "ORIENTATION_DOUBT", "CHOICE_K", "CHOICE_SAMPLES", "SEAM_K", "ZOOMOUT_MAX_VERTICES",
+           "ORIENT_MAX_VERTICES"]
 
 #: default largest spectral resolution (fewer when fewer eigenpairs are available). The schedule (k = 10..200 by
 #: 5) was chosen on TOSCA test pairs: a finer step or another start scored lower (the docs' Results page)
@@ -102,6 +108,10 @@ CHOICE_K = 60
 #: meshes of more vertices are refined through simplified copies of this many (`wpot.simplify`): the spectral
 #: signatures' `wpot.spectral.SPECTRAL_MAX_VERTICES`, so that both read one cached spectrum of each copy
 ZOOMOUT_MAX_VERTICES = SPECTRAL_MAX_VERTICES
+#: meshes of more vertices have left and right decided on simplified copies of this many (the module docstring):
+#: above the 5k data sets' largest meshes (5,004 vertices), on which every choice of the oriented refinement was
+#: made and measured, so that they are decided as they were
+ORIENT_MAX_VERTICES = 5500
 #: farthest-point samples a mesh on which the candidates are brought to `CHOICE_K` and compared, and the mended
 #: map refined again (at most ``samples``; the rounds after the choice use ``samples``). Chosen on FAUST pairs
 #: outside its test list against 2,000, 1,500 and 700, checked on TOSCA pairs outside it (the docs' Results page)
@@ -137,6 +147,8 @@ class ZoomOutResult:
         symmetry (the confidence weighs the choice made before)
     coarse_vertices : (n_A, n_B), the vertex counts of the simplified copies the map was refined on
         (``max_vertices``); None when it was refined on the meshes themselves
+    orientation_vertices : (n_A, n_B), the vertex counts of the copies left and right were decided on
+        (``orient_vertices``); None when on the meshes the map was refined on (or not decided)
     reanchored : whether regions cut off by the chosen map's seams (a half turn of the upper body, swapped
         legs) were mapped again from the rest of it (`wpot.maps.seams.reanchor`)
     """
@@ -148,6 +160,7 @@ class ZoomOutResult:
     mended: bool = False
     coarse_vertices: tuple[int, int] | None = None
     reanchored: bool = False
+    orientation_vertices: tuple[int, int] | None = None
 
     def __array__(self, dtype=None, copy=None):
         return self.map if dtype is None else self.map.astype(dtype)
@@ -165,6 +178,7 @@ def zoomout(
     orient: bool = True,
     samples: int | None = ZOOMOUT_SAMPLES,
     max_vertices: int | None = ZOOMOUT_MAX_VERTICES,
+    orient_vertices: int | None = ORIENT_MAX_VERTICES,
 ) -> ZoomOutResult:
     """Refine a vertex map from A to B by ZoomOut (spectral upsampling of its functional map).
 
@@ -190,6 +204,9 @@ def zoomout(
     max_vertices : a mesh of more vertices is refined through a simplified copy of this many (`wpot.simplify`;
         default `ZOOMOUT_MAX_VERTICES`), and the map carried back to its every vertex; None: never. The other
         options then apply to the copies
+    orient_vertices : with ``orient``, a mesh (or ``max_vertices``' copy) of more vertices has left and right
+        decided on a simplified copy of this many (default `ORIENT_MAX_VERTICES`), whose spectrum is its own
+        default `spectrum_size`; the rounds after the choice run on the meshes. None: never
 
     Returns
     -------
@@ -209,10 +226,13 @@ def zoomout(
     t = vertex_map("correspondence", correspondence, mesh_a.n_vertices, mesh_b.n_vertices)
     if max_vertices is not None:
         max_vertices = integer_at_least("max_vertices", max_vertices, 100)
+    if orient_vertices is not None:
+        orient_vertices = integer_at_least("orient_vertices", orient_vertices, 100)
     if max_vertices is not None and max(mesh_a.n_vertices, mesh_b.n_vertices) > max_vertices:
         sa, sb = simplify(mesh_a, max_vertices), simplify(mesh_b, max_vertices)
         res = zoomout(sa.coarse, sb.coarse, sa.restrict_map(sb, t), k_start=k_start, k_end=k_end, step=step,
-                      n_eigen=n_eigen, orient=orient, samples=samples, max_vertices=None)
+                      n_eigen=n_eigen, orient=orient, samples=samples, max_vertices=None,
+                      orient_vertices=orient_vertices)
         return dataclasses.replace(res, map=lift_map(sa, sb, res.map),
                                    coarse_vertices=(sa.coarse.n_vertices, sb.coarse.n_vertices))
     n_avail = min(mesh_a.n_vertices, mesh_b.n_vertices)
@@ -232,19 +252,50 @@ def zoomout(
 
     refine = Refiner(mesh_a, mesh_b, n_eigen, samples)
 
-    if not orient:
+    if not orient or not _orientable(mesh_a, mesh_b):
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    problems = _oriented_problems(mesh_a, mesh_b, n_eigen, k_end)
-    if problems is None:
-        return ZoomOutResult(refine(t, k_start, k_end, step))
-    choice = refine.with_samples(None if samples is None else min(samples, CHOICE_SAMPLES))
-    return _oriented(refine, choice, mesh_a, mesh_b, t, problems, k_start, k_end, step)
+    choice_samples = None if samples is None else min(samples, CHOICE_SAMPLES)
+    copies = _orientation_copies(mesh_a, mesh_b, orient_vertices)
+    if copies is None:
+        choice = refine.with_samples(choice_samples)
+        res, k_next = _oriented(choice, mesh_a, mesh_b, t, _oriented_problems(mesh_a, mesh_b, n_eigen, k_end),
+                                k_start, k_end, step)
+    else:  # decided between the copies, and carried back to the meshes
+        ca, cb = copies
+        choice = Refiner(ca.coarse, cb.coarse, None, choice_samples)
+        res, k_next = _oriented(choice, ca.coarse, cb.coarse, ca.restrict_map(cb, t),
+                                _oriented_problems(ca.coarse, cb.coarse, None, k_end), k_start, k_end, step)
+        res = dataclasses.replace(res, map=lift_map(ca, cb, res.map),
+                                  orientation_vertices=(ca.coarse.n_vertices, cb.coarse.n_vertices))
+    # on to k_end from the samples' images; or, with no rounds left, once more at CHOICE_K with the functional map
+    # of every vertex (as ZoomOut's last round does)
+    k_sel = min(CHOICE_K, k_end)
+    out = refine(res.map, k_sel, k_sel, step) if k_next > k_end else refine(res.map, k_next, k_end, step)
+    return dataclasses.replace(res, map=out)
 
 
-def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray,
-              problems: dict[str, FmapEnergy], k_start: int, k_end: int, step: int) -> ZoomOutResult:
-    """`zoomout` with ``orient=True``: the candidates brought to `CHOICE_K` by ``choice`` (on its samples) and
-    compared, the chosen one mended and refined on to k_end by ``refine`` (the module docstring)."""
+def _orientation_copies(mesh_a: Mesh, mesh_b: Mesh, orient_vertices: int | None):
+    """The simplified copies (`wpot.simplify.Simplified`) of A and B on which left and right are decided, or None
+    to decide on the meshes themselves: when neither has more than ``orient_vertices`` vertices, or when a copy
+    could not be oriented (several pieces, or no readable outside, where the meshes themselves have one)."""
+    if orient_vertices is None or max(mesh_a.n_vertices, mesh_b.n_vertices) <= orient_vertices:
+        return None
+    with warnings.catch_warnings():
+        # a defect the decimation leaves (a non-manifold edge) is the copy's, not the caller's mesh's: the copy is
+        # checked below, and one that cannot be oriented is not used
+        warnings.simplefilter("ignore", MeshWarning)
+        copies = simplify(mesh_a, orient_vertices), simplify(mesh_b, orient_vertices)
+    if any(_unreadable(c.coarse) for c in copies):
+        return None
+    return copies
+
+
+def _oriented(choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: np.ndarray, problems: dict[str, FmapEnergy],
+              k_start: int, k_end: int, step: int) -> tuple[ZoomOutResult, int]:
+    """`zoomout`'s decision of left and right (``orient=True``) between A and B, two connected surfaces with a
+    readable outside: the candidates brought to `CHOICE_K` by ``choice`` (on its samples) and compared, the chosen
+    one mended and re-anchored (the module docstring). Returns the result, whose map (N_A,) is the chosen one
+    still to be refined on, and the resolution that refinement goes on from."""
     k_sel = min(CHOICE_K, k_end)
     # the candidates are brought to k_sel and compared on the choice's samples; only the chosen one maps every vertex
     sa, sb = choice.points(mesh_a), choice.points(mesh_b)
@@ -275,11 +326,9 @@ def _oriented(refine: Refiner, choice: Refiner, mesh_a: Mesh, mesh_b: Mesh, t: n
         k_next = min(SEAM_K, k_sel)
     else:
         k_next = k_sel + step if mended else max(k_sel + step, starts[chosen][1])
-    # on to k_end from the samples' images; or, with no rounds left, once more at k_sel with the functional map of
-    # every vertex (as ZoomOut's last round does)
-    out = refine(best, k_sel, k_sel, step) if k_next > k_end else refine(best, k_next, k_end, step)
-    return ZoomOutResult(out, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
-                         mended, reanchored=reanchored)
+    res = ZoomOutResult(best, confidence, chosen, {**energies, **{f"{n}_mirror": e for n, e in mirrors.items()}},
+                        mended, reanchored=reanchored)
+    return res, k_next
 
 
 def _unreadable(mesh: Mesh) -> str:
@@ -316,22 +365,26 @@ def _disagree(mesh_b: Mesh, t1: np.ndarray, t2: np.ndarray) -> bool:
     return bool(np.median(gap) > AGREEMENT * np.sqrt(mesh_b.area))
 
 
-def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> dict[str, FmapEnergy] | None:
-    """The orientation-aware functional-map energies between A and B (`wpot.maps.fmap.FmapEnergy` at k =
-    min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors from the first
-    `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`, whose energy
-    also ranks the candidates; one problem when there are no more). None, with an `OrientationWarning` that
-    names the mesh and its repair, when they cannot be built (`_unreadable`). The descriptors' terms are each
-    shape's cached `wpot.maps.fmap.squared_eigenfunction_terms` weighed by the pair's WKS weights."""
-
-    meshes = (mesh_a, mesh_b)
+def _orientable(mesh_a: Mesh, mesh_b: Mesh) -> bool:
+    """Whether zoomout can weigh left against right between A and B; when not, an `OrientationWarning` names the
+    mesh and its repair (`_unreadable`)."""
     for side, m in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
         why = _unreadable(m)
         if why:
             warnings.warn(named(m.name, f"{side} {why}, so zoomout cannot weigh left against right: the map is plain "
                                 "ZoomOut's, which may be mirrored (orientation_confidence NaN)"),
                           OrientationWarning, stacklevel=3)
-            return None
+            return False
+    return True
+
+
+def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> dict[str, FmapEnergy]:
+    """The orientation-aware functional-map energies between A and B, two surfaces `_orientable` (`wpot.maps.fmap.FmapEnergy` at k =
+    min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors from the first
+    `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`, whose energy
+    also ranks the candidates; one problem when there are no more). The descriptors' terms are each
+    shape's cached `wpot.maps.fmap.squared_eigenfunction_terms` weighed by the pair's WKS weights."""
+    meshes = (mesh_a, mesh_b)
     k = min(FMAP_K, k_end)
     specs = [spectral_basis(m, n_eigen) for m in meshes]
     ops = [SpectralOperators(m, s, k) for m, s in zip(meshes, specs)]
