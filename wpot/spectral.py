@@ -37,9 +37,10 @@ per Lanczos step.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -126,6 +127,25 @@ class Spectrum:
     from_cache: bool = False
     normalized: bool = True
 
+    @classmethod
+    def _checked(cls, **fields: Any) -> "Spectrum":
+        """A spectrum of arrays checked before (read back from the cache, where they were stored from a checked
+        spectrum, or a slice of one) and read-only: built without `__post_init__`'s pass over every entry, which
+        a refinement that reads a cached spectrum several times would otherwise repeat each time."""
+        out = object.__new__(cls)
+        defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+        for name, default in defaults.items():
+            value = fields.pop(name, default)
+            if value is dataclasses.MISSING:
+                raise TypeError(f"Spectrum._checked needs {name}")
+            object.__setattr__(out, name, value)
+        if fields:
+            raise TypeError(f"Spectrum has no field {sorted(fields)[0]!r}")
+        for name in ("evals", "evecs"):
+            if getattr(out, name).flags.writeable:
+                raise ValueError(f"Spectrum._checked takes read-only arrays; {name} is writeable")
+        return out
+
     def __post_init__(self) -> None:
         ev, vec = _frozen_copy(self.evals), _frozen_copy(self.evecs)
         if ev.ndim != 1 or vec.ndim != 2 or vec.shape[1] != ev.shape[0]:
@@ -170,7 +190,9 @@ class Spectrum:
             raise ValueError(f"k must be a positive integer, got {k}")
         if k >= self.k:
             return self
-        return replace(self, evals=self.evals[:k], evecs=self.evecs[:, :k], n_zero=min(self.n_zero, k))
+        return Spectrum._checked(**{**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)},
+                                    "evals": self.evals[:k], "evecs": self.evecs[:, :k],
+                                    "n_zero": min(self.n_zero, k)})
 
     @property
     def nonzero_evals(self) -> np.ndarray:
@@ -556,7 +578,7 @@ def _cached(store: Cache, mesh: Mesh, params: dict[str, Any]) -> Spectrum | None
         return None
     # no SpectralWarning here: it was given when this spectrum was computed, and a warning per use would repeat
     # it for every pair of an all-vs-all (`eigenpairs`, Warns)
-    return Spectrum(
+    return Spectrum._checked(
         evals=entry["evals"],
         evecs=entry["evecs"],
         area=float(entry["area"]),

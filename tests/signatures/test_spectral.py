@@ -279,6 +279,13 @@ def test_spectrum_is_frozen_and_validated():
         Spectrum(evals=np.zeros(3), evecs=np.zeros((4, 2)), area=1.0)
     with pytest.raises(ValueError, match="NaN"):
         Spectrum(evals=np.array([0, np.nan]), evecs=np.zeros((4, 2)), area=1.0)
+    # a slice keeps every other field, and stays read-only
+    low = s.first(3)
+    assert low.k == 3 and low.area == s.area and low.n_zero == s.n_zero and low.solver == s.solver
+    np.testing.assert_array_equal(low.evecs, s.evecs[:, :3])
+    with pytest.raises(ValueError):
+        low.evecs[0, 0] = 1.0
+    assert s.first(5) is s
 
 
 def test_eigenpairs_are_cached_by_content(tmp_path):

@@ -254,24 +254,31 @@ def zoomout(
 
     if not orient or not _orientable(mesh_a, mesh_b):
         return ZoomOutResult(refine(t, k_start, k_end, step))
-    choice_samples = None if samples is None else min(samples, CHOICE_SAMPLES)
-    copies = _orientation_copies(mesh_a, mesh_b, orient_vertices)
-    if copies is None:
-        choice = refine.with_samples(choice_samples)
-        res, k_next = _oriented(choice, mesh_a, mesh_b, t, _oriented_problems(mesh_a, mesh_b, n_eigen, k_end),
-                                k_start, k_end, step)
-    else:  # decided between the copies, and carried back to the meshes
-        ca, cb = copies
-        choice = Refiner(ca.coarse, cb.coarse, None, choice_samples)
-        res, k_next = _oriented(choice, ca.coarse, cb.coarse, ca.restrict_map(cb, t),
-                                _oriented_problems(ca.coarse, cb.coarse, None, k_end), k_start, k_end, step)
-        res = dataclasses.replace(res, map=lift_map(ca, cb, res.map),
-                                  orientation_vertices=(ca.coarse.n_vertices, cb.coarse.n_vertices))
+    res, k_next = _decided(refine, t, orient_vertices, k_start, k_end, step)
     # on to k_end from the samples' images; or, with no rounds left, once more at CHOICE_K with the functional map
     # of every vertex (as ZoomOut's last round does)
     k_sel = min(CHOICE_K, k_end)
     out = refine(res.map, k_sel, k_sel, step) if k_next > k_end else refine(res.map, k_next, k_end, step)
     return dataclasses.replace(res, map=out)
+
+
+def _decided(refine: Refiner, t: np.ndarray, orient_vertices: int | None, k_start: int, k_end: int, step: int
+             ) -> tuple[ZoomOutResult, int]:
+    """`_oriented` between ``refine``'s meshes, or between their copies (`_orientation_copies`) with the chosen
+    map carried back to the meshes. Returns the result, whose map (N_A,) is still to be refined on, and the
+    resolution that refinement goes on from."""
+    mesh_a, mesh_b = refine.mesh_a, refine.mesh_b
+    choice_samples = None if refine.samples is None else min(refine.samples, CHOICE_SAMPLES)
+    copies = _orientation_copies(mesh_a, mesh_b, orient_vertices)
+    if copies is None:
+        return _oriented(refine.with_samples(choice_samples), mesh_a, mesh_b, t,
+                         _oriented_problems(mesh_a, mesh_b, refine.n_eigen, k_end), k_start, k_end, step)
+    ca, cb = copies
+    res, k_next = _oriented(Refiner(ca.coarse, cb.coarse, None, choice_samples), ca.coarse, cb.coarse,
+                            ca.restrict_map(cb, t), _oriented_problems(ca.coarse, cb.coarse, None, k_end),
+                            k_start, k_end, step)
+    return dataclasses.replace(res, map=lift_map(ca, cb, res.map),
+                               orientation_vertices=(ca.coarse.n_vertices, cb.coarse.n_vertices)), k_next
 
 
 def _orientation_copies(mesh_a: Mesh, mesh_b: Mesh, orient_vertices: int | None):
