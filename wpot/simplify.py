@@ -122,6 +122,8 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None, cache: C
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
     n = integer_at_least("n_vertices", n_vertices, 100)
+    if not (cache is True or cache is False or isinstance(cache, Cache)):
+        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
     if mesh.n_vertices <= n:
         ident = np.arange(mesh.n_vertices, dtype=np.int64)
         w = np.zeros((mesh.n_vertices, 3))
@@ -133,8 +135,6 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None, cache: C
     if cache is True:
         made = _COPIES.get((mesh.fingerprint, n, dev), lambda: _stored(mesh, n, dev, copy_cache))
         return made if made.full is mesh else replace(made, full=mesh)
-    if not isinstance(cache, Cache):
-        raise TypeError(f"cache must be True, False or a wpot.cache.Cache, got {type(cache).__name__}")
     return _stored(mesh, n, dev, cache)
 
 

@@ -65,8 +65,8 @@ copy (`wpot.simplify`): the given map is carried to the copies, refined there, a
 (`wpot.simplify.lift_map`). The spectra, the candidates and every nearest-neighbour search then cost what they
 cost at the copy's size. Left and right are decided at a smaller size still: above ``orient_vertices``
 (`ORIENT_MAX_VERTICES`) vertices, the candidates, their choice, the mending and the re-anchoring run between
-simplified copies of that many vertices, and only the rounds after them (from k = `CHOICE_K` + step, or
-`SEAM_K` for a re-anchored map) run on the meshes themselves, from the chosen map carried back to them. Those
+simplified copies of that many vertices, and only the last rounds run on the meshes themselves, from the chosen
+map carried back to them; as that map is only as fine as the copies, they start again from `SEAM_K`. Those
 steps read the map at every vertex and on every face, which at the meshes' own size costs more than the choice
 they serve; the copies keep what they look at (limbs, the left/right symmetry, seams at 0.05 sqrt(area)).
 
@@ -277,8 +277,10 @@ def _decided(refine: Refiner, t: np.ndarray, orient_vertices: int | None, k_star
     res, k_next = _oriented(Refiner(ca.coarse, cb.coarse, None, choice_samples), ca.coarse, cb.coarse,
                             ca.restrict_map(cb, t), _oriented_problems(ca.coarse, cb.coarse, None, k_end),
                             k_start, k_end, step)
+    # a map carried back from the copies is only as fine as their vertices: like a re-anchored one, its last
+    # rounds start again from SEAM_K
     return dataclasses.replace(res, map=lift_map(ca, cb, res.map),
-                               orientation_vertices=(ca.coarse.n_vertices, cb.coarse.n_vertices)), k_next
+                               orientation_vertices=(ca.coarse.n_vertices, cb.coarse.n_vertices)), min(k_next, SEAM_K)
 
 
 def _orientation_copies(mesh_a: Mesh, mesh_b: Mesh, orient_vertices: int | None):
@@ -386,10 +388,10 @@ def _orientable(mesh_a: Mesh, mesh_b: Mesh) -> bool:
 
 
 def _oriented_problems(mesh_a: Mesh, mesh_b: Mesh, n_eigen: int | None, k_end: int) -> dict[str, FmapEnergy]:
-    """The orientation-aware functional-map energies between A and B, two surfaces `_orientable` (`wpot.maps.fmap.FmapEnergy` at k =
-    min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors from the first
-    `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`, whose energy
-    also ranks the candidates; one problem when there are no more). The descriptors' terms are each
+    """The orientation-aware functional-map energies between A and B, two surfaces `_orientable`
+    (`wpot.maps.fmap.FmapEnergy` at k = min(`wpot.maps.fmap.FMAP_K`, k_end)), by candidate name: WKS descriptors
+    from the first `wpot.maps.fmap.FMAP_SPECTRUM` eigenpairs (``"descriptors"``) and from all of them (`JUDGE`,
+    whose energy also ranks the candidates; one problem when there are no more). The descriptors' terms are each
     shape's cached `wpot.maps.fmap.squared_eigenfunction_terms` weighed by the pair's WKS weights."""
     meshes = (mesh_a, mesh_b)
     k = min(FMAP_K, k_end)
