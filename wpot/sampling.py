@@ -152,7 +152,8 @@ def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", sta
     mind = np.full(n, np.inf)
     for t in range(k):
         radius = float(mind.max())
-        d = dijkstra(g, directed=False, indices=int(idx[t]), limit=radius if np.isfinite(radius) else np.inf)
+        # g is symmetric: searched as directed, the same distances without scipy adding its transpose each time
+        d = dijkstra(g, directed=True, indices=int(idx[t]), limit=radius if np.isfinite(radius) else np.inf)
         np.minimum(mind, d, out=mind)
         mind[idx[t]] = 0.0
         if t + 1 < k:

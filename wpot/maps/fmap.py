@@ -332,7 +332,7 @@ class FmapEnergy:
         for name, (xs, qs) in self.pairs.items():
             if self.weights[name]:
                 _commutator_normal(xs, qs, h, self._scale(name))
-        h += 1e-12 * np.trace(h) / h.shape[0] * np.eye(h.shape[0])  # guards a rank-deficient descriptor set
+        h[np.diag_indices_from(h)] += 1e-12 * np.trace(h) / h.shape[0]  # guards a rank-deficient descriptor set
         return np.linalg.solve(h, rhs).reshape(k, k, order="F")
 
     def terms(self, fmap: np.ndarray) -> dict[str, float]:

@@ -286,7 +286,8 @@ def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
     """(N_W,) distance along the edges of ``whole`` from each vertex to the nearest of ``images``."""
     from scipy.sparse.csgraph import dijkstra
 
-    return dijkstra(whole.edge_graph, directed=False, indices=np.unique(images), min_only=True)
+    # `Mesh.edge_graph` is symmetric: searched as directed, the same distances without scipy adding its transpose
+    return dijkstra(whole.edge_graph, directed=True, indices=np.unique(images), min_only=True)
 
 
 class _Redraw:

@@ -107,7 +107,9 @@ def reanchor(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     inside = labels == main
     anchors, rows_a = _anchors(mesh_a, np.nonzero(inside)[0])
     rows_a = rows_a.T / np.sqrt(mesh_a.area)  # (N_A, anchors)
-    rows_b = dijkstra(mesh_b.edge_graph, directed=False, indices=t[anchors]).T / np.sqrt(mesh_b.area)  # (N_B, anchors)
+    # `Mesh.edge_graph` is symmetric: read as directed, it is searched as it is (undirected, scipy would add its
+    # transpose again at every call), with the same distances
+    rows_b = dijkstra(mesh_b.edge_graph, directed=True, indices=t[anchors]).T / np.sqrt(mesh_b.area)  # (N_B, anchors)
     kept = _consistent(rows_a[anchors], rows_b[t[anchors]])
     # log distances: a stretch of the pose changes long distances more than short ones, and the near anchors,
     # which place a vertex best, weigh most; the offset (a few edges) keeps an anchor's own distance finite
@@ -126,11 +128,11 @@ def _anchors(mesh: Mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     edges, from the one farthest from their centroid, and their distances to every vertex, (anchors, N)."""
     x = mesh.vertices[region]
     anchors = [int(region[np.argmax(np.linalg.norm(x - x.mean(axis=0), axis=1))])]
-    rows = [dijkstra(mesh.edge_graph, directed=False, indices=anchors[0])]
+    rows = [dijkstra(mesh.edge_graph, directed=True, indices=anchors[0])]  # symmetric: see `reanchor`
     nearest = rows[0][region]
     for _ in range(min(SEAM_ANCHORS, region.size) - 1):
         anchors.append(int(region[np.argmax(nearest)]))
-        rows.append(dijkstra(mesh.edge_graph, directed=False, indices=anchors[-1]))
+        rows.append(dijkstra(mesh.edge_graph, directed=True, indices=anchors[-1]))
         nearest = np.minimum(nearest, rows[-1][region])
     return np.asarray(anchors, dtype=np.int64), np.stack(rows)
 
