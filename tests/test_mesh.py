@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from wpot.examples import example_mesh
-from wpot.mesh import Mesh, MeshWarning, cut
+from wpot.mesh import Mesh, MeshWarning, cut, edge_paths
 
 # a closed tetrahedron (4 vertices, 4 outward faces) and a unit square (2 triangles)
 TET_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -295,3 +295,20 @@ def test_voronoi_areas_are_the_dual_cells_of_a_regular_grid_and_sum_to_the_area(
     from wpot.spectral import laplace_beltrami
 
     np.testing.assert_array_equal(laplace_beltrami(m)[1].diagonal(), m.voronoi_areas)  # the mass matrix's diagonal
+
+
+def test_edge_paths_are_scipys_undirected_shortest_paths():
+    # the graph is symmetric, so the directed search gives what an undirected one does, in every form asked
+    from scipy.sparse.csgraph import dijkstra
+
+    m = example_mesh(300, seed=2)
+    src = np.array([0, 17, 123])
+    undirected = dijkstra(m.edge_graph, directed=False, indices=src)
+    np.testing.assert_array_equal(edge_paths(m, src), undirected)
+    np.testing.assert_array_equal(edge_paths(m, 17), undirected[1])
+    np.testing.assert_array_equal(edge_paths(m, src, min_only=True), undirected.min(axis=0))
+    r = float(np.median(undirected[0]))
+    np.testing.assert_array_equal(edge_paths(m, 0, limit=r), np.where(undirected[0] <= r, undirected[0], np.inf))
+    # a one-ring neighbour is one edge away
+    j = int(m.one_ring(0)[0])
+    assert edge_paths(m, 0)[j] == pytest.approx(np.linalg.norm(m.vertices[0] - m.vertices[j]))

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from numpy.typing import ArrayLike
 
-__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "boundary_caps", "validate", "winding"]
+__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "edge_paths", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "boundary_caps", "validate", "winding"]
 
 #: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
 DEGENERATE_AREA_RTOL = 1e-12
@@ -625,6 +625,16 @@ def winding(mesh: Mesh) -> int:
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
     return mesh._winding
+
+
+def edge_paths(mesh: Mesh, sources, *, limit: float = np.inf, min_only: bool = False) -> np.ndarray:
+    """Shortest-path lengths along ``mesh``'s edges (Dijkstra on `Mesh.edge_graph`) from ``sources`` to every
+    vertex: (len(sources), N), or (N,) for a single source or with ``min_only`` (to the nearest source); inf beyond
+    ``limit``. The graph is symmetric, so it is searched as a directed one: the same lengths, without
+    `scipy.sparse.csgraph` adding its transpose at every call."""
+    from scipy.sparse.csgraph import dijkstra
+
+    return dijkstra(mesh.edge_graph, directed=True, indices=sources, limit=limit, min_only=min_only)
 
 
 def _edge_matrix(mesh: Mesh, values: np.ndarray) -> sp.csr_matrix:

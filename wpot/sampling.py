@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.mesh import Mesh, named
+from wpot.mesh import Mesh, edge_paths, named
 
 __all__ = ["FPS_METRICS", "POOLINGS", "SamplerOptions", "FarthestPointSampler", "Subsample", "Points",
            "farthest_point_sampling"]
@@ -148,17 +148,15 @@ def farthest_point_sampling(mesh: Mesh, k: int, *, metric: str = "geodesic", sta
 
     from scipy.sparse.csgraph import dijkstra
 
-    g = mesh.edge_graph
     mind = np.full(n, np.inf)
     for t in range(k):
         radius = float(mind.max())
-        # g is symmetric: searched as directed, the same distances without scipy adding its transpose each time
-        d = dijkstra(g, directed=True, indices=int(idx[t]), limit=radius if np.isfinite(radius) else np.inf)
+        d = edge_paths(mesh, int(idx[t]), limit=radius)
         np.minimum(mind, d, out=mind)
         mind[idx[t]] = 0.0
         if t + 1 < k:
             idx[t + 1] = int(np.argmax(mind))
-    dist, _, src = dijkstra(g, directed=False, indices=idx, min_only=True, return_predecessors=True)
+    dist, _, src = dijkstra(mesh.edge_graph, directed=False, indices=idx, min_only=True, return_predecessors=True)
     pos = np.full(n, -1, dtype=np.int64)
     pos[idx] = np.arange(k)
     nearest = np.where(src >= 0, pos[np.maximum(src, 0)], -1)

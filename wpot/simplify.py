@@ -140,16 +140,22 @@ def simplify(mesh: Mesh, n_vertices: int, *, device: str | None = None, cache: C
 
 def _stored(mesh: Mesh, n: int, device: str, cache: Cache) -> Simplified:
     """`simplify` of a mesh of more than ``n`` vertices, read from ``cache`` or computed and stored there."""
-    def compute() -> dict[str, np.ndarray]:
+    params = {"n_vertices": n, "device": device, "version": 1}
+    e = cache.get(mesh.fingerprint, params)
+    if e is None:
         made = _simplified(mesh, n, device)
-        return {"vertices": made.coarse.vertices, "faces": made.coarse.faces, "corners": made.corners,
-                "weights": made.weights, "nearest": made.nearest}
-
-    e = cache.get_or_compute(mesh.fingerprint, {"n_vertices": n, "device": device, "version": 1}, compute)
+        cache.put(mesh.fingerprint, params, {"vertices": made.coarse.vertices, "faces": made.coarse.faces,
+                                             "corners": made.corners, "weights": made.weights,
+                                             "nearest": made.nearest})
+        return made
     # the copy's defects were reported when it was made (`Mesh.cleaned`); the same mesh read back stays quiet
-    coarse = Mesh(e["vertices"], e["faces"], warn=False,
-                  name=f"{mesh.name or 'mesh'} (simplified to {len(e['vertices'])} vertices)")
+    coarse = Mesh(e["vertices"], e["faces"], warn=False, name=_copy_name(mesh, len(e["vertices"])))
     return Simplified(mesh, coarse, np.asarray(e["corners"]), np.asarray(e["weights"]), np.asarray(e["nearest"]))
+
+
+def _copy_name(mesh: Mesh, n_vertices: int) -> str:
+    """What a copy of ``mesh`` of ``n_vertices`` vertices is called in warnings about it."""
+    return f"{mesh.name or 'mesh'} (simplified to {n_vertices} vertices)"
 
 
 #: the copies `simplify` keeps: a comparison's signatures and its ZoomOut each ask for the same two, which are then
@@ -169,7 +175,7 @@ def _simplified(mesh: Mesh, n: int, device: str | None) -> Simplified:
     v, f = fast_simplification.simplify(np.ascontiguousarray(mesh.vertices, dtype=np.float32),
                                         np.ascontiguousarray(mesh.faces, dtype=np.int32),
                                         target_reduction=1.0 - n / mesh.n_vertices)
-    name = f"{mesh.name or 'mesh'} (simplified to {len(v)} vertices)"
+    name = _copy_name(mesh, len(v))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", MeshWarning)  # the defects cleaned() repairs next
         rough = Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), name=name)

@@ -69,7 +69,7 @@ from numpy.typing import ArrayLike
 
 from wpot import _validate
 from wpot.cache import Kept
-from wpot.mesh import Mesh, named
+from wpot.mesh import Mesh, edge_paths, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
 from wpot.maps.orientation import local_orientation, orientation_score, unreadable
@@ -284,10 +284,7 @@ def _distances(geo, sources: np.ndarray) -> np.ndarray:
 
 def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
     """(N_W,) distance along the edges of ``whole`` from each vertex to the nearest of ``images``."""
-    from scipy.sparse.csgraph import dijkstra
-
-    # `Mesh.edge_graph` is symmetric: searched as directed, the same distances without scipy adding its transpose
-    return dijkstra(whole.edge_graph, directed=True, indices=np.unique(images), min_only=True)
+    return edge_paths(whole, np.unique(images), min_only=True)
 
 
 class _Redraw:

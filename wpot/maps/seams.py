@@ -23,7 +23,7 @@ vertices of A land on far-apart places of B: a **seam**. So
 Which region is right is decided by size alone: when the larger of two near-equal regions is the wrong one, the
 whole map ends up on the wrong side (the docs' Results page).
 
-The distances are shortest paths along the edges (Dijkstra on `wpot.mesh.Mesh.edge_graph`, as in the geodesic
+The distances are shortest paths along the edges (`wpot.mesh.edge_paths`, as in the geodesic
 farthest-point sampling of `wpot.sampling`): a few per cent longer than the geodesics, alike on both shapes, and
 with no factorization to make, one pass per anchor on each shape, done only for maps with a seam. They place the
 vertices as well as the heat method's geodesics did, for less time (the docs' Results page).
@@ -35,11 +35,11 @@ from typing import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import connected_components
 
 from wpot._validate import vertex_map
 from wpot.cost import nearest_rows
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, edge_paths
 
 __all__ = ["SEAM_ANCHORS", "SEAM_JUMP", "SEAM_REGION", "map_regions", "reanchor"]
 
@@ -107,9 +107,7 @@ def reanchor(mesh_a: Mesh, mesh_b: Mesh, correspondence: ArrayLike,
     inside = labels == main
     anchors, rows_a = _anchors(mesh_a, np.nonzero(inside)[0])
     rows_a = rows_a.T / np.sqrt(mesh_a.area)  # (N_A, anchors)
-    # `Mesh.edge_graph` is symmetric: read as directed, it is searched as it is (undirected, scipy would add its
-    # transpose again at every call), with the same distances
-    rows_b = dijkstra(mesh_b.edge_graph, directed=True, indices=t[anchors]).T / np.sqrt(mesh_b.area)  # (N_B, anchors)
+    rows_b = edge_paths(mesh_b, t[anchors]).T / np.sqrt(mesh_b.area)  # (N_B, anchors)
     kept = _consistent(rows_a[anchors], rows_b[t[anchors]])
     # log distances: a stretch of the pose changes long distances more than short ones, and the near anchors,
     # which place a vertex best, weigh most; the offset (a few edges) keeps an anchor's own distance finite
@@ -128,11 +126,11 @@ def _anchors(mesh: Mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     edges, from the one farthest from their centroid, and their distances to every vertex, (anchors, N)."""
     x = mesh.vertices[region]
     anchors = [int(region[np.argmax(np.linalg.norm(x - x.mean(axis=0), axis=1))])]
-    rows = [dijkstra(mesh.edge_graph, directed=True, indices=anchors[0])]  # symmetric: see `reanchor`
+    rows = [edge_paths(mesh, anchors[0])]
     nearest = rows[0][region]
     for _ in range(min(SEAM_ANCHORS, region.size) - 1):
         anchors.append(int(region[np.argmax(nearest)]))
-        rows.append(dijkstra(mesh.edge_graph, directed=True, indices=anchors[-1]))
+        rows.append(edge_paths(mesh, anchors[-1]))
         nearest = np.minimum(nearest, rows[-1][region])
     return np.asarray(anchors, dtype=np.int64), np.stack(rows)
 
