@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from wpot.examples import example_partial
-from wpot.maps.locate import LocateOptions, PartMap, consistent_matches, locate_part
+from wpot.maps.locate import LocateOptions, PartMap, candidate_matches, consistent_matches, locate_part
 from wpot.mesh import Mesh, MeshWarning
 
 
@@ -29,6 +29,17 @@ def _planted_signatures(ex, outliers: float, seed: int = 0):
 def _errors_in_edges(ex, pred):
     full = ex.full
     return np.linalg.norm(full.vertices[pred] - full.vertices[ex.correspondence], axis=1) / full.edge_lengths.mean()
+
+
+def test_candidate_matches_are_the_nearest_signatures_nearest_first():
+    rng = np.random.default_rng(3)
+    sp, sw = rng.normal(size=(40, 8)), rng.normal(size=(25, 8))
+    anchors = np.array([0, 7, 39, 12])
+    d = np.linalg.norm(sp[anchors][:, None] - sw[None], axis=2)
+    got = candidate_matches(sp, sw, anchors, 5, "l2", "cpu")
+    assert np.array_equal(got, np.argsort(d, axis=1)[:, :5])
+    # k beyond the whole's vertices: every vertex, ranked
+    assert np.array_equal(candidate_matches(sp, sw, anchors, 99, "l2", "cpu"), np.argsort(d, axis=1))
 
 
 def test_consistent_matches_recovers_a_planted_isometry():

@@ -77,6 +77,7 @@ from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
+           "candidate_matches", "consistent_matches",
            "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
 
 
@@ -235,9 +236,11 @@ def prepare_whole(whole: Mesh, *, symmetry: bool = True) -> None:
         g.from_sources(np.arange(start, min(start + 256, whole.n_vertices)))
 
 
-def _candidates(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
-                device: str | None) -> np.ndarray:
-    """(A, k) the vertices of the whole with the nearest signatures to each anchor, nearest first."""
+def candidate_matches(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, k: int, metric: str,
+                      device: str | None = None) -> np.ndarray:
+    """Step 1: (A, k) int, for each of the (A,) ``anchors`` (vertices of the part) the k vertices of the whole
+    whose signatures (rows of ``sig_whole`` (N_W, D)) are nearest its own (a row of ``sig_part`` (N_P, D)) in
+    ``metric`` (`wpot.cost.cost_matrix`), nearest first; k is clipped to N_W."""
 
     c = np.asarray(cost_matrix(sig_part[anchors], sig_whole, metric=metric, device=device))
     k = min(k, c.shape[1])
@@ -427,7 +430,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # its first n_anchors and n_refine samples
     spread = farthest_point_sampling(part, min(max(opt.n_anchors, opt.n_refine), part.n_vertices)).indices
     anchors, src = spread[:opt.n_anchors], spread[:opt.n_refine]
-    cand = _candidates(sp_, sw, anchors, opt.n_candidates, metric, device)
+    cand = candidate_matches(sp_, sw, anchors, opt.n_candidates, metric, device)
     owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
     target = cand.ravel()
     d_anchor = _distances(g_part, anchors)[:, anchors]
