@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
+from benchmarks.correspondence import _data_root  # noqa: E402
 from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
 
 #: one pair of poses per class, the first pose against another (`tosca_isometric_5k`; FAUST: one person each)
@@ -133,7 +134,7 @@ def report(store: JsonlStore, a, log) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=_data_root())
     ap.add_argument("--out", type=Path, required=True, help="results folder (outside the repository)")
     ap.add_argument("--dataset", nargs="+", default=["tosca", "faust"], choices=list(PAIRS))
     ap.add_argument("--K", type=float, nargs="+", default=[3.0, 4.5, 6.0], help="LD-SIFT scale factors")
