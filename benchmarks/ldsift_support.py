@@ -56,29 +56,45 @@ def hits(images: np.ndarray, truth: np.ndarray, radius: float) -> np.ndarray:
     return np.linalg.norm(images - truth[:, None], axis=2) < radius
 
 
-def measure(source, target, src: np.ndarray, dst: np.ndarray, sym: np.ndarray, remeshed, K: float, a) -> dict:
-    """The recall figures of one re-meshed source against one target at scale factor ``K``."""
+def queries_on(source, remeshed, src: np.ndarray, dst: np.ndarray, sym: np.ndarray, target, samples: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``samples`` farthest-point samples of the re-meshed source (the queries), and the positions on the target of
+    each one's truth and of its mirror: the template point nearest it on the source, carried by ``dst`` / ``sym``."""
     from scipy.spatial import cKDTree
 
-    from wpot.comparison import Comparer
-    from wpot.maps.locate import candidate_matches
     from wpot.sampling import farthest_point_sampling
+
+    queries = farthest_point_sampling(remeshed, min(samples, remeshed.n_vertices)).indices
+    nearest = cKDTree(source.vertices[src]).query(remeshed.vertices[queries])[1]
+    return queries, target.vertices[dst[nearest]], target.vertices[sym[nearest]]
+
+
+def ldsift(K: float, target):
+    """The LD-SIFT comparer at scale factor ``K`` and the target's edge length (what ``LocateOptions(edge="whole")``
+    gives both meshes), with the slab `partial_poses.py` uses."""
+    from wpot.comparison import Comparer
     from wpot.signatures._frames import common_edge
 
-    queries = farthest_point_sampling(remeshed, min(a.samples, remeshed.n_vertices)).indices
-    nearest = cKDTree(source.vertices[src]).query(remeshed.vertices[queries])[1]  # the template point nearest
-    c = Comparer(signature="ldsift", ldsift_K=K, ldsift_edge=common_edge([target]), ldsift_slab=1.0)
-    t0 = time.perf_counter()
+    return Comparer(signature="ldsift", ldsift_K=K, ldsift_edge=common_edge([target]), ldsift_slab=1.0)
+
+
+def signatures(comparer, mesh) -> np.ndarray:
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the re-meshing's own defects are not what is measured
-        s_r, s_t = np.asarray(c.signatures(remeshed)), np.asarray(c.signatures(target))
-    seconds = time.perf_counter() - t0
-    cand = candidate_matches(s_r, s_t, queries, a.candidates, "l2", a.device)
+        warnings.simplefilter("ignore")  # a re-meshing's own defects are not what is measured
+        return np.asarray(comparer.signatures(mesh))
+
+
+def recall(s_r: np.ndarray, s_t: np.ndarray, queries: np.ndarray, truth: np.ndarray, mirror: np.ndarray, target,
+           a) -> dict:
+    """The recall figures of the queries (rows of the re-meshing's signatures ``s_r``) against the target's
+    signatures ``s_t``, with each query's truth and mirror positions (Q, 3) on the target."""
+    from wpot.maps.locate import candidate_matches
+
+    cand = target.vertices[candidate_matches(s_r, s_t, queries, a.candidates, "l2", a.device)]
     radius = a.radius * np.sqrt(target.area)
-    right = hits(target.vertices[cand], target.vertices[dst[nearest]], radius)
-    mirror = hits(target.vertices[cand], target.vertices[sym[nearest]], radius)
-    return {"recall": float(right.any(1).mean()), "either": float((right | mirror).any(1).mean()),
-            "recall1": float(right[:, 0].mean()), "n_vertices": int(remeshed.n_vertices), "signature_seconds": seconds}
+    right, other = hits(cand, truth, radius), hits(cand, mirror, radius)
+    return {"recall": float(right.any(1).mean()), "either": float((right | other).any(1).mean()),
+            "recall1": float(right[:, 0].mean())}
 
 
 def run(a, store: JsonlStore, log) -> None:
@@ -93,16 +109,24 @@ def run(a, store: JsonlStore, log) -> None:
             continue
         for pair in PAIRS[ds]:
             s, t = pair.split(":")
-            todo = [(F, K) for F in a.densities for K in a.K if (f"K{K:g}", f"{ds}:{pair}", f"F{F:g}") not in store.done]
+            todo = [(F, K) for F in a.densities for K in a.K
+                    if (f"K{K:g}", f"{ds}:{pair}", f"F{F:g}") not in store.done]
             if not todo:
                 continue
             source, target = load_mesh(vtx / f"{s}.off"), load_mesh(vtx / f"{t}.off")
             src, dst = tosca_ground_truth(vtx, s, t)
             _, sym = tosca_ground_truth(vtx, s, t, symmetric=True)
-            for F in sorted({F for F, _ in todo}):
-                remeshed = resized(source, int(round(F * source.n_vertices)))
-                for K in [K for G, K in todo if G == F]:
-                    rec = measure(source, target, src, dst, sym, remeshed, K, a)
+            # each re-meshing and its queries once, then each K's target signatures once
+            remeshed = {F: resized(source, int(round(F * source.n_vertices))) for F in sorted({F for F, _ in todo})}
+            queries = {F: queries_on(source, r, src, dst, sym, target, a.samples) for F, r in remeshed.items()}
+            for K in sorted({K for _, K in todo}):
+                comparer = ldsift(K, target)
+                s_t = signatures(comparer, target)
+                for F in [F for F, L in todo if L == K]:
+                    t0 = time.perf_counter()
+                    s_r = signatures(comparer, remeshed[F])
+                    rec = {**recall(s_r, s_t, *queries[F], target, a), "n_vertices": int(remeshed[F].n_vertices),
+                           "signature_seconds": time.perf_counter() - t0}
                     store.add({"method": f"K{K:g}", "pair": f"{ds}:{pair}", "density": f"F{F:g}", "dataset": ds,
                                "K": K, "F": F, **rec}, None)
                     log(f"{ds} {pair} F={F:g} K={K:g}: recall@{a.candidates} {rec['recall']:.3f}, "

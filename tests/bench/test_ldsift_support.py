@@ -20,8 +20,9 @@ def test_a_shape_against_itself_finds_every_query(ls):
 
     m = example_mesh(700)
     ident = np.arange(m.n_vertices)
-    a = argparse.Namespace(samples=40, candidates=3, radius=1e-6, device="cpu")
-    rec = ls.measure(m, m, ident, ident, ident, m, 3.0, a)
+    a = argparse.Namespace(candidates=3, radius=1e-6, device="cpu")
+    sig = ls.signatures(ls.ldsift(3.0, m), m)
+    rec = ls.recall(sig, sig, *ls.queries_on(m, m, ident, ident, ident, m, 40), m, a)
     assert rec["recall1"] == rec["recall"] == rec["either"] == 1.0
 
 
@@ -33,8 +34,9 @@ def test_the_mirror_counts_only_as_either(ls):
     m = example_mesh(700)
     ident = np.arange(m.n_vertices)
     far = np.argmax(np.linalg.norm(m.vertices[:, None] - m.vertices[None], axis=2), axis=1)
-    a = argparse.Namespace(samples=40, candidates=1, radius=1e-6, device="cpu")
-    rec = ls.measure(m, m, ident, far, ident, m, 3.0, a)
+    a = argparse.Namespace(candidates=1, radius=1e-6, device="cpu")
+    sig = ls.signatures(ls.ldsift(3.0, m), m)
+    rec = ls.recall(sig, sig, *ls.queries_on(m, m, ident, far, ident, m, 40), m, a)
     assert rec["recall"] == rec["recall1"] == 0.0 and rec["either"] == 1.0
 
 
