@@ -1,22 +1,25 @@
 """How far `ClassRanking.probability` (the chance that `Comparer.retrieve`'s first class is right) can be trusted.
 
-Reads two `part_retrieval.py` results folders: a **development** set, on which the calibration is fitted
-(logistic regression of "the first class is right" on the ranking's margin, `fit_logistic`), and a **check**
-set, on which it is only measured. For each set it prints, beside the fixed rule it replaces ("margin below
+Reads `part_retrieval.py` results folders: **development** sets, pooled, on which the calibration is fitted
+(logistic regression of "the first class is right" on the ranking's margin, `fit_logistic`), and **check** sets,
+on which it is only measured. For each set it prints, beside the fixed rule it replaces ("margin below
 `wpot.maps.retrieval.MARGIN_DOUBT` is doubtful"):
 
 * top-1 and the parts with probability >= 0.9: how many, and how many of them are right;
 * a reliability table: the parts in ten bins of equal count by probability, each bin's mean probability beside
   its observed accuracy (a calibrated probability lies within a few points of it);
-* the logistic fitted afresh to this set, beside the shipped `wpot.maps.retrieval.CALIBRATION` (fitted on the
-  development set; the two should agree on the development set only).
+* the logistic fitted afresh to this set and to the pooled development sets, beside the shipped
+  `wpot.maps.retrieval.CALIBRATION` (fitted on development sets; the probabilities are the shipped one's).
 
-and draws the reliability diagram of both sets (``--out``/reliability.png).
+and draws the reliability diagram of every set (``--out``/reliability.png). Each set is ``RESULTS PARTS [DATA]``:
+its `part_retrieval.py` ``--out``, its `partial_poses.py` ``--out``, and the data folder of its library
+(default ``--tosca``; e.g. ``faust_5k`` for FAUST's people).
 
 Usage:
 
-    python benchmarks/retrieval_calibration.py --dev /work/runs/pr_none --dev-parts /work/runs/pp_none \\
-        --check /work/runs/pr_lowres --check-parts /work/runs/pp_lowres --out /work/runs/calibration
+    python benchmarks/retrieval_calibration.py --dev /work/runs/pr_dev /work/runs/pp_dev \\
+        --dev /work/runs/pr_s1 /work/runs/pp_s1 --check /work/runs/pr_lowres /work/runs/pp_lowres \\
+        --check /work/runs/pr_faust /work/runs/pp_faust ../shared/data/faust_5k --weight 0 --out /work/runs/calibration
 """
 from __future__ import annotations
 
@@ -71,47 +74,78 @@ def reliability(p: np.ndarray, ok: np.ndarray, n_bins: int = 10) -> list[tuple[i
     return [(len(b), float(p[b].mean()), float(ok[b].mean())) for b in np.array_split(order, n_bins) if len(b)]
 
 
+def _set(values: list[str], default_data: Path) -> tuple[Path, Path, Path]:
+    """``RESULTS PARTS [DATA]`` of one set, as paths."""
+    if len(values) not in (2, 3):
+        raise SystemExit(f"a set is RESULTS PARTS [DATA], got {len(values)} values: {values}")
+    data = Path(values[2]) if len(values) == 3 else default_data
+    if not data.is_dir():
+        raise SystemExit(f"the data folder {data} of the set {values[0]} is not a folder")
+    return Path(values[0]), Path(values[1]), data
+
+
+def report_set(name: str, m: np.ndarray, ok: np.ndarray, p: np.ndarray) -> list[tuple[int, float, float]]:
+    """Print one set's top-1, its parts with probability >= 0.9, the fixed rule, and its reliability table;
+    return the table's bins."""
+    from wpot.maps.retrieval import MARGIN_DOUBT
+
+    fit = fit_logistic(m, ok)
+    hi = p >= 0.9
+    doubt = m < MARGIN_DOUBT
+    print(f"\n{name}: {len(m)} parts, top-1 {ok.mean():.1%}; logistic fitted here: intercept {fit[0]:.3f}, slope "
+          f"{fit[1]:.3f}")
+    print(f"  probability >= 0.9: {int(hi.sum())} parts, {int(ok[hi].sum())} right "
+          f"({ok[hi].mean() if hi.any() else float('nan'):.2%}); misses with probability >= 0.9: "
+          f"{int((hi & (ok == 0)).sum())}")
+    print(f"  the fixed rule (margin < {MARGIN_DOUBT}): {int(doubt.sum())} parts doubtful, holding "
+          f"{int((doubt & (ok == 0)).sum())} of the {int((ok == 0).sum())} misses; right among the others "
+          f"{ok[~doubt].mean() if (~doubt).any() else float('nan'):.1%}")
+    print("  | parts | mean probability | right | gap |\n  | --- | --- | --- | --- |")
+    bins = reliability(p, ok)
+    for n, mp, acc in bins:
+        print(f"  | {n} | {mp:.3f} | {acc:.3f} | {100 * (acc - mp):+.1f} points |")
+    return bins
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dev", type=Path, required=True, help="part_retrieval.py --out of the development set")
-    ap.add_argument("--dev-parts", type=Path, required=True, help="its partial_poses.py --out (the parts)")
-    ap.add_argument("--check", type=Path, required=True, help="part_retrieval.py --out of the check set")
-    ap.add_argument("--check-parts", type=Path, required=True)
-    ap.add_argument("--weight", type=float, default=2.0, help="LD-SIFT thickness weight w (default 2, wpot's)")
+    ap.add_argument("--dev", nargs="+", action="append", required=True, metavar="PATH",
+                    help="a development set, RESULTS PARTS [DATA] (repeat for several; they are pooled)")
+    ap.add_argument("--check", nargs="+", action="append", default=[], metavar="PATH",
+                    help="a check set, RESULTS PARTS [DATA] (repeat for several)")
+    ap.add_argument("--weight", type=float, default=0.0,
+                    help="LD-SIFT thickness weight w of the stored costs (default 0, wpot.maps.retrieval."
+                         "CALIBRATED_THICKNESS)")
     ap.add_argument("--out", type=Path, required=True, help="folder for reliability.png")
     ap.add_argument("--edge", choices=("library", "own"), default="library",
                     help="LD-SIFT's edge length of the stored costs (part_retrieval.py --edge; default %(default)s)")
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
-                    help="tosca_isometric_5k, the parts' sources (default: ../shared/data/tosca_isometric_5k)")
+                    help="the data folder of a set that names none (default: ../shared/data/tosca_isometric_5k)")
     a = ap.parse_args(argv)
-    wholes = library_wholes(a.tosca)
 
-    from wpot.maps.retrieval import CALIBRATION, MARGIN_DOUBT
+    from wpot.maps.retrieval import CALIBRATION
 
-    print(f"shipped calibration (fitted on the development set): intercept {CALIBRATION[0]:.3f}, slope "
-          f"{CALIBRATION[1]:.3f}; method {method(a.weight, None, a.edge)}")
-    curves = {}
-    for name, out, parts in (("development", a.dev, a.dev_parts), ("check", a.check, a.check_parts)):
-        m, ok, p = rows_of(out, parts, a.weight, wholes, a.edge)
-        if not len(m):
-            print(f"{name}: no scored parts in {out}")
-            continue
-        fit = fit_logistic(m, ok)
-        hi = p >= 0.9
-        doubt = m < MARGIN_DOUBT
-        print(f"\n{name} ({out}): {len(m)} parts, top-1 {ok.mean():.1%}; logistic fitted here: intercept "
-              f"{fit[0]:.3f}, slope {fit[1]:.3f}")
-        print(f"  probability >= 0.9: {int(hi.sum())} parts, {int(ok[hi].sum())} right "
-              f"({ok[hi].mean() if hi.any() else float('nan'):.2%}); misses with probability >= 0.9: "
-              f"{int((hi & (ok == 0)).sum())}")
-        print(f"  the fixed rule (margin < {MARGIN_DOUBT}): {int(doubt.sum())} parts doubtful, holding "
-              f"{int((doubt & (ok == 0)).sum())} of the {int((ok == 0).sum())} misses; right among the others "
-              f"{ok[~doubt].mean() if (~doubt).any() else float('nan'):.1%}")
-        print("  | parts | mean probability | right | gap |\n  | --- | --- | --- | --- |")
-        bins = reliability(p, ok)
-        for n, mp, acc in bins:
-            print(f"  | {n} | {mp:.3f} | {acc:.3f} | {100 * (acc - mp):+.1f} points |")
-        curves[name] = bins
+    print(f"shipped calibration: intercept {CALIBRATION[0]:.3f}, slope {CALIBRATION[1]:.3f}; method "
+          f"{method(a.weight, None, a.edge)}")
+    wholes_of: dict[Path, dict] = {}
+    curves, pooled = {}, []
+    for role, sets in (("development", a.dev), ("check", a.check)):
+        for values in sets:
+            out, parts, data = _set(values, a.tosca)
+            if data not in wholes_of:
+                wholes_of[data] = library_wholes(data)
+            m, ok, p = rows_of(out, parts, a.weight, wholes_of[data], a.edge)
+            name = f"{role} {out.name}"
+            if not len(m):
+                print(f"\n{name}: no scored parts in {out}")
+                continue
+            curves[name] = report_set(name, m, ok, p)
+            if role == "development":
+                pooled.append((m, ok))
+    if pooled:
+        fit = fit_logistic(np.concatenate([m for m, _ in pooled]), np.concatenate([ok for _, ok in pooled]))
+        print(f"\nthe development sets pooled ({sum(len(m) for m, _ in pooled)} parts): intercept {fit[0]:.3f}, "
+              f"slope {fit[1]:.3f}")
     if curves:
         import matplotlib
 
@@ -122,7 +156,8 @@ def main(argv=None) -> int:
         fig, ax = plt.subplots(figsize=(4.5, 4.5))
         ax.plot([0, 1], [0, 1], color="0.7", lw=1)
         for name, bins in curves.items():
-            ax.plot([b[1] for b in bins], [b[2] for b in bins], "o-", label=f"{name} ({sum(b[0] for b in bins)} parts)")
+            ax.plot([b[1] for b in bins], [b[2] for b in bins], "o-",
+                    label=f"{name} ({sum(b[0] for b in bins)} parts)")
         ax.set_xlabel("ClassRanking.probability (bin mean)")
         ax.set_ylabel("share right (top-1)")
         ax.set_title("retrieve: reliability")

@@ -345,8 +345,8 @@ def _retrieve_parser(sub: Any) -> None:
                    help="JSON file for the whole ranking: classes, scores, the members that scored each class, "
                         "and every whole's mean cost (default: none)")
     p.add_argument("--signature", choices=signature_names(), default="ldsift",
-                   help="vertex signature (default: ldsift, with its thickness column at 2)")
-    add_signature_arguments(p, defaults={"ldsift_thickness": 2.0})
+                   help="vertex signature (default: ldsift, without its thickness column)")
+    add_signature_arguments(p)
     p.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: Warp\'s default)')
     _add_progress(p)
     p.set_defaults(func=cmd_retrieve)
@@ -1055,7 +1055,7 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
     if len(r.classes) > 1:
         chance = (f"; probability that {r.label} is right {r.probability:.2f}" if r.calibrated else
                   f" (under {MARGIN_DOUBT}: doubtful; the probability is calibrated only for the default "
-                  f"--k-nearest and --signature ldsift with --ldsift-thickness {CALIBRATED_THICKNESS})")
+                  f"--k-nearest and --signature ldsift with --ldsift-thickness {CALIBRATED_THICKNESS:g})")
         print(f"margin {r.margin:.3g}: the second class's score less the first's{chance}")
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,

@@ -741,8 +741,8 @@ def at_common_edge(comparer: "Comparer", meshes: Sequence[Mesh]) -> "Comparer":
 
 def _as_calibrated(ranking: Any, config: ComparisonConfig) -> Any:
     """``ranking`` (a `wpot.maps.retrieval.ClassRanking`), marked as not calibrated unless its costs came from the
-    signature its probability was calibrated with: LD-SIFT at its defaults (any common edge length) with the
-    thickness column at `wpot.maps.retrieval.CALIBRATED_THICKNESS`."""
+    signature its probability was calibrated with: LD-SIFT at its defaults (any common edge length), its thickness
+    column at `wpot.maps.retrieval.CALIBRATED_THICKNESS`."""
     opts = config.signature_options
     calibrated = (config.signature == "ldsift"
                   and dataclasses.replace(opts, edge=None) == type(opts)(thickness=CALIBRATED_THICKNESS))

@@ -3,6 +3,7 @@ top-1, the rank of the part's class, unfinished parts left out, and bad argument
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,3 +113,16 @@ def test_logistic_fit_recovers_planted_coefficients_and_bins_by_count():
     bins = cal.reliability(p, ok)
     assert [n for n, _, _ in bins] == [10] * 10
     assert bins[0][1] == pytest.approx(p[:10].mean()) and bins[0][2] == pytest.approx(0.5)
+
+
+def test_calibration_sets_name_their_data_or_take_the_default(tmp_path):
+    """benchmarks/retrieval_calibration.py: a set is RESULTS PARTS [DATA]; without DATA the default data folder,
+    and a DATA that is not a folder, or a set of another length, stops the run with its reason."""
+    cal = importlib.import_module("benchmarks.retrieval_calibration")
+    assert cal._set(["r", "p"], tmp_path) == (Path("r"), Path("p"), tmp_path)
+    (tmp_path / "faust").mkdir()
+    assert cal._set(["r", "p", str(tmp_path / "faust")], tmp_path)[2] == tmp_path / "faust"
+    with pytest.raises(SystemExit, match="is not a folder"):
+        cal._set(["r", "p", str(tmp_path / "nowhere")], tmp_path)
+    with pytest.raises(SystemExit, match="RESULTS PARTS"):
+        cal._set(["r"], tmp_path)

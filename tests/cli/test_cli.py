@@ -380,7 +380,7 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
              "--device", "cpu")
     assert r.returncode == 0, r.stderr
     saved = json.loads((tmp_path / "r.json").read_text())
-    c = wp_.Comparer(signature="ldsift", ldsift_thickness=2.0, device="cpu", cache_dir=False)
+    c = wp_.Comparer(signature="ldsift", device="cpu", cache_dir=False)
     ref = c.retrieve(wp_.load_mesh(tmp_path / "part.off"), [wp_.load_mesh(p) for p in library],
                      [wp_.class_label(p.stem) for p in library])
     assert saved["classes"] == list(ref.classes)

@@ -90,14 +90,16 @@ def test_the_check_catches_a_wrong_default():
     assert NAMED_BEFORE.findall("uniform masses (none, default), or") == ["none"]
 
 
-def test_retrieve_states_its_own_ldsift_thickness():
-    """retrieve's LD-SIFT default has the thickness column (2); the paper's scale-free LD-SIFT is 0."""
-    p = _commands()["retrieve"]
-    text = " ".join(next(a for a in p._actions if "--ldsift-thickness" in a.option_strings).help.split())
-    assert "(default 2;" in text and "0 leaves it out, the paper's scale-free LD-SIFT" in text
-    compare = " ".join(next(a for a in _commands()["compare"]._actions
-                            if "--ldsift-thickness" in a.option_strings).help.split())
-    assert "(default 0;" in compare
+def test_retrieve_states_ldsift_thickness_it_is_calibrated_for():
+    """retrieve's LD-SIFT is the paper's scale-free one (thickness 0, what its probability is calibrated for), as
+    compare's; its help says so."""
+    from wpot.maps.retrieval import CALIBRATED_THICKNESS
+
+    assert CALIBRATED_THICKNESS == 0
+    for name in ("retrieve", "compare"):
+        text = " ".join(next(a for a in _commands()[name]._actions
+                             if "--ldsift-thickness" in a.option_strings).help.split())
+        assert "(default 0;" in text and "0 leaves it out, the paper's scale-free LD-SIFT" in text
 
 
 #: a measured figure: a percentage, or a speed ratio such as "50-180x slower"

@@ -1,6 +1,8 @@
 """Class retrieval of a part from a labelled library (`wpot.maps.retrieval.rank_classes`, `Comparer.retrieve`)."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -162,9 +164,13 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
     assert r.classes == ref.classes
     np.testing.assert_allclose(r.scores, ref.scores, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(r.whole_costs, [c.nearest_signature_distance(part, w) for w in wholes], rtol=1e-9)
-    # LD-SIFT without the thickness column is not what the probability was calibrated on: NaN, not a number
-    # on another scale (the same costs through rank_classes alone are marked calibrated)
-    assert ref.calibrated and not r.calibrated and np.isnan(r.probability)
+    # LD-SIFT at its defaults is what the probability was calibrated on; with the thickness column it is not:
+    # NaN, not a number on another scale
+    assert ref.calibrated and r.calibrated and r.probability == pytest.approx(ref.probability)
+    with warnings.catch_warnings():  # the half-mesh part shows little of its thickness, and says so
+        warnings.simplefilter("ignore", UserWarning)
+        t = base.with_options(ldsift_thickness=2.0).retrieve(part, wholes, labels)
+    assert not t.calibrated and np.isnan(t.probability) and not np.allclose(t.whole_costs, r.whole_costs)
     with pytest.raises(ValueError, match="wholes and labels must be of one length"):
         c.retrieve(part, wholes, labels[:2])
     # each mesh at its own edge lengths (the paper's): the costs of the comparer as it was given
@@ -185,7 +191,6 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
 
 
 def test_a_part_larger_than_every_whole_is_named():
-    import warnings
 
     import wpot
     from wpot.maps.retrieval import RetrievalWarning

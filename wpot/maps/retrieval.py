@@ -20,9 +20,8 @@ away from them:
    scored by the union of the same number of members: ``k_nearest``, or the smallest class's size when that is
    smaller (the least of three costs is lower than the least of two even when no member fits).
 
-With LD-SIFT and its thickness column at w = 2 (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k
-poses, each against the 75 other shapes) the two steps together rank the true class first more often than the
-nearest whole's class from the same costs, on each of three part sets, and each step alone gains less (the
+With LD-SIFT (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k poses, each against the 75 other shapes)
+the two steps together rank the true class first more often than the nearest whole's class from the same costs, on each of three part sets, and each step alone gains less (the
 docs' Results page: Parts looked up in a library of whole shapes).
 """
 from __future__ import annotations
@@ -42,13 +41,13 @@ __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
-#: `benchmarks/retrieval_calibration.py` (LD-SIFT with its thickness column at w = 2, the default options, each mesh
-#: at its own edge lengths: with the library's, the default since, the development set has no miss left to fit)
-#: and measured on its check parts (the docs' Results page)
-CALIBRATION = (-0.406, 28.707)
-#: the LD-SIFT thickness weight `CALIBRATION` was fitted with (LD-SIFT at its other defaults): `Comparer.retrieve`
-#: marks a ranking made with other signatures as not calibrated
-CALIBRATED_THICKNESS = 2.0
+#: `benchmarks/retrieval_calibration.py` (TOSCA parts cut from the library's own meshes; LD-SIFT at its defaults,
+#: one edge length, the library's; the default options) and measured on its check parts (parts meshed apart, and
+#: FAUST's people: the docs' Results page)
+CALIBRATION = (-0.920, 24.943)
+#: the LD-SIFT thickness weight `CALIBRATION` was fitted with (LD-SIFT at its other defaults): 0, without the
+#: column; `Comparer.retrieve` marks a ranking made with other signatures as not calibrated
+CALIBRATED_THICKNESS = 0.0
 #: the values of `RetrievalOptions.edge`
 EDGES = ("library", "own")
 #: the fixed rule that `ClassRanking.probability` replaces: a margin below this was called doubtful
@@ -128,7 +127,7 @@ class ClassRanking:
     whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`; a
         weighted mean with `rank_classes`'s ``weights``)
     calibrated : whether the ranking was made as `probability` was calibrated: the default options, and (when
-        `Comparer.retrieve` made it) LD-SIFT with its thickness column at `CALIBRATED_THICKNESS`
+        `Comparer.retrieve` made it) LD-SIFT at its defaults (its thickness column at `CALIBRATED_THICKNESS`, none)
     """
 
     classes: tuple[str, ...]
@@ -152,8 +151,9 @@ class ClassRanking:
     @property
     def probability(self) -> float:
         """The chance that `label` is the part's class, from the margin (`probability_of`): calibrated on parts
-        of TOSCA shapes looked up in a library of TOSCA's other poses with LD-SIFT and its thickness column
-        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it. NaN for a ranking made
+        of TOSCA shapes looked up in a library of TOSCA's other poses with LD-SIFT at its defaults
+        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it: where the classes are alike
+        (FAUST's people, a class per person) it is too sure. NaN for a ranking made
         otherwise (``calibrated`` False: other options or signatures), whose margins are on another scale."""
         return probability_of(self.margin) if self.calibrated else float("nan")
 
