@@ -32,6 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.part_retrieval import PartMeshes, library_wholes, method, open_store, score  # noqa: E402
 from benchmarks.partial_poses import _tosca, read_parts  # noqa: E402
+from wpot.maps.retrieval import CALIBRATED_THICKNESS  # noqa: E402
 
 
 def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: int = 50) -> tuple[float, float]:
@@ -113,9 +114,9 @@ def main(argv=None) -> int:
                     help="a development set, RESULTS PARTS [DATA] (repeat for several; they are pooled)")
     ap.add_argument("--check", nargs="+", action="append", default=[], metavar="PATH",
                     help="a check set, RESULTS PARTS [DATA] (repeat for several)")
-    ap.add_argument("--weight", type=float, default=0.0,
-                    help="LD-SIFT thickness weight w of the stored costs (default 0, wpot.maps.retrieval."
-                         "CALIBRATED_THICKNESS)")
+    ap.add_argument("--weight", type=float, default=CALIBRATED_THICKNESS,
+                    help="LD-SIFT thickness weight w of the stored costs (default %(default)g: wpot.maps.retrieval."
+                         "CALIBRATED_THICKNESS, what the shipped calibration was fitted at)")
     ap.add_argument("--out", type=Path, required=True, help="folder for reliability.png")
     ap.add_argument("--edge", choices=("library", "own"), default="library",
                     help="LD-SIFT's edge length of the stored costs (part_retrieval.py --edge; default %(default)s)")

@@ -191,7 +191,6 @@ def test_comparer_retrieve_agrees_with_the_cost_matrix():
 
 
 def test_a_part_larger_than_every_whole_is_named():
-
     import wpot
     from wpot.maps.retrieval import RetrievalWarning
 

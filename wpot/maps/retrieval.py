@@ -21,8 +21,9 @@ away from them:
    smaller (the least of three costs is lower than the least of two even when no member fits).
 
 With LD-SIFT (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k poses, each against the 75 other shapes)
-the two steps together rank the true class first more often than the nearest whole's class from the same costs, on each of three part sets, and each step alone gains less (the
-docs' Results page: Parts looked up in a library of whole shapes).
+the two steps together rank the true class first more often than the nearest whole's class from the same costs,
+on each of three part sets, and each step alone gains less (the docs' Results page: Parts looked up in a library
+of whole shapes).
 """
 from __future__ import annotations
 
