@@ -126,9 +126,9 @@ class LocateOptions:
         (the docs' Results page)
     mirror_candidates : add each candidate match's mirror image through the whole's left/right symmetry
         (`wpot.maps.symmetry.reflection_symmetry`; nothing when none is found or ``orient`` is off) to step 1's
-        candidates. For nearly mirror-symmetric bodies whose sides the signatures cannot tell apart (people);
-        where they can (TOSCA's animals) it leaves the side to step 4 alone and costs a little (the docs' Results
-        page). Step 2 then weighs twice as many candidates
+        candidates, for nearly mirror-symmetric bodies whose sides the signatures cannot tell apart (FAUST's
+        people, where it helps); on TOSCA's parts it does not help (the docs' Results page). Step 2 then weighs
+        twice as many candidates, and step 4 alone chooses the side
     """
 
     n_anchors: int = 64
