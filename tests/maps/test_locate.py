@@ -1,11 +1,13 @@
 """wpot.maps.locate: a part located in a whole by geodesic consistency."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
 from wpot.examples import example_partial
-from wpot.maps.locate import LocateOptions, PartMap, candidate_matches, consistent_matches, locate_part
+from wpot.maps.locate import LocateOptions, LocateWarning, PartMap, candidate_matches, consistent_matches, locate_part
 from wpot.mesh import Mesh, MeshWarning
 
 
@@ -280,6 +282,29 @@ def test_mirror_candidates_gather_anchors_whose_signatures_see_the_other_side(sh
         assert np.median(err) < 0.5 and pm.orientation > 0.9
     with pytest.raises(ValueError, match="mirror_candidates"):
         LocateOptions(mirror_candidates=1)
+    with pytest.raises(ValueError, match="mirror_candidates=True needs orient=True"):
+        LocateOptions(mirror_candidates=True, orient=False)
+
+
+def test_mirror_candidates_on_a_whole_without_symmetry_are_named():
+    """A whole whose left/right symmetry is not found (here a flat sheet, which has no outside): the option can add
+    nothing, and says so; the map is the one drawn without it."""
+    import wpot
+
+    m = wpot.example_mesh(300)
+    flat = Mesh(np.c_[m.vertices[:, :2], np.zeros(m.n_vertices)], m.faces, name="sheet")
+    part, idx = wpot.cut(flat, flat.vertices[:, 0] > np.median(flat.vertices[:, 0]))
+    sw = _smooth_signatures(flat)
+    sp = sw[idx]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pm = locate_part(part, flat, sp, sw, options=LocateOptions(mirror_candidates=True))
+    said = [str(w.message) for w in caught if issubclass(w.category, LocateWarning)]
+    assert "sheet: no left/right symmetry was found on the whole, so mirror_candidates adds no candidates" in said
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = locate_part(part, flat, sp, sw)
+    np.testing.assert_array_equal(pm.correspondence, plain.correspondence)
 
 
 def test_orientation_step_picks_the_cheapest_of_the_well_oriented():

@@ -125,10 +125,10 @@ class LocateOptions:
         orientation score``. For a part meshed apart from the whole, ``edge="whole", orient_weight=ORIENT_WEIGHT``
         (the docs' Results page)
     mirror_candidates : add each candidate match's mirror image through the whole's left/right symmetry
-        (`wpot.maps.symmetry.reflection_symmetry`; nothing when none is found or ``orient`` is off) to step 1's
+        (`wpot.maps.symmetry.reflection_symmetry`; a `LocateWarning` when none is found) to step 1's
         candidates, for nearly mirror-symmetric bodies whose sides the signatures cannot tell apart (FAUST's
         people, where it helps); on TOSCA's parts it does not help (the docs' Results page). Step 2 then weighs
-        twice as many candidates, and step 4 alone chooses the side
+        twice as many candidates, and step 4 (``orient``, which it needs) alone chooses the side
     """
 
     n_anchors: int = 64
@@ -155,6 +155,9 @@ class LocateOptions:
         if self.orient_weight is not None:
             _validate.nonnegative_finite("orient_weight", self.orient_weight)
         _validate.boolean("mirror_candidates", self.mirror_candidates)
+        if self.mirror_candidates and not self.orient:
+            raise ValueError("mirror_candidates=True needs orient=True: with the mirror images among the candidates, "
+                             "step 2 may take either side, and step 4 (orient) chooses it")
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
         _validate.one_of("edge", self.edge, ("whole", "own"))
@@ -456,9 +459,13 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     cand = candidate_matches(sp_, sw, anchors, opt.n_candidates, metric, device)
     owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
     target = cand.ravel()
-    sym = reflection_symmetry(whole) if opt.orient and opt.mirror_candidates else None
-    if sym is not None:
-        owner, target = mirrored_candidates(owner, target, sym.map)
+    if opt.mirror_candidates:
+        sym = reflection_symmetry(whole)
+        if sym is None:
+            warnings.warn(named(whole.name, "no left/right symmetry was found on the whole, so mirror_candidates adds "
+                                "no candidates"), LocateWarning, stacklevel=2)
+        else:
+            owner, target = mirrored_candidates(owner, target, sym.map)
     d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
