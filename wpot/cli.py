@@ -146,8 +146,8 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    "the docs' Results page)")
     p.add_argument("--locate-mirror-candidates", action="store_true",
                    help="--locate also tries the mirror image (through B's left/right symmetry) of each match the "
-                   "signatures propose: for nearly symmetric bodies whose sides the signatures cannot tell apart "
-                   "(people); the docs' Results page")
+                   "signatures propose, for nearly symmetric bodies whose sides the signatures cannot tell apart "
+                   "(people); needs --locate-orient-weight: the docs' Results page")
 
 
 class _Located(NamedTuple):
@@ -213,6 +213,9 @@ def _check_refinements(a: argparse.Namespace) -> None:
     if getattr(a, "locate_mirror_candidates", False) and not getattr(a, "locate", False):
         raise CliError("--locate-mirror-candidates sets how --locate proposes matches; add --locate, or drop "
                        "--locate-mirror-candidates")
+    if getattr(a, "locate_mirror_candidates", False) and w is None:
+        raise CliError("--locate-mirror-candidates leaves the side to the orientation: add --locate-orient-weight "
+                       "(0.3), or drop --locate-mirror-candidates")
     if w is not None and not (np.isfinite(w) and w >= 0):
         raise CliError(f"--locate-orient-weight must be a finite number >= 0, got {w:g}")
     if getattr(a, "locate_edge", None) == "whole" and a.signature != "ldsift":

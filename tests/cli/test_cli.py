@@ -285,6 +285,8 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["compare", "a.off", "b.off", "--locate-edge", "whole"], ["--locate-edge", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-orient-weight", "0.3"], ["--locate-orient-weight", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-mirror-candidates"], ["--locate-mirror-candidates", "add --locate"]),
+        (["compare", "a.off", "b.off", "--locate", "--locate-mirror-candidates"],
+         ["--locate-mirror-candidates", "add --locate-orient-weight"]),
         (["compare", "a.off", "b.off", "--locate", "--locate-edge", "whole"], ["--signature wks", "--signature ldsift"]),
     ],
 )

@@ -276,14 +276,16 @@ def test_mirror_candidates_gather_anchors_whose_signatures_see_the_other_side(sh
     edge = whole.edge_lengths.mean()
     n = LocateOptions().n_anchors
     for mirror, (lo, hi) in ((False, (0.4, 0.65)), (True, (0.95, 1.0))):
-        pm = locate_part(part, whole, sp, sw, options=LocateOptions(n_candidates=1, mirror_candidates=mirror))
+        opt = LocateOptions(n_candidates=1, orient_weight=0.3, mirror_candidates=mirror)
+        pm = locate_part(part, whole, sp, sw, options=opt)
         assert lo * n <= len(pm.anchors) <= hi * n
         err = np.linalg.norm(whole.vertices[pm.correspondence] - whole.vertices[idx], axis=1) / edge
         assert np.median(err) < 0.5 and pm.orientation > 0.9
     with pytest.raises(ValueError, match="mirror_candidates"):
         LocateOptions(mirror_candidates=1)
-    with pytest.raises(ValueError, match="mirror_candidates=True needs orient=True"):
-        LocateOptions(mirror_candidates=True, orient=False)
+    for bad in ({"orient": False, "orient_weight": 0.3}, {}):  # step 4 must choose the side, weighing orientation
+        with pytest.raises(ValueError, match="mirror_candidates=True needs orient=True and an orient_weight"):
+            LocateOptions(mirror_candidates=True, **bad)
 
 
 def test_mirror_candidates_on_a_whole_without_symmetry_are_named():
@@ -298,12 +300,12 @@ def test_mirror_candidates_on_a_whole_without_symmetry_are_named():
     sp = sw[idx]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        pm = locate_part(part, flat, sp, sw, options=LocateOptions(mirror_candidates=True))
+        pm = locate_part(part, flat, sp, sw, options=LocateOptions(orient_weight=0.3, mirror_candidates=True))
     said = [str(w.message) for w in caught if issubclass(w.category, LocateWarning)]
     assert "sheet: no left/right symmetry was found on the whole, so mirror_candidates adds no candidates" in said
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plain = locate_part(part, flat, sp, sw)
+        plain = locate_part(part, flat, sp, sw, options=LocateOptions(orient_weight=0.3))
     np.testing.assert_array_equal(pm.correspondence, plain.correspondence)
 
 

@@ -128,7 +128,8 @@ class LocateOptions:
         (`wpot.maps.symmetry.reflection_symmetry`; a `LocateWarning` when none is found) to step 1's
         candidates, for nearly mirror-symmetric bodies whose sides the signatures cannot tell apart (FAUST's
         people, where it helps); on TOSCA's parts it does not help (the docs' Results page). Step 2 then weighs
-        twice as many candidates, and step 4 (``orient``, which it needs) alone chooses the side
+        twice as many candidates, and step 4 alone chooses the side, so it needs ``orient`` and an
+        ``orient_weight``
     """
 
     n_anchors: int = 64
@@ -155,9 +156,10 @@ class LocateOptions:
         if self.orient_weight is not None:
             _validate.nonnegative_finite("orient_weight", self.orient_weight)
         _validate.boolean("mirror_candidates", self.mirror_candidates)
-        if self.mirror_candidates and not self.orient:
-            raise ValueError("mirror_candidates=True needs orient=True: with the mirror images among the candidates, "
-                             "step 2 may take either side, and step 4 (orient) chooses it")
+        if self.mirror_candidates and (not self.orient or self.orient_weight is None):
+            raise ValueError("mirror_candidates=True needs orient=True and an orient_weight (e.g. ORIENT_WEIGHT): "
+                             "with the mirror images among the candidates step 2 may take either side, and step 4 "
+                             "chooses it well only when the orientation weighs in (the docs' Results page)")
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
         _validate.one_of("edge", self.edge, ("whole", "own"))
