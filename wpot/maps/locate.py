@@ -277,6 +277,23 @@ def mirrored_candidates(owner: np.ndarray, target: np.ndarray, mirror: np.ndarra
     return o[first], t[first]
 
 
+def _step1(whole: Mesh, sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, opt: LocateOptions,
+           metric: str, device: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1's candidate matches as (owner (M,), target (M,)): each one's anchor (an index into ``anchors``) and
+    vertex of the whole; with ``opt.mirror_candidates`` their mirror images beside them (`mirrored_candidates`),
+    or a `LocateWarning` naming the whole when its symmetry is not found."""
+    cand = candidate_matches(sig_part, sig_whole, anchors, opt.n_candidates, metric, device)
+    owner, target = np.repeat(np.arange(len(anchors)), cand.shape[1]), cand.ravel()
+    if not opt.mirror_candidates:
+        return owner, target
+    sym = reflection_symmetry(whole)
+    if sym is None:
+        warnings.warn(named(whole.name, "no left/right symmetry was found on the whole, so mirror_candidates adds no "
+                            "candidates"), LocateWarning, stacklevel=3)
+        return owner, target
+    return mirrored_candidates(owner, target, sym.map)
+
+
 def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarray, *, sigma0: float,
                        rel_tol: float) -> np.ndarray:
     """Step 2: the indices of a mutually consistent set of candidate matches.
@@ -458,16 +475,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # its first n_anchors and n_refine samples
     spread = farthest_point_sampling(part, min(max(opt.n_anchors, opt.n_refine), part.n_vertices)).indices
     anchors, src = spread[:opt.n_anchors], spread[:opt.n_refine]
-    cand = candidate_matches(sp_, sw, anchors, opt.n_candidates, metric, device)
-    owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
-    target = cand.ravel()
-    if opt.mirror_candidates:
-        sym = reflection_symmetry(whole)
-        if sym is None:
-            warnings.warn(named(whole.name, "no left/right symmetry was found on the whole, so mirror_candidates adds "
-                                "no candidates"), LocateWarning, stacklevel=2)
-        else:
-            owner, target = mirrored_candidates(owner, target, sym.map)
+    owner, target = _step1(whole, sp_, sw, anchors, opt, metric, device)
     d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
