@@ -144,10 +144,6 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    "well as the best, the one whose signatures fit best; W: the one of least relative signature cost "
                    "less W times its orientation score (0.3 for a part meshed apart from B, with --locate-edge whole: "
                    "the docs' Results page)")
-    p.add_argument("--locate-mirror-candidates", action="store_true",
-                   help="--locate also tries the mirror image (through B's left/right symmetry) of each match the "
-                   "signatures propose, for nearly symmetric bodies whose sides the signatures cannot tell apart "
-                   "(people); needs --locate-orient-weight: the docs' Results page")
 
 
 class _Located(NamedTuple):
@@ -181,8 +177,7 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
         return None
     from wpot.maps.locate import PLACEMENT_DOUBT, LocateOptions
 
-    given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight),
-                                ("mirror_candidates", a.locate_mirror_candidates or None)) if v is not None}
+    given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight)) if v is not None}
     pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None)
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
@@ -210,12 +205,6 @@ def _check_refinements(a: argparse.Namespace) -> None:
     if w is not None and not getattr(a, "locate", False):
         raise CliError("--locate-orient-weight sets how --locate tells left from right; add --locate, or drop "
                        "--locate-orient-weight")
-    if getattr(a, "locate_mirror_candidates", False) and not getattr(a, "locate", False):
-        raise CliError("--locate-mirror-candidates sets how --locate proposes matches; add --locate, or drop "
-                       "--locate-mirror-candidates")
-    if getattr(a, "locate_mirror_candidates", False) and w is None:
-        raise CliError("--locate-mirror-candidates leaves the side to the orientation: add --locate-orient-weight "
-                       "(0.3), or drop --locate-mirror-candidates")
     if w is not None and not (np.isfinite(w) and w >= 0):
         raise CliError(f"--locate-orient-weight must be a finite number >= 0, got {w:g}")
     if getattr(a, "locate_edge", None) == "whole" and a.signature != "ldsift":

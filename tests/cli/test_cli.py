@@ -150,11 +150,11 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     assert printed == pytest.approx(info["placement_confidence"], abs=0.005)
     assert info["placement_confidence"] == pytest.approx(pm.placement_confidence)
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
-    # --locate-orient-weight is LocateOptions(orient_weight=...), --locate-mirror-candidates (mirror_candidates=True)
+    # --locate-orient-weight is LocateOptions(orient_weight=...)
     r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-orient-weight",
-             "0.3", "--locate-mirror-candidates", "--out", str(tmp_path / "w"))
+             "0.3", "--out", str(tmp_path / "w"))
     assert r.returncode == 0, r.stderr
-    weighed = c.locate(ma, mb, options=w.LocateOptions(orient_weight=0.3, mirror_candidates=True))
+    weighed = c.locate(ma, mb, options=w.LocateOptions(orient_weight=0.3))
     np.testing.assert_array_equal(np.load(tmp_path / "w" / "correspondence.npz")["correspondence_locate"],
                                   weighed.correspondence)
 
@@ -284,9 +284,6 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["compare", "a.off", "b.off", "--transport", "partial", "--zoomout"], ["--zoomout", "whole", "--transport partial"]),
         (["compare", "a.off", "b.off", "--locate-edge", "whole"], ["--locate-edge", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-orient-weight", "0.3"], ["--locate-orient-weight", "add --locate"]),
-        (["compare", "a.off", "b.off", "--locate-mirror-candidates"], ["--locate-mirror-candidates", "add --locate"]),
-        (["compare", "a.off", "b.off", "--locate", "--locate-mirror-candidates"],
-         ["--locate-mirror-candidates", "add --locate-orient-weight"]),
         (["compare", "a.off", "b.off", "--locate", "--locate-edge", "whole"], ["--signature wks", "--signature ldsift"]),
     ],
 )

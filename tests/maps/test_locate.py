@@ -1,13 +1,11 @@
 """wpot.maps.locate: a part located in a whole by geodesic consistency."""
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 
 from wpot.examples import example_partial
-from wpot.maps.locate import LocateOptions, LocateWarning, PartMap, candidate_matches, consistent_matches, locate_part
+from wpot.maps.locate import LocateOptions, PartMap, candidate_matches, consistent_matches, locate_part
 from wpot.mesh import Mesh, MeshWarning
 
 
@@ -243,70 +241,6 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
     assert score > 0.97 and c == pytest.approx(cost(t)) and c < cost(folded)
     t, score, _ = _orient(draw, sym.map[idx], cost, 2)  # the mirror image of the true map
     assert np.quantile(err(t), 0.9) < 1.0 and score > 0.97
-
-
-def test_mirrored_candidates_sit_beside_the_originals_each_pair_once():
-    from wpot.maps.locate import mirrored_candidates
-
-    mirror = np.array([3, 2, 1, 0, 4])  # 0 <-> 3, 1 <-> 2, 4 on the plane
-    owner, target = np.array([0, 0, 1, 2]), np.array([0, 3, 4, 1])
-    o, t = mirrored_candidates(owner, target, mirror)
-    # (0, 0) and (0, 3) are each other's mirrors and both there already; (1, 4) is its own mirror
-    assert list(zip(o.tolist(), t.tolist())) == [(0, 0), (0, 3), (1, 4), (2, 1), (2, 2)]
-
-
-@pytest.mark.parametrize("share", [0.5, 0.6])
-def test_mirror_candidates_gather_anchors_whose_signatures_see_the_other_side(share):
-    """Signatures that cannot tell the sides, as LD-SIFT nearly cannot on people: a share of the anchors find only
-    the mirror image of their true place. Step 2 then keeps the larger side, about half of the anchors; with each
-    candidate's mirror image beside it (``mirror_candidates``) every anchor has a match on either side, the
-    consistent set holds them all, and step 4 reads the side off the orientation."""
-    from helpers import mirror_symmetric
-
-    from wpot.maps.symmetry import reflection_symmetry
-    from wpot.mesh import cut
-
-    whole = mirror_symmetric(1500, seed=1)
-    sym = reflection_symmetry(whole)
-    assert sym is not None
-    part, idx = cut(whole, whole.vertices[:, 0] > 0.4)  # one side, clear of the symmetry plane
-    sw = _smooth_signatures(whole)
-    rng = np.random.default_rng(0)
-    sp = sw[np.where(rng.random(part.n_vertices) < share, sym.map[idx], idx)]
-    edge = whole.edge_lengths.mean()
-    n = LocateOptions().n_anchors
-    for mirror, (lo, hi) in ((False, (0.4, 0.65)), (True, (0.95, 1.0))):
-        opt = LocateOptions(n_candidates=1, orient_weight=0.3, mirror_candidates=mirror)
-        pm = locate_part(part, whole, sp, sw, options=opt)
-        assert lo * n <= len(pm.anchors) <= hi * n
-        err = np.linalg.norm(whole.vertices[pm.correspondence] - whole.vertices[idx], axis=1) / edge
-        assert np.median(err) < 0.5 and pm.orientation > 0.9
-    with pytest.raises(ValueError, match="mirror_candidates"):
-        LocateOptions(mirror_candidates=1)
-    for bad in ({"orient": False, "orient_weight": 0.3}, {}):  # step 4 must choose the side, weighing orientation
-        with pytest.raises(ValueError, match="mirror_candidates=True needs orient=True and an orient_weight"):
-            LocateOptions(mirror_candidates=True, **bad)
-
-
-def test_mirror_candidates_on_a_whole_without_symmetry_are_named():
-    """A whole whose left/right symmetry is not found (here a flat sheet, which has no outside): the option can add
-    nothing, and says so; the map is the one drawn without it."""
-    import wpot
-
-    m = wpot.example_mesh(300)
-    flat = Mesh(np.c_[m.vertices[:, :2], np.zeros(m.n_vertices)], m.faces, name="sheet")
-    part, idx = wpot.cut(flat, flat.vertices[:, 0] > np.median(flat.vertices[:, 0]))
-    sw = _smooth_signatures(flat)
-    sp = sw[idx]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        pm = locate_part(part, flat, sp, sw, options=LocateOptions(orient_weight=0.3, mirror_candidates=True))
-    said = [str(w.message) for w in caught if issubclass(w.category, LocateWarning)]
-    assert "sheet: no left/right symmetry was found on the whole, so mirror_candidates adds no candidates" in said
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        plain = locate_part(part, flat, sp, sw, options=LocateOptions(orient_weight=0.3))
-    np.testing.assert_array_equal(pm.correspondence, plain.correspondence)
 
 
 def test_orientation_step_picks_the_cheapest_of_the_well_oriented():

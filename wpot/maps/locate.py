@@ -9,12 +9,7 @@ those between the matching points of the whole. `locate_part` uses the signature
 geodesic distances to choose among them and to fill in the map:
 
 1. **Candidates.** ``n_anchors`` farthest-point samples of the part (the anchors), each with the
-   ``n_candidates`` vertices of the whole whose signatures are nearest (the signature's own cost). With
-   ``mirror_candidates``, each candidate's mirror image through the whole's left/right symmetry is a candidate
-   too: on a nearly symmetric body (people) the signatures find an anchor's mirror image about as often as its
-   true place, so the true matches split between two consistent sets of half the anchors each, and step 2 may
-   join pieces of both (a fold). With the mirror images beside them, one side holds nearly every anchor, and
-   step 4 chooses the side.
+   ``n_candidates`` vertices of the whole whose signatures are nearest (the signature's own cost).
 2. **Consistency** (spectral matching, Leordeanu & Hebert 2005). Two candidate matches (a, b) and (a', b')
    agree when ``|d_P(a, a') − d_W(b, b')| ≲ σ = tol·√area(W) + rel_tol·min(d_P, d_W)``; the agreement matrix
    ``exp(−(Δd/σ)²/2)`` (zero between two candidates of one anchor) has a leading eigenvector whose large
@@ -82,7 +77,7 @@ from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
-           "candidate_matches", "consistent_matches", "mirrored_candidates",
+           "candidate_matches", "consistent_matches",
            "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
 
 
@@ -124,12 +119,6 @@ class LocateOptions:
         the one of least mean signature cost; a number w >= 0: the one of least ``cost / least cost − 1 − w ·
         orientation score``. For a part meshed apart from the whole, ``edge="whole", orient_weight=ORIENT_WEIGHT``
         (the docs' Results page)
-    mirror_candidates : add each candidate match's mirror image through the whole's left/right symmetry
-        (`wpot.maps.symmetry.reflection_symmetry`; a `LocateWarning` when none is found) to step 1's
-        candidates, for nearly mirror-symmetric bodies whose sides the signatures cannot tell apart (FAUST's
-        people, where it helps); on TOSCA's parts it does not help (the docs' Results page). Step 2 then weighs
-        twice as many candidates, and step 4 alone chooses the side, so it needs ``orient`` and an
-        ``orient_weight``
     """
 
     n_anchors: int = 64
@@ -143,7 +132,6 @@ class LocateOptions:
     rival_tol: float = 0.1
     edge: str = "own"
     orient_weight: float | None = None
-    mirror_candidates: bool = False
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -155,11 +143,6 @@ class LocateOptions:
         _validate.boolean("orient", self.orient)
         if self.orient_weight is not None:
             _validate.nonnegative_finite("orient_weight", self.orient_weight)
-        _validate.boolean("mirror_candidates", self.mirror_candidates)
-        if self.mirror_candidates and (not self.orient or self.orient_weight is None):
-            raise ValueError("mirror_candidates=True needs orient=True and an orient_weight (e.g. ORIENT_WEIGHT): "
-                             "with the mirror images among the candidates step 2 may take either side, and step 4 "
-                             "chooses it well only when the orientation weighs in (the docs' Results page)")
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
         _validate.one_of("edge", self.edge, ("whole", "own"))
@@ -264,34 +247,6 @@ def candidate_matches(sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.n
     top = np.argpartition(c, k - 1, axis=1)[:, :k]
     order = np.argsort(np.take_along_axis(c, top, axis=1), axis=1)
     return np.take_along_axis(top, order, axis=1)
-
-
-def mirrored_candidates(owner: np.ndarray, target: np.ndarray, mirror: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Step 1's candidate matches (``owner`` (M,) their anchor, ``target`` (M,) their vertex of the whole) with the
-    mirror image of each (``mirror`` (N_W,), the whole's left/right symmetry) beside it, each (anchor, vertex) pair
-    once, in the order of first appearance: (M',) and (M',) int64."""
-    o = np.concatenate([owner, owner]).astype(np.int64)
-    t = np.concatenate([target, np.asarray(mirror)[target]]).astype(np.int64)
-    _, first = np.unique(o * (int(t.max()) + 1) + t, return_index=True)
-    first.sort()
-    return o[first], t[first]
-
-
-def _step1(whole: Mesh, sig_part: np.ndarray, sig_whole: np.ndarray, anchors: np.ndarray, opt: LocateOptions,
-           metric: str, device: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """Step 1's candidate matches as (owner (M,), target (M,)): each one's anchor (an index into ``anchors``) and
-    vertex of the whole; with ``opt.mirror_candidates`` their mirror images beside them (`mirrored_candidates`),
-    or a `LocateWarning` naming the whole when its symmetry is not found."""
-    cand = candidate_matches(sig_part, sig_whole, anchors, opt.n_candidates, metric, device)
-    owner, target = np.repeat(np.arange(len(anchors)), cand.shape[1]), cand.ravel()
-    if not opt.mirror_candidates:
-        return owner, target
-    sym = reflection_symmetry(whole)
-    if sym is None:
-        warnings.warn(named(whole.name, "no left/right symmetry was found on the whole, so mirror_candidates adds no "
-                            "candidates"), LocateWarning, stacklevel=3)
-        return owner, target
-    return mirrored_candidates(owner, target, sym.map)
 
 
 def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarray, *, sigma0: float,
@@ -475,7 +430,9 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # its first n_anchors and n_refine samples
     spread = farthest_point_sampling(part, min(max(opt.n_anchors, opt.n_refine), part.n_vertices)).indices
     anchors, src = spread[:opt.n_anchors], spread[:opt.n_refine]
-    owner, target = _step1(whole, sp_, sw, anchors, opt, metric, device)
+    cand = candidate_matches(sp_, sw, anchors, opt.n_candidates, metric, device)
+    owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
+    target = cand.ravel()
     d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
