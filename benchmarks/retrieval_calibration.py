@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.part_retrieval import PartMeshes, library_wholes, method, open_store, score  # noqa: E402
 from benchmarks.partial_poses import _tosca, read_parts  # noqa: E402
-from wpot.maps.retrieval import CALIBRATED_THICKNESS  # noqa: E402
+from wpot.maps.retrieval import CALIBRATED_THICKNESS, CALIBRATION, MARGIN_DOUBT  # noqa: E402
 
 
 def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: int = 50) -> tuple[float, float]:
@@ -88,8 +88,6 @@ def _set(values: list[str], default_data: Path) -> tuple[Path, Path, Path]:
 def report_set(name: str, m: np.ndarray, ok: np.ndarray, p: np.ndarray) -> list[tuple[int, float, float]]:
     """Print one set's top-1, its parts with probability >= 0.9, the fixed rule, and its reliability table;
     return the table's bins."""
-    from wpot.maps.retrieval import MARGIN_DOUBT
-
     fit = fit_logistic(m, ok)
     hi = p >= 0.9
     doubt = m < MARGIN_DOUBT
@@ -123,9 +121,6 @@ def main(argv=None) -> int:
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
                     help="the data folder of a set that names none (default: ../shared/data/tosca_isometric_5k)")
     a = ap.parse_args(argv)
-
-    from wpot.maps.retrieval import CALIBRATION
-
     print(f"shipped calibration: intercept {CALIBRATION[0]:.3f}, slope {CALIBRATION[1]:.3f}; method "
           f"{method(a.weight, None, a.edge)}")
     wholes_of: dict[Path, dict] = {}
@@ -137,6 +132,8 @@ def main(argv=None) -> int:
                 wholes_of[data] = library_wholes(data)
             m, ok, p = rows_of(out, parts, a.weight, wholes_of[data], a.edge)
             name = f"{role} {out.name}"
+            if name in curves:  # two sets in folders of one name: each keeps its curve, told apart by path
+                name = f"{role} {out}"
             if not len(m):
                 print(f"\n{name}: no scored parts in {out}")
                 continue
