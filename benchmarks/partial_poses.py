@@ -595,7 +595,7 @@ class Matchers:
             dt = time.perf_counter() - t0
         info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), "n_anchors": int(len(pm.anchors)),
                 "orientation": pm.orientation, "n_rival": int(len(pm.rival)),
-                "placement_confidence": pm.placement_confidence, "n_warnings": len(caught)}
+                "placement_confidence": pm.placement_confidence, "scale": pm.scale, "n_warnings": len(caught)}
         return pm.correspondence, dt, info, pm
 
     def nn_vertex(self, p, t) -> tuple[np.ndarray, float, dict]:
@@ -932,6 +932,9 @@ def main(argv=None) -> int:
                          "with the wholes: 'lowres' (the same pose in tosca_lowres, beside --tosca) or a number F "
                          "(the source subdivided and decimated to F times its vertices); 'none' "
                          "(default): from the source mesh itself")
+    ap.add_argument("--part-scale", type=float, default=1.0, metavar="F",
+                    help="scale every part by F after cutting it (1, the default: the whole's scale), as when the "
+                         "shapes of a data set were normalised one by one; the ground truth is unchanged")
     ap.add_argument("--limit", type=int, default=None,
                     help="only the first K parts (classes interleaved); the report then covers those only")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
@@ -979,6 +982,8 @@ def main(argv=None) -> int:
     tags = {m: matchers.tags[m] for m in a.methods}
     if a.parts_only and a.report_only:
         ap.error("--parts-only and --report-only exclude each other")
+    if not (np.isfinite(a.part_scale) and a.part_scale > 0):
+        ap.error(f"--part-scale must be a positive number, got {a.part_scale:g}")
     if not a.report_only:
         keep = run(a, out, store, log, matchers, members, sources, targets, others)
         if a.parts_only:
@@ -1004,6 +1009,9 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
             lms[c] = landmarks(a.tosca, c, members[c])
             log(f"{c}: landmarks on {lms[c].reference}: head = template point {lms[c].head}, limbs {lms[c].limbs}")
         parts += make_parts(a.tosca, s, lms[c], a.seed, a.kinds, a.remesh)
+    if a.part_scale != 1.0:
+        for p in parts:
+            p.mesh, p.detail["part_scale"] = p.mesh.transformed(scale=a.part_scale), a.part_scale
     # --limit: the first K parts taken round-robin over the sources (classes interleaved): every source's first
     # part, then every source's second part, ...
     rank = {s: k for k, s in enumerate(sources)}

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING, Any, Iterable
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "boolean",
+__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "one_of_or_positive",
+           "boolean",
            "vertex_map"]
 
 
@@ -54,6 +55,17 @@ def integer_at_least(name: str, value: Any, minimum: int) -> int:
     if v is None or not math.isfinite(v) or v != int(v) or int(v) < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(v)
+
+
+def one_of_or_positive(name: str, value: Any, choices: Iterable[str]) -> str | float:
+    """``value`` itself when it is one of the strings ``choices``, else as a float > 0 and finite."""
+    choices = tuple(choices)
+    if isinstance(value, str) and value in choices:
+        return value
+    v = None if isinstance(value, str) else _number(value)
+    if v is None or not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be one of {choices} or a positive number, got {value!r}")
+    return v
 
 
 def one_of(name: str, value: Any, choices: Iterable[Any]) -> Any:

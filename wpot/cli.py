@@ -144,6 +144,10 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    "well as the best, the one whose signatures fit best; W: the one of least relative signature cost "
                    "less W times its orientation score (0.3 for a part meshed apart from B, with --locate-edge whole: "
                    "the docs' Results page)")
+    p.add_argument("--locate-scale", default=None, metavar="SCALE",
+                   help="how A's lengths compare with B's for --locate: same (default) one scale; fit: found by "
+                   "--locate, for shapes normalised one by one (each scaled to unit size apart); a number s: A's "
+                   "lengths times s are B's")
 
 
 class _Located(NamedTuple):
@@ -156,15 +160,15 @@ class _Located(NamedTuple):
 
 def located_registration(part: Any, whole: Any, pm: Any) -> Any:
     """The transform that takes the part's vertices onto their images in the whole under the located map ``pm``:
-    `fit_similarity_robust`, each vertex weighted by its confidence, at scale 1 (`locate_part` assumes the part
-    and the whole at one scale, and measures geodesic distances in both alike). None when the map's confident
-    vertices do not determine one (fewer than 3 with weight, or collinear)."""
+    `fit_similarity_robust`, each vertex weighted by its confidence, at the scale `locate_part` used
+    (`PartMap.scale`: 1 unless `LocateOptions.scale` says otherwise). None when the map's confident vertices do not
+    determine one (fewer than 3 with weight, or collinear)."""
     from wpot.maps.registration import fit_similarity_robust
 
     conf = np.asarray(pm.confidence, dtype=np.float64)
     weights = conf if np.isfinite(conf).all() and conf.sum() > 0 else None
     try:
-        reg = fit_similarity_robust(part.vertices, whole.vertices[pm.correspondence], weights, scale=1.0)
+        reg = fit_similarity_robust(part.vertices, whole.vertices[pm.correspondence], weights, scale=pm.scale)
     except ValueError:
         return None
     return reg.with_target(whole)
@@ -177,7 +181,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
         return None
     from wpot.maps.locate import PLACEMENT_DOUBT, LocateOptions
 
-    given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight)) if v is not None}
+    given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight),
+                               ("scale", _locate_scale(a.locate_scale))) if v is not None}
     pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None)
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
@@ -186,19 +191,38 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
              if pm.placement_confidence < PLACEMENT_DOUBT else "")
     print(f"placement confidence {pm.placement_confidence:.2f}: {len(pm.anchors)} anchors vouch for this place, "
           f"{len(pm.rival)} for the best other{doubt}")
+    if pm.scale != 1.0:
+        print(f"scale: A's lengths times {pm.scale:.3g} are B's (--locate-scale {a.locate_scale})")
     reg = located_registration(ma, mb, pm)
     conf = f"confidence median {np.median(pm.confidence):.2f} ({np.mean(pm.confidence > 0.5):.0%} of A's vertices above 0.5)"
     if reg is None:
         print(f"located map: {conf}; no rigid fit of A onto its images (too few confident, non-collinear vertices)")
     else:
         over = f"over {reg.n_inliers} of {reg.n_pairs} vertices of A (the inliers)"
-        print(f"located map: {conf}; rigid fit of A onto its images (scale 1, as locate assumes): rms residual "
+        print(f"located map: {conf}; rigid fit of A onto its images (at the scale locate used, {pm.scale:.3g}): rms residual "
               f"{reg.rms_text()} {over}, rotation {reg.rotation_degrees:.3g} degrees")
     return _Located(pm, reg)
 
 
+def _locate_scale(value: str | None) -> str | float | None:
+    """``--locate-scale`` as `LocateOptions.scale` takes it: "same", "fit" or a positive number (CliError else)."""
+    if value is None or value in ("same", "fit"):
+        return value
+    try:
+        s = float(value)
+    except ValueError:
+        s = float("nan")
+    if not (np.isfinite(s) and s > 0):
+        raise CliError(f"--locate-scale must be same, fit or a positive number, got {value!r}")
+    return s
+
+
 def _check_refinements(a: argparse.Namespace) -> None:
     """Refuse, in the CLI's words, the --zoomout and --locate settings that cannot go together."""
+    if getattr(a, "locate_scale", None) is not None:
+        if not getattr(a, "locate", False):
+            raise CliError("--locate-scale sets the scale of --locate; add --locate, or drop --locate-scale")
+        _locate_scale(a.locate_scale)
     if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):
         raise CliError("--locate-edge sets the edge length of --locate; add --locate, or drop --locate-edge")
     w = getattr(a, "locate_orient_weight", None)
@@ -954,7 +978,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
                                "orientation": pm.orientation, "region_vertices": int(pm.region().sum()),
                                "median_confidence": float(np.median(pm.confidence)),
                                "placement_confidence": pm.placement_confidence, "n_rival": int(len(pm.rival)),
-                               "registration": _registration_json(located.registration)}
+                               "scale": pm.scale, "registration": _registration_json(located.registration)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))
 

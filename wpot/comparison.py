@@ -696,11 +696,23 @@ class Comparer:
         signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
         in another pose, where the transport's own ``correspondence`` lands on the true place for few
         vertices; ``options`` is a `wpot.maps.locate.LocateOptions` (with ``edge="whole"``, LD-SIFT at the whole's
-        edge length for both meshes). Returns a `wpot.maps.locate.PartMap`."""
+        edge length for both meshes). Returns a `wpot.maps.locate.PartMap`.
+
+        With ``scale="fit"`` and LD-SIFT at a set edge length (``edge="whole"``, or ``ldsift_edge``), whose images
+        see the part at its own size, a part found at another scale is described again at the whole's and
+        located at that scale."""
         c = locating_comparer(self, whole, options)
         self._fit_to_pair(part, whole, ("part", "whole"))
-        return locate_part(part, whole, c.signatures(part), c.signatures(whole), metric=self.stage.metric,
-                           options=options, device=self.device)
+        sw = c.signatures(whole)
+        pm = locate_part(part, whole, c.signatures(part), sw, metric=self.stage.metric, options=options,
+                         device=self.device)
+        if (pm.scale == 1.0 or options.scale != "fit" or c.config.signature != "ldsift"
+                or c.config.signature_options.edge is None):
+            return pm
+        grown = part.transformed(scale=pm.scale)
+        again = locate_part(grown, whole, c.signatures(grown), sw, metric=self.stage.metric,
+                            options=dataclasses.replace(options, scale=1.0), device=self.device)
+        return dataclasses.replace(again, scale=pm.scale)
 
 
 def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any) -> Any:

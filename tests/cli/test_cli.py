@@ -157,6 +157,15 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     weighed = c.locate(ma, mb, options=w.LocateOptions(orient_weight=0.3))
     np.testing.assert_array_equal(np.load(tmp_path / "w" / "correspondence.npz")["correspondence_locate"],
                                   weighed.correspondence)
+    # --locate-scale is LocateOptions(scale=...), printed and saved
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-scale", "1.2",
+             "--out", str(tmp_path / "s"))
+    assert r.returncode == 0, r.stderr
+    scaled = c.locate(ma, mb, options=w.LocateOptions(scale=1.2))
+    np.testing.assert_array_equal(np.load(tmp_path / "s" / "correspondence.npz")["correspondence_locate"],
+                                  scaled.correspondence)
+    assert json.loads((tmp_path / "s" / "comparison.json").read_text())["locate"]["scale"] == scaled.scale == 1.2
+    assert "A's lengths times 1.2 are B's" in r.stdout
 
 
 @pytest.mark.slow
@@ -284,6 +293,8 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["compare", "a.off", "b.off", "--transport", "partial", "--zoomout"], ["--zoomout", "whole", "--transport partial"]),
         (["compare", "a.off", "b.off", "--locate-edge", "whole"], ["--locate-edge", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-orient-weight", "0.3"], ["--locate-orient-weight", "add --locate"]),
+        (["compare", "a.off", "b.off", "--locate-scale", "fit"], ["--locate-scale", "add --locate"]),
+        (["compare", "a.off", "b.off", "--locate", "--locate-scale", "0"], ["--locate-scale", "positive number"]),
         (["compare", "a.off", "b.off", "--locate", "--locate-edge", "whole"], ["--signature wks", "--signature ldsift"]),
     ],
 )

@@ -384,6 +384,8 @@ BAD_VALUES = {
     "--locate-edge": (["--locate-edge", "half"], "argument --locate-edge: invalid choice"),
     "--locate-orient-weight": (["--locate", "--locate-orient-weight", "-1"],
                                "--locate-orient-weight must be a finite number >= 0, got -1"),
+    "--locate-scale": (["--locate", "--locate-scale", "big"],
+                       "--locate-scale must be same, fit or a positive number, got 'big'"),
 }
 #: flags of the other commands
 OTHER_BAD_VALUES = [

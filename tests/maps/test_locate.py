@@ -1,6 +1,8 @@
 """wpot.maps.locate: a part located in a whole by geodesic consistency."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -128,6 +130,35 @@ def test_rigid_motion_of_the_whole_changes_nothing(partial):
     other = locate_part(partial.part, moved, sp, sw, options=LocateOptions(orient=False))
     assert np.mean(other.correspondence == base.correspondence) > 0.99
     np.testing.assert_allclose(other.residual, base.residual, atol=1e-3)
+
+
+def test_a_part_at_another_scale_is_found_with_its_scale(partial):
+    """A part shrunk to 0.8 of its size (a data set normalised shape by shape): with one scale assumed, its
+    geodesic distances disagree with the whole's by 25 % and the map is lost; ``scale="fit"`` finds 1 / 0.8 to
+    within a step of its grid, and the map is the unshrunk part's."""
+    from wpot.maps.locate import SCALE_RANGE, SCALE_STEPS, LocateWarning
+
+    sp, sw = _planted_signatures(partial, outliers=0.4)
+    small = Mesh(0.8 * partial.part.vertices, partial.part.faces)
+    with pytest.warns(LocateWarning, match=r"agree [\d.]+ times better with the whole's at 1\.\d+ times their "
+                      r"length.*LocateOptions\(scale='fit'\)"):
+        same = locate_part(small, partial.full, sp, sw)
+    fit = locate_part(small, partial.full, sp, sw, options=LocateOptions(scale="fit"))
+    given = locate_part(small, partial.full, sp, sw, options=LocateOptions(scale=1.25))
+    step = (SCALE_RANGE ** (2.0 / (SCALE_STEPS - 1))) ** 0.5
+    assert same.scale == 1.0 and given.scale == 1.25
+    assert abs(np.log(fit.scale / 1.25)) <= np.log(step) / 2 + 1e-9
+    assert np.median(_errors_in_edges(partial, same.correspondence)) > 2.0
+    for pm in (fit, given):
+        err = _errors_in_edges(partial, pm.correspondence)
+        assert np.median(err) < 1.5 and np.quantile(err, 0.9) < 3.0 and len(pm.anchors) > 2 * len(same.anchors)
+    # the part at its own scale: no warning, the fit stays at 1, and the map is the default's
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LocateWarning)
+        base = locate_part(partial.part, partial.full, sp, sw)
+    unit = locate_part(partial.part, partial.full, sp, sw, options=LocateOptions(scale="fit"))
+    assert unit.scale == 1.0 and np.array_equal(unit.correspondence, base.correspondence)
+    assert "scale 1.2" in repr(given) and "scale" not in repr(base)
 
 
 def test_cat_head_found_in_another_pose(tosca5k):
@@ -284,6 +315,9 @@ def test_bad_input_is_named(partial):
         LocateOptions(n_anchors=2)
     with pytest.raises(ValueError, match="tol"):
         LocateOptions(tol=0.0)
+    for bad in ("fitted", 0, -1.0, float("inf"), True):
+        with pytest.raises(ValueError, match=r"scale must be one of \('same', 'fit'\) or a positive number"):
+            LocateOptions(scale=bad)
     with pytest.raises(TypeError, match="LocateOptions"):
         locate_part(partial.part, partial.full, sp, sw, options={"n_anchors": 10})
     import wpot

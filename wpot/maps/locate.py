@@ -15,7 +15,10 @@ geodesic distances to choose among them and to fill in the map:
    ``exp(−(Δd/σ)²/2)`` (zero between two candidates of one anchor) has a leading eigenvector whose large
    entries are the largest mutually consistent set. Matches are taken greedily in that order, each at most
    one per anchor and within 3 σ of every match already taken. Wrong candidates rarely agree with many
-   others; mirror images of the right ones do (a left/right reflection is an isometry), see step 4.
+   others; mirror images of the right ones do (a left/right reflection is an isometry), see step 4. The part's
+   distances are read at the whole's scale: as they are (``scale="same"``), times a given factor, or
+   (``scale="fit"``) times the factor of a grid from 1 / `SCALE_RANGE` to `SCALE_RANGE` whose consistent set
+   agrees most (the sum of its agreement matrix), for shapes that were scaled one by one.
 3. **Dense map.** Every vertex v of the part gets the vertex w of the whole whose geodesic distances to the
    matched anchors' images are nearest its own to the anchors: ``argmin_w ‖d_P(v, A) − d_W(w, B)‖``. Then,
    ``n_rounds`` times, ``n_refine`` farthest-point samples of the part and their current images serve as the
@@ -50,9 +53,9 @@ geodesic distances to the consistent matches are from its image's, a fraction of
 ``confidence`` from it; and which part of the whole was matched (`PartMap.region`: the images of the part's
 vertices and the gaps between them).
 
-Assumptions: the part and the whole are at the same scale (a part of the same object or of a same-size one);
-geodesics inside the part are those of the whole, which holes or a cut across a narrow neck bend (the
-part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
+Assumptions: the part and the whole are at the same scale (a part of the same object or of a same-size one), or
+``scale`` says how they differ; geodesics inside the part are those of the whole, which holes or a cut across a
+narrow neck bend (the part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
 per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine`` dimensions, plus, the
 first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached). The
 geodesic distances computed on a whole are kept for the next part located in it (`KEEP_GEODESICS`), and
@@ -78,7 +81,8 @@ from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
-           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT"]
+           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
+           "SCALE_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -89,6 +93,14 @@ ORIENT_MARGIN = 0.5
 ORIENT_WEIGHT = 0.3
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
+#: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
+SCALE_RANGE = 1.5
+#: ... on a geometric grid of this many scales (steps of about 8 %), then halfway to the best one's neighbours
+SCALE_STEPS = 11
+#: with ``scale="same"``, a `LocateWarning` when the candidate matches agree most at a scale more than 10 % from
+#: 1, and by more than this factor over their agreement at 1. Chosen on FAUST's people (whose 5k meshes were
+#: scaled one by one), checked on TOSCA's parts, which share their wholes' scale (the docs' Results page)
+SCALE_DOUBT = 1.5
 
 
 class LocateWarning(UserWarning):
@@ -119,6 +131,13 @@ class LocateOptions:
         the one of least mean signature cost; a number w >= 0: the one of least ``cost / least cost − 1 − w ·
         orientation score``. For a part meshed apart from the whole, ``edge="whole", orient_weight=ORIENT_WEIGHT``
         (the docs' Results page)
+    scale : how the part's lengths compare with the whole's. ``"same"`` (default): one scale, as for a part cut
+        from a scan of the same object; ``"fit"``: found in step 2, as the scale of the part's geodesic distances
+        (from 1 / `SCALE_RANGE` to `SCALE_RANGE`) at which the candidate matches agree most (``consistent_matches``'
+        total agreement), for shapes normalised one by one (a data set scaled to unit size, where a part's pose
+        and its whole's were scaled apart); a number s > 0: the part's lengths times s are the whole's. Steps 2-5
+        then read the part's geodesic distances times that scale (`PartMap.scale`); the signatures are not
+        rescaled (LD-SIFT at each mesh's own edge length does not depend on the scale)
     """
 
     n_anchors: int = 64
@@ -132,6 +151,7 @@ class LocateOptions:
     rival_tol: float = 0.1
     edge: str = "own"
     orient_weight: float | None = None
+    scale: str | float = "same"
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -146,6 +166,7 @@ class LocateOptions:
         _validate.positive_finite("region_tol", self.region_tol)
         _validate.positive_finite("rival_tol", self.rival_tol)
         _validate.one_of("edge", self.edge, ("whole", "own"))
+        _validate.one_of_or_positive("scale", self.scale, ("same", "fit"))
 
 
 @dataclass(frozen=True)
@@ -179,6 +200,8 @@ class PartMap:
         this placement and for no other. Near 0 when the part fits nowhere (few consistent matches) or
         about as well elsewhere (one leg of a quadruped on another); below `PLACEMENT_DOUBT`, doubt the whole
         map, not only its low-``confidence`` vertices
+    scale : the factor by which the part's lengths were taken to give the whole's (`LocateOptions.scale`: 1 with
+        ``"same"``, the fitted one with ``"fit"``)
     """
 
     correspondence: np.ndarray
@@ -191,6 +214,7 @@ class PartMap:
     region_tol: float
     rival: np.ndarray
     placement_confidence: float
+    scale: float = 1.0
 
     def region(self, threshold: float | None = None) -> np.ndarray:
         """(N_W,) bool, the vertices of the whole that the part matched: ``image_distance <= threshold``
@@ -202,7 +226,7 @@ class PartMap:
         return (f"PartMap({len(self.correspondence)} -> {len(self.image_distance)} vertices, {len(self.anchors)} "
                 f"consistent anchors, median residual {np.median(self.residual):.3g}, "
                 f"orientation {self.orientation:.2f}, region {int(self.region().sum())} vertices, placement confidence "
-                f"{self.placement_confidence:.2f})")
+                f"{self.placement_confidence:.2f}" + ("" if self.scale == 1.0 else f", scale {self.scale:.3g}") + ")")
 
 
 #: meshes whose geodesic distances (`wpot.evaluate.GeodesicDistances`, the rows computed so far) `locate_part` keeps
@@ -256,22 +280,72 @@ def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarra
     d_part (M, M): geodesic distances on the part between the candidates' anchors; d_whole (M, M): on the
     whole between their targets; owner (M,): each candidate's anchor (at most one match per anchor is kept).
     Returns the kept candidates, in the order taken."""
+    return _consistent(d_part, d_whole, owner, sigma0, rel_tol)[0]
+
+
+def _agreement(d_part, d_whole, owner, sigma0, rel_tol):
+    """Step 2's agreement matrix (M, M), deviations |d_part − d_whole| and tolerances σ."""
     sig = sigma0 + rel_tol * np.minimum(d_part, d_whole)
     dev = np.abs(d_part - d_whole)
     w = np.exp(-0.5 * (dev / sig) ** 2)
     w[owner[:, None] == owner[None, :]] = 0.0
-    _, vecs = np.linalg.eigh(w)
-    x = np.abs(vecs[:, -1])  # the Perron vector of a nonnegative symmetric matrix (its sign is arbitrary)
+    return w, dev, sig
+
+
+def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> tuple[np.ndarray, float]:
+    """`consistent_matches`, and the total agreement among the matches it keeps (the sum of the agreement matrix
+    over their pairs). ``exact=False`` finds the leading eigenvector by Lanczos (`scipy.sparse.linalg.eigsh`),
+    many times faster, but near-ties in the greedy order can then fall the other way: good enough to compare
+    scales (`_scaled_matches`), not for the matches kept."""
+    w, dev, sig = _agreement(d_part, d_whole, owner, sigma0, rel_tol)
+    if exact or len(w) < 3:
+        vec = np.linalg.eigh(w)[1][:, -1]
+    else:
+        from scipy.sparse.linalg import eigsh
+
+        vec = eigsh(w, k=1, which="LA", v0=np.ones(len(w)))[1][:, 0]
+    x = np.abs(vec)  # the Perron vector of a nonnegative symmetric matrix (its sign is arbitrary)
+    near = dev <= 3.0 * sig  # symmetric: within 3 σ of each other
+    ok = x > 0  # within 3 σ of every match taken so far
     taken: list[int] = []
     used: set[int] = set()
     for m in np.argsort(-x, kind="stable"):
-        if x[m] <= 0 or owner[m] in used:
-            continue
-        if taken and np.any(dev[m, taken] > 3.0 * sig[m, taken]):
+        if not ok[m] or owner[m] in used:
             continue
         taken.append(int(m))
         used.add(int(owner[m]))
-    return np.asarray(taken, dtype=np.int64)
+        ok &= near[m]
+    kept = np.asarray(taken, dtype=np.int64)
+    return kept, float(w[np.ix_(kept, kept)].sum() / 2.0)
+
+
+def _scale_totals(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float) -> dict[float, float]:
+    """Step 2's total agreement (Lanczos, `_consistent`) with the part's distances times each scale of a grid of
+    `SCALE_STEPS` from 1 / `SCALE_RANGE` to `SCALE_RANGE` (1 among them), then halfway to the best one's
+    neighbours: {scale: total}."""
+    grid = SCALE_RANGE ** np.linspace(-1.0, 1.0, SCALE_STEPS)
+    total = {float(s): _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False)[1] for s in grid}
+    best = max(total, key=total.get)
+    step = np.sqrt(grid[1] / grid[0])
+    for s in (best / step, best * step):
+        total[float(s)] = _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False)[1]
+    return total
+
+
+def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float
+                    ) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """Step 2 at the part's scale (`LocateOptions.scale`): the consistent matches, the scale s by which the part's
+    geodesic distances ``d_part`` were multiplied, and the scale at which the matches agree most with that
+    agreement over the agreement at 1 (`_scale_totals`; with ``"fit"`` the first is s; (1, 1) for a given
+    number)."""
+    if opt.scale not in ("same", "fit"):
+        s = float(opt.scale)
+        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s, (1.0, 1.0)
+    total = _scale_totals(d_part, d_whole, owner, opt, sigma0)
+    best = max(total, key=total.get)
+    gain = total[best] / max(total[1.0], 1e-300)
+    s = best if opt.scale == "fit" else 1.0
+    return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s, (best, gain)
 
 
 def _distances(geo, sources: np.ndarray) -> np.ndarray:
@@ -294,17 +368,23 @@ class _Redraw:
     """Steps 3 and 4: a map of the part drawn from matched anchors by their geodesic distances, with the
     distances from the part's refinement anchors ``src`` computed once."""
 
-    def __init__(self, part: Mesh, whole: Mesh, src: np.ndarray, g_part=None, g_whole=None) -> None:
+    def __init__(self, part: Mesh, whole: Mesh, src: np.ndarray, g_part=None, g_whole=None,
+                 part_scale: float = 1.0) -> None:
         self.part, self.whole, self.src = part, whole, np.asarray(src, dtype=np.int64)
         self.g_part = _geodesics(part) if g_part is None else g_part
         self.g_whole = _geodesics(whole) if g_whole is None else g_whole
-        self.d_src = _distances(self.g_part, self.src).T  # (N_P, n_refine)
+        self.part_scale = float(part_scale)
+        self.d_src = self.on_part(self.src).T  # (N_P, n_refine)
+
+    def on_part(self, sources: np.ndarray) -> np.ndarray:
+        """(S, N_P) geodesic distances on the part from ``sources``, at the whole's scale (times ``part_scale``)."""
+        return self.part_scale * _distances(self.g_part, sources)
 
     def dense(self, from_part: np.ndarray, to_whole: np.ndarray) -> np.ndarray:
         """Each vertex of the part to the vertex of the whole whose geodesic distances to ``to_whole`` are
         nearest its own to ``from_part``: (N_P,) int64."""
 
-        return nearest_rows(_distances(self.g_part, from_part).T, _distances(self.g_whole, to_whole).T)[0]
+        return nearest_rows(self.on_part(from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
@@ -436,8 +516,14 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
-    kept = consistent_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, sigma0=opt.tol * scale,
-                              rel_tol=opt.rel_tol)
+    kept, part_scale, (best, gain) = _scaled_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, opt,
+                                                     opt.tol * scale)
+    d_anchor = part_scale * d_anchor
+    if opt.scale == "same" and abs(np.log(best)) > np.log(1.1) and gain > SCALE_DOUBT:
+        warnings.warn(named(part.name, f"the part's geodesic distances agree {gain:.1f} times better with the "
+                            f"whole's at {best:.2f} times their length: are the part and the whole at different "
+                            "scales (shapes normalised one by one)? LocateOptions(scale='fit') finds the scale"),
+                      LocateWarning, stacklevel=2)
     a, b = anchors[owner[kept]], target[kept]
     if len(kept) < 3:
         warnings.warn(f"only {len(kept)} consistent matches between the part and the whole: the part could not "
@@ -445,7 +531,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                       LocateWarning, stacklevel=2)
 
     # steps 3 and 4
-    draw = _Redraw(part, whole, src, g_part, g_whole)
+    draw = _Redraw(part, whole, src, g_part, g_whole, part_scale)
     t = draw.rounds(draw.dense(a, b), opt.n_rounds)
     rival = _rival(g_whole, whole, t[anchors], owner, target, d_anchor, d_target, opt, scale)
 
@@ -469,7 +555,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                  else np.nan_to_num(local_orientation(part, whole, t), nan=0.0))
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
-    fp0, fw0 = _distances(g_part, a).T, _distances(g_whole, b).T
+    fp0, fw0 = draw.on_part(a).T, _distances(g_whole, b).T
     res = np.linalg.norm(fp0 - fw0[t], axis=1) / np.sqrt(max(len(a), 1)) / scale
     confidence = np.exp(-res / opt.tol) * (1.0 + np.clip(local, -1.0, 1.0)) / 2.0
     return PartMap(correspondence=t.astype(np.int64), residual=res, confidence=confidence,
@@ -477,4 +563,4 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
                    region_tol=opt.region_tol,
                    rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
-                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)))
+                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)), scale=part_scale)
