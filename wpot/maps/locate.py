@@ -305,7 +305,7 @@ def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> 
 
         vec = eigsh(w, k=1, which="LA", v0=np.ones(len(w)))[1][:, 0]
     x = np.abs(vec)  # the Perron vector of a nonnegative symmetric matrix (its sign is arbitrary)
-    near = dev <= 3.0 * sig  # symmetric: within 3 σ of each other
+    near = dev <= 3.0 * sig  # near[i, j]: i within 3 σ of j (heat-method distances are not quite symmetric)
     ok = x > 0  # within 3 σ of every match taken so far
     taken: list[int] = []
     used: set[int] = set()
@@ -314,7 +314,7 @@ def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> 
             continue
         taken.append(int(m))
         used.add(int(owner[m]))
-        ok &= near[m]
+        ok &= near[:, m]
     kept = np.asarray(taken, dtype=np.int64)
     return kept, float(w[np.ix_(kept, kept)].sum() / 2.0)
 
