@@ -11,9 +11,8 @@ from typing import TYPE_CHECKING, Any, Iterable
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of", "one_of_or_positive",
-           "boolean",
-           "vertex_map"]
+__all__ = ["positive_finite", "nonnegative_finite", "number_at_least", "integer_at_least", "one_of",
+           "one_of_or_positive", "boolean", "vertex_map"]
 
 
 def _number(value: Any) -> float | None:

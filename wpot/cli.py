@@ -199,8 +199,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
         print(f"located map: {conf}; no rigid fit of A onto its images (too few confident, non-collinear vertices)")
     else:
         over = f"over {reg.n_inliers} of {reg.n_pairs} vertices of A (the inliers)"
-        print(f"located map: {conf}; rigid fit of A onto its images (at the scale locate used, {pm.scale:.3g}): rms residual "
-              f"{reg.rms_text()} {over}, rotation {reg.rotation_degrees:.3g} degrees")
+        print(f"located map: {conf}; rigid fit of A onto its images (at the scale locate used, {pm.scale:.3g}): "
+              f"rms residual {reg.rms_text()} {over}, rotation {reg.rotation_degrees:.3g} degrees")
     return _Located(pm, reg)
 
 

@@ -706,7 +706,7 @@ class Comparer:
         sw = c.signatures(whole)
         pm = locate_part(part, whole, c.signatures(part), sw, metric=self.stage.metric, options=options,
                          device=self.device)
-        if (pm.scale == 1.0 or options.scale != "fit" or c.config.signature != "ldsift"
+        if (options is None or options.scale != "fit" or pm.scale == 1.0 or c.config.signature != "ldsift"
                 or c.config.signature_options.edge is None):
             return pm
         grown = part.transformed(scale=pm.scale)

@@ -55,11 +55,12 @@ vertices and the gaps between them).
 
 Assumptions: the part and the whole are at the same scale (a part of the same object or of a same-size one), or
 ``scale`` says how they differ; geodesics inside the part are those of the whole, which holes or a cut across a
-narrow neck bend (the part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one heat-method solve
-per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine`` dimensions, plus, the
-first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`, then cached). The
-geodesic distances computed on a whole are kept for the next part located in it (`KEEP_GEODESICS`), and
-`prepare_whole` computes them all at once for a whole that many parts will be located in.
+narrow neck bend (the part's boundary makes some paths longer; ``rel_tol`` absorbs a share of that). Cost: one
+heat-method solve per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine``
+dimensions, plus, the first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`,
+then cached); step 2 is run at `SCALE_STEPS` + 2 trial scales by Lanczos (for ``"fit"``, or for ``"same"``'s
+warning). The geodesic distances computed on a whole are kept for the next part located in it
+(`KEEP_GEODESICS`), and `prepare_whole` computes them all at once for a whole that many parts will be located in.
 Timings and accuracy: the docs' Results page (Parts across poses).
 """
 from __future__ import annotations
@@ -132,12 +133,15 @@ class LocateOptions:
         orientation score``. For a part meshed apart from the whole, ``edge="whole", orient_weight=ORIENT_WEIGHT``
         (the docs' Results page)
     scale : how the part's lengths compare with the whole's. ``"same"`` (default): one scale, as for a part cut
-        from a scan of the same object; ``"fit"``: found in step 2, as the scale of the part's geodesic distances
+        from a scan of the same object, with a `LocateWarning` when the matches agree far better at another
+        (`SCALE_DOUBT`); ``"fit"``: found in step 2, as the scale of the part's geodesic distances
         (from 1 / `SCALE_RANGE` to `SCALE_RANGE`) at which the candidate matches agree most (``consistent_matches``'
         total agreement), for shapes normalised one by one (a data set scaled to unit size, where a part's pose
-        and its whole's were scaled apart); a number s > 0: the part's lengths times s are the whole's. Steps 2-5
-        then read the part's geodesic distances times that scale (`PartMap.scale`); the signatures are not
-        rescaled (LD-SIFT at each mesh's own edge length does not depend on the scale)
+        and its whole's were scaled apart); a number s > 0: the part's lengths times s are the whole's (1.0:
+        one scale, without ``"same"``'s check). Steps 2-5 then read the part's geodesic distances times that
+        scale (`PartMap.scale`). `locate_part` uses the signatures it is given; `Comparer.locate` describes the
+        part again at a fitted scale when LD-SIFT's edge length is set (``edge="whole"``), as each mesh's own
+        edge length does not depend on the scale
     """
 
     n_anchors: int = 64
