@@ -701,18 +701,23 @@ class Comparer:
         With ``scale="fit"`` and LD-SIFT at a set edge length (``edge="whole"``, or ``ldsift_edge``), whose images
         see the part at its own size, a part found at another scale is described again at the whole's and
         located at that scale."""
-        c = locating_comparer(self, whole, options)
         self._fit_to_pair(part, whole, ("part", "whole"))
-        sw = c.signatures(whole)
-        pm = locate_part(part, whole, c.signatures(part), sw, metric=self.stage.metric, options=options,
-                         device=self.device)
-        if (options is None or options.scale != "fit" or pm.scale == 1.0 or c.config.signature != "ldsift"
-                or c.config.signature_options.edge is None):
-            return pm
-        grown = part.transformed(scale=pm.scale)
-        again = locate_part(grown, whole, c.signatures(grown), sw, metric=self.stage.metric,
-                            options=dataclasses.replace(options, scale=1.0), device=self.device)
-        return dataclasses.replace(again, scale=pm.scale)
+        return locate(self, part, whole, options)
+
+
+def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
+    """`Comparer.locate` (after the comparer is fitted to the pair)."""
+    c = locating_comparer(comparer, whole, options)
+    sw = c.signatures(whole)
+    pm = locate_part(part, whole, c.signatures(part), sw, metric=comparer.stage.metric, options=options,
+                     device=comparer.device)
+    if (options is None or options.scale != "fit" or pm.scale == 1.0 or c.config.signature != "ldsift"
+            or c.config.signature_options.edge is None):
+        return pm
+    grown = part.transformed(scale=pm.scale)  # LD-SIFT at a set edge length sees the part at its own size
+    again = locate_part(grown, whole, c.signatures(grown), sw, metric=comparer.stage.metric,
+                        options=dataclasses.replace(options, scale=1.0), device=comparer.device)
+    return dataclasses.replace(again, scale=pm.scale)
 
 
 def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any) -> Any:

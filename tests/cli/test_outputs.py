@@ -169,7 +169,7 @@ def test_the_picture_places_b_by_the_located_map_that_is_reported(capsys, tmp_pa
     conf = f"median confidence {np.median(pm.confidence):.2f}"
     assert "rigid fit to the located map" in drawn["titles"][1] and conf in drawn["titles"][1]
     assert re.search(rf"^located map: confidence median {np.median(pm.confidence):.2f} \(\d+% of A's vertices above "
-                     r"0\.5\); rigid fit of A onto its images \(scale 1, as locate assumes\)", out, re.M), out
+                     r"0\.5\); rigid fit of A onto its images \(at the scale locate used, 1\)", out, re.M), out
 
 
 def test_picture_placement_prefers_the_located_map():

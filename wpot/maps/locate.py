@@ -336,20 +336,24 @@ def _scale_totals(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float) -
     return total
 
 
-def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float
-                    ) -> tuple[np.ndarray, float, tuple[float, float]]:
-    """Step 2 at the part's scale (`LocateOptions.scale`): the consistent matches, the scale s by which the part's
-    geodesic distances ``d_part`` were multiplied, and the scale at which the matches agree most with that
-    agreement over the agreement at 1 (`_scale_totals`; with ``"fit"`` the first is s; (1, 1) for a given
-    number)."""
+def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float, name: str | None = None
+                    ) -> tuple[np.ndarray, float]:
+    """Step 2 at the part's scale (`LocateOptions.scale`): the consistent matches, and the scale s by which the
+    part's geodesic distances ``d_part`` were multiplied. With ``"same"``, a `LocateWarning` (naming the part,
+    ``name``) when the matches agree `SCALE_DOUBT` times better at a scale more than 10 % from 1."""
     if opt.scale not in ("same", "fit"):
         s = float(opt.scale)
-        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s, (1.0, 1.0)
+        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s
     total = _scale_totals(d_part, d_whole, owner, opt, sigma0)
     best = max(total, key=total.get)
     gain = total[best] / max(total[1.0], 1e-300)
+    if opt.scale == "same" and abs(np.log(best)) > np.log(1.1) and gain > SCALE_DOUBT:
+        warnings.warn(named(name, f"the part's geodesic distances agree {gain:.1f} times better with the whole's "
+                            f"at {best:.2f} times their length: are the part and the whole at different scales "
+                            "(shapes normalised one by one)? LocateOptions(scale='fit') finds the scale"),
+                      LocateWarning, stacklevel=3)
     s = best if opt.scale == "fit" else 1.0
-    return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s, (best, gain)
+    return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s
 
 
 def _distances(geo, sources: np.ndarray) -> np.ndarray:
@@ -520,14 +524,9 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     d_anchor = _distances(g_part, anchors)[:, anchors]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
-    kept, part_scale, (best, gain) = _scaled_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, opt,
-                                                     opt.tol * scale)
+    kept, part_scale = _scaled_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, opt, opt.tol * scale,
+                                       part.name)
     d_anchor = part_scale * d_anchor
-    if opt.scale == "same" and abs(np.log(best)) > np.log(1.1) and gain > SCALE_DOUBT:
-        warnings.warn(named(part.name, f"the part's geodesic distances agree {gain:.1f} times better with the "
-                            f"whole's at {best:.2f} times their length: are the part and the whole at different "
-                            "scales (shapes normalised one by one)? LocateOptions(scale='fit') finds the scale"),
-                      LocateWarning, stacklevel=2)
     a, b = anchors[owner[kept]], target[kept]
     if len(kept) < 3:
         warnings.warn(f"only {len(kept)} consistent matches between the part and the whole: the part could not "
