@@ -41,7 +41,8 @@ from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
-from wpot.maps.retrieval import CALIBRATED_THICKNESS, RetrievalWarning, rank_classes, retrieval_sample
+from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, RetrievalWarning, rank_classes, retrieval_sample,
+                                 size_spread)
 from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
@@ -727,6 +728,13 @@ def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: S
         raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and {len(labels)} labels")
     if wholes:
         check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
+        spread = size_spread(wholes, labels)
+        if spread is not None and spread[1] > SIZE_SPREAD:
+            warnings.warn(f"the library's wholes of class {spread[0]!r} differ in size by up to {spread[1]:.2f} "
+                          "times (square root of area): retrieve reads size, so a part may be taken for another "
+                          "class's member of its size. Were the shapes scaled one by one? Bring each class to one "
+                          "scale, or with LD-SIFT describe each mesh at its own (RetrievalOptions(edge='own'))",
+                          RetrievalWarning, stacklevel=3)
     sample = retrieval_sample(part, options)
     rows, weights = (None, None) if sample is None else (sample.indices, sample.counts)
     if (options is None or options.edge == "library") and wholes:

@@ -206,6 +206,26 @@ def test_a_part_larger_than_every_whole_is_named():
         c.retrieve(part, wholes, ["x", "y"])
 
 
+def test_a_class_whose_wholes_differ_in_size_is_named():
+    """A library whose members of one class were scaled apart (a data set normalised shape by shape): retrieve
+    reads size, and says which class and how much, naming the option that describes each mesh at its own."""
+    import wpot
+    from wpot.maps.retrieval import SIZE_SPREAD, RetrievalWarning, size_spread
+
+    c = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    wholes = [wpot.example_mesh(300, seed=s) for s in (1, 2, 3)]
+    part = wpot.cut(wpot.example_mesh(300, seed=4), np.arange(150))[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrievalWarning)
+        c.retrieve(part, wholes, ["x", "y", "x"])
+    shrunk = [wholes[0], wholes[1], wholes[2].transformed(scale=0.8)]
+    name, ratio = size_spread(shrunk, ["x", "y", "x"])
+    assert name == "x" and ratio == pytest.approx(np.sqrt(wholes[0].area / shrunk[2].area)) and ratio > SIZE_SPREAD
+    with pytest.warns(RetrievalWarning, match=r"class 'x' differ in size by up to 1\.2\d times.*edge='own'"):
+        c.retrieve(part, shrunk, ["x", "y", "x"])
+    assert size_spread(wholes[:2], ["x", "y"]) is None  # one whole a class: nothing to compare
+
+
 def test_probability_grows_with_the_margin_and_needs_the_calibrated_options():
     """`ClassRanking.probability` is the calibrated logistic of the margin: in (0, 1), increasing with the margin,
     1 for the infinite margin of a ranking without a second class; NaN for options it was not calibrated for."""

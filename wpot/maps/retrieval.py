@@ -38,7 +38,7 @@ from wpot.mesh import Mesh
 from wpot.sampling import Subsample, farthest_point_sampling
 
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
-           "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample"]
+           "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -53,6 +53,9 @@ CALIBRATED_THICKNESS = 0.0
 EDGES = ("library", "own")
 #: the fixed rule that `ClassRanking.probability` replaces: a margin below this was called doubtful
 MARGIN_DOUBT = 0.12
+#: `Comparer.retrieve` warns when two wholes of one class differ in size (√area) by more than this factor:
+#: TOSCA's poses of a class agree within it, FAUST's 5k people (scaled one by one) do not (the docs' Results page)
+SIZE_SPREAD = 1.1
 
 
 def probability_of(margin: float) -> float:
@@ -64,7 +67,19 @@ def probability_of(margin: float) -> float:
 
 
 class RetrievalWarning(UserWarning):
-    """A part that cannot be a part of any whole of the library (larger than all of them)."""
+    """A part that cannot be a part of any whole of the library (larger than all of them), or a library whose
+    wholes of one class differ in size."""
+
+
+def size_spread(wholes: Sequence[Mesh], labels: Sequence[str]) -> tuple[str, float] | None:
+    """The class whose wholes differ most in size, and the ratio of its largest √area to its smallest; None when
+    no class has two wholes. Signatures that see size (LD-SIFT at one edge length for the library, WKS at the
+    meshes' own size) then also see whatever scaled a class's members apart."""
+    by: dict[str, list[float]] = {}
+    for w, label in zip(wholes, labels):
+        by.setdefault(str(label), []).append(float(np.sqrt(w.area)))
+    spread = [(name, max(r) / min(r)) for name, r in by.items() if len(r) > 1 and min(r) > 0]
+    return max(spread, key=lambda x: x[1]) if spread else None
 
 
 @dataclass(frozen=True)
