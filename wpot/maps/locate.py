@@ -96,7 +96,7 @@ ORIENT_WEIGHT = 0.3
 PLACEMENT_DOUBT = 0.1
 #: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
 SCALE_RANGE = 1.5
-#: ... on a geometric grid of this many scales (steps of about 8 %), then halfway to the best one's neighbours
+#: ... on a geometric grid of this many scales (steps of about 8 %), then half a step to each side of the best
 SCALE_STEPS = 11
 #: with ``scale="same"``, a `LocateWarning` when the candidate matches agree most at a scale more than 10 % from
 #: 1, and by more than this factor over their agreement at 1. Chosen on FAUST's people (whose 5k meshes were
@@ -325,8 +325,8 @@ def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> 
 
 def _scale_totals(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float) -> dict[float, float]:
     """Step 2's total agreement (Lanczos, `_consistent`) with the part's distances times each scale of a grid of
-    `SCALE_STEPS` from 1 / `SCALE_RANGE` to `SCALE_RANGE` (1 among them), then halfway to the best one's
-    neighbours: {scale: total}."""
+    `SCALE_STEPS` from 1 / `SCALE_RANGE` to `SCALE_RANGE` (1 among them), then half a step to each side of the
+    best: {scale: total}."""
     grid = SCALE_RANGE ** np.linspace(-1.0, 1.0, SCALE_STEPS)
     total = {float(s): _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False)[1] for s in grid}
     best = max(total, key=total.get)
