@@ -146,7 +146,7 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    "the docs' Results page)")
     p.add_argument("--locate-scale", default=None, metavar="SCALE",
                    help="how A's lengths compare with B's for --locate: same (default) one scale; fit: found by "
-                   "--locate, for shapes normalised one by one (each scaled to unit size apart); a number s: A's "
+                   "--locate, for shapes normalised one by one (each scaled on its own); a number s: A's "
                    "lengths times s are B's")
 
 
