@@ -137,9 +137,9 @@ class LocateOptions:
         (`SCALE_DOUBT`); ``"fit"``: found in step 2, as the scale of the part's geodesic distances
         (from 1 / `SCALE_RANGE` to `SCALE_RANGE`) at which the candidate matches agree most (``consistent_matches``'
         total agreement), for shapes normalised one by one (a data set whose shapes were each scaled on its own,
-        so that a part's pose and its whole's were scaled apart); a number s > 0: the part's lengths times s are the whole's (1.0:
-        one scale, without ``"same"``'s check). Steps 2-5 then read the part's geodesic distances times that
-        scale (`PartMap.scale`). `locate_part` uses the signatures it is given; `Comparer.locate` describes the
+        so that a part's pose and its whole's were scaled apart); a number s > 0: the part's lengths times s are
+        the whole's (1.0: one scale, without ``"same"``'s check). Steps 2-5 then read the part's geodesic
+        distances times that scale (`PartMap.scale`). `locate_part` uses the signatures it is given; `Comparer.locate` describes the
         part again at a fitted scale when LD-SIFT's edge length is set (``edge="whole"``), as each mesh's own
         edge length does not depend on the scale
     """
