@@ -32,26 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.part_retrieval import PartMeshes, library_wholes, method, open_store, score  # noqa: E402
 from benchmarks.partial_poses import _tosca, read_parts  # noqa: E402
-from wpot.maps.retrieval import CALIBRATED_THICKNESS, CALIBRATION, MARGIN_DOUBT  # noqa: E402
-
-
-def fit_logistic(x: np.ndarray, y: np.ndarray, *, ridge: float = 1e-3, n_iter: int = 50) -> tuple[float, float]:
-    """(intercept, slope) of ``P(y) = 1 / (1 + exp(-(a + b x)))`` by Newton's method on the log-likelihood, with a
-    small ridge on the slope (it keeps the fit finite when the set is separable). (NaN, NaN) when every outcome is
-    the same (nothing to fit: the intercept would run off to infinity)."""
-    if len(y) == 0 or y.min() == y.max():
-        return float("nan"), float("nan")
-    a = np.array([0.0, 0.0])
-    X = np.stack([np.ones_like(x), x], axis=1)
-    for _ in range(n_iter):
-        p = 1.0 / (1.0 + np.exp(-(X @ a)))
-        g = X.T @ (y - p) - ridge * np.array([0.0, a[1]])
-        h = (X * (p * (1 - p))[:, None]).T @ X + ridge * np.diag([0.0, 1.0])
-        step = np.linalg.solve(h, g)
-        a = a + step
-        if np.abs(step).max() < 1e-10:
-            break
-    return float(a[0]), float(a[1])
+from wpot.maps.retrieval import CALIBRATED_THICKNESS, CALIBRATION, MARGIN_DOUBT, fit_logistic  # noqa: E402
 
 
 def rows_of(out: Path, parts_dir: Path, w: float, wholes: dict, edge: str = "library"
@@ -85,25 +66,48 @@ def _set(values: list[str], default_data: Path) -> tuple[Path, Path, Path]:
     return Path(values[0]), Path(values[1]), data
 
 
-def report_set(name: str, m: np.ndarray, ok: np.ndarray, p: np.ndarray) -> list[tuple[int, float, float]]:
-    """Print one set's top-1, its parts with probability >= 0.9, the fixed rule, and its reliability table;
-    return the table's bins."""
+def report_set(name: str, m: np.ndarray, ok: np.ndarray, probabilities: dict[str, np.ndarray]
+               ) -> dict[str, list[tuple[int, float, float]]]:
+    """Print one set's top-1 and the fixed rule, then for each calibration (``probabilities``: its name, the
+    parts' probabilities) its parts with probability >= 0.9, its log loss and Brier score, and its reliability
+    table; return each calibration's table bins."""
     fit = fit_logistic(m, ok)
-    hi = p >= 0.9
     doubt = m < MARGIN_DOUBT
     print(f"\n{name}: {len(m)} parts, top-1 {ok.mean():.1%}; logistic fitted here: intercept {fit[0]:.3f}, slope "
           f"{fit[1]:.3f}")
-    print(f"  probability >= 0.9: {int(hi.sum())} parts, {int(ok[hi].sum())} right "
-          f"({ok[hi].mean() if hi.any() else float('nan'):.2%}); misses with probability >= 0.9: "
-          f"{int((hi & (ok == 0)).sum())}")
     print(f"  the fixed rule (margin < {MARGIN_DOUBT}): {int(doubt.sum())} parts doubtful, holding "
           f"{int((doubt & (ok == 0)).sum())} of the {int((ok == 0).sum())} misses; right among the others "
           f"{ok[~doubt].mean() if (~doubt).any() else float('nan'):.1%}")
-    print("  | parts | mean probability | right | gap |\n  | --- | --- | --- | --- |")
-    bins = reliability(p, ok)
-    for n, mp, acc in bins:
-        print(f"  | {n} | {mp:.3f} | {acc:.3f} | {100 * (acc - mp):+.1f} points |")
-    return bins
+    out = {}
+    for cal, p in probabilities.items():
+        hi = p >= 0.9
+        q = np.clip(p, 1e-12, 1 - 1e-12)
+        print(f"  {cal}: probability >= 0.9: {int(hi.sum())} parts, {int(ok[hi].sum())} right "
+              f"({ok[hi].mean() if hi.any() else float('nan'):.2%}); log loss "
+              f"{-np.mean(ok * np.log(q) + (1 - ok) * np.log(1 - q)):.3f}, Brier {np.mean((p - ok) ** 2):.3f}")
+        print("  | parts | mean probability | right | gap |\n  | --- | --- | --- | --- |")
+        out[cal] = reliability(p, ok)
+        for n, mp, acc in out[cal]:
+            print(f"  | {n} | {mp:.3f} | {acc:.3f} | {100 * (acc - mp):+.1f} points |")
+    return out
+
+
+def library_calibration(data: Path, wholes: dict, n_parts: int, out: Path):
+    """`Comparer.calibrate_retrieval` on every whole of ``data`` (LD-SIFT at its defaults, the default options),
+    read from ``out`` when a run before stored it (JSON)."""
+    import wpot
+    from benchmarks.partial_poses import shape_class
+    from wpot.maps.retrieval import RetrievalCalibration
+
+    path = out / f"library_calibration_{data.name}_{n_parts}.json"
+    if path.exists():
+        return RetrievalCalibration.from_json(path.read_text())
+    names = sorted(wholes)
+    cal = wpot.Comparer(signature="ldsift", device="cpu").calibrate_retrieval(
+        [wholes[n] for n in names], [shape_class(n) for n in names], n_parts=n_parts)
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(cal.to_json())
+    return cal
 
 
 def main(argv=None) -> int:
@@ -120,11 +124,16 @@ def main(argv=None) -> int:
                     help="LD-SIFT's edge length of the stored costs (part_retrieval.py --edge; default %(default)s)")
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("../shared/data/tosca_isometric_5k")),
                     help="the data folder of a set that names none (default: ../shared/data/tosca_isometric_5k)")
+    ap.add_argument("--library-parts", type=int, default=0,
+                    help="also calibrate on each set's library (Comparer.calibrate_retrieval) with this many parts cut "
+                         "from its wholes, and report those probabilities beside the shipped ones (default 0: off)")
     a = ap.parse_args(argv)
+    if a.library_parts < 0:
+        raise SystemExit(f"--library-parts must be >= 0, got {a.library_parts}")
     print(f"shipped calibration: intercept {CALIBRATION[0]:.3f}, slope {CALIBRATION[1]:.3f}; method "
           f"{method(a.weight, None, a.edge)}")
     wholes_of: dict[Path, dict] = {}
-    curves, pooled = {}, []
+    curves, pooled, seen = {}, [], set()
     for role, sets in (("development", a.dev), ("check", a.check)):
         for values in sets:
             out, parts, data = _set(values, a.tosca)
@@ -132,12 +141,19 @@ def main(argv=None) -> int:
                 wholes_of[data] = library_wholes(data)
             m, ok, p = rows_of(out, parts, a.weight, wholes_of[data], a.edge)
             name = f"{role} {out.name}"
-            if name in curves:  # two sets in folders of one name: each keeps its curve, told apart by path
+            if name in seen:  # two sets in folders of one name: each keeps its curve, told apart by path
                 name = f"{role} {out}"
+            seen.add(name)
             if not len(m):
                 print(f"\n{name}: no scored parts in {out}")
                 continue
-            curves[name] = report_set(name, m, ok, p)
+            probabilities = {"shipped": p}
+            if a.library_parts:
+                cal = library_calibration(data, wholes_of[data], a.library_parts, a.out)
+                print(f"\nthe library calibration of {data.name}: {cal.n_right} of {cal.n_parts} parts right, "
+                      f"intercept {cal.intercept:.3f}, slope {cal.slope:.3f}")
+                probabilities[f"library's own ({data.name})"] = np.array([cal.probability(x) for x in m])
+            curves[name] = report_set(name, m, ok, probabilities)
             if role == "development":
                 pooled.append((m, ok))
     if pooled:
@@ -151,15 +167,20 @@ def main(argv=None) -> int:
         import matplotlib.pyplot as plt
 
         a.out.mkdir(parents=True, exist_ok=True)
-        fig, ax = plt.subplots(figsize=(4.5, 4.5))
-        ax.plot([0, 1], [0, 1], color="0.7", lw=1)
-        for name, bins in curves.items():
-            ax.plot([b[1] for b in bins], [b[2] for b in bins], "o-",
-                    label=f"{name} ({sum(b[0] for b in bins)} parts)")
-        ax.set_xlabel("ClassRanking.probability (bin mean)")
-        ax.set_ylabel("share right (top-1)")
-        ax.set_title("retrieve: reliability")
-        ax.legend(loc="upper left")
+        cols = min(3, len(curves))
+        rows = -(-len(curves) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), squeeze=False)
+        for ax in axes.ravel()[len(curves):]:
+            ax.set_visible(False)
+        for ax, (name, by_cal) in zip(axes.ravel(), curves.items()):  # a panel a set, a line a calibration
+            ax.plot([0, 1], [0, 1], color="0.7", lw=1)
+            for cal_name, bins in by_cal.items():
+                ax.plot([b[1] for b in bins], [b[2] for b in bins], "o--" if cal_name != "shipped" else "o-",
+                        label=cal_name)
+            ax.set_title(f"{name} ({sum(b[0] for b in next(iter(by_cal.values())))} parts)", fontsize=9)
+            ax.set_xlabel("ClassRanking.probability (bin mean)", fontsize=8)
+            ax.set_ylabel("share right (top-1)", fontsize=8)
+            ax.legend(loc="upper left", fontsize=7)
         fig.tight_layout()
         fig.savefig(a.out / "reliability.png", dpi=120)
         print(f"\nfigure: {a.out / 'reliability.png'}")

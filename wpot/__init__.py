@@ -73,6 +73,7 @@ _EXPORTS: dict[str, str] = {
     "rank_classes": "wpot.maps.retrieval",
     "RetrievalOptions": "wpot.maps.retrieval",
     "ClassRanking": "wpot.maps.retrieval",
+    "RetrievalCalibration": "wpot.maps.retrieval",
     "cumulative_curve": "wpot.evaluate",
     "curve_auc": "wpot.evaluate",
     "list_shapes": "wpot.datasets",

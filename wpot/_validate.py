@@ -24,6 +24,14 @@ def _number(value: Any) -> float | None:
         return None
 
 
+def finite(name: str, value: Any) -> float:
+    """``value`` as a finite float (a bool or a string is refused)."""
+    v = _number(value)
+    if v is None or not math.isfinite(v):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return v
+
+
 def positive_finite(name: str, value: Any) -> float:
     """``value`` as a float > 0 and finite (a bool or a string is refused)."""
     v = _number(value)

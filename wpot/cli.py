@@ -368,6 +368,13 @@ def _retrieve_parser(sub: Any) -> None:
     p.add_argument("--out", default=None,
                    help="JSON file for the whole ranking: classes, scores, the members that scored each class, "
                         "and every whole's mean cost (default: none)")
+    p.add_argument("--calibration", default=None, metavar="JSON",
+                   help="the library's own calibration of the printed probability: read from this file, or when it "
+                        "does not exist yet, fitted on the library (--calibration-parts parts cut from its wholes, "
+                        "each looked up among the others: a one-off of that many lookups) and saved there (default: "
+                        "the shipped calibration, fitted on TOSCA)")
+    p.add_argument("--calibration-parts", type=int, default=100,
+                   help="parts that fit a new --calibration (default 100)")
     p.add_argument("--signature", choices=signature_names(), default="ldsift",
                    help="vertex signature (default: ldsift, without its thickness column)")
     add_signature_arguments(p)
@@ -1065,8 +1072,9 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
         bar.close()
     if comparer.stage.needs_fit:
         comparer.fit(wholes)
-    r = comparer.retrieve(part, wholes, list(shapes.labels["class"]),
-                          options=RetrievalOptions(k_nearest=a.k_nearest))
+    options = RetrievalOptions(k_nearest=a.k_nearest)
+    calibration = _retrieval_calibration(a, comparer, wholes, list(shapes.labels["class"]), options)
+    r = comparer.retrieve(part, wholes, list(shapes.labels["class"]), options=options, calibration=calibration)
     from wpot.comparison import at_common_edge
 
     edge = getattr(at_common_edge(comparer, wholes).config.signature_options, "edge", None)  # what retrieve used
@@ -1077,19 +1085,54 @@ def cmd_retrieve(a: argparse.Namespace) -> None:
             break
         print(f"  {k + 1}. {cls}  score {score:.4g}  nearest {shapes.names[members[0]]}")
     if len(r.classes) > 1:
-        chance = (f"; probability that {r.label} is right {r.probability:.2f}" if r.calibrated else
-                  f" (under {MARGIN_DOUBT}: doubtful; the probability is calibrated only for the default "
-                  f"--k-nearest and --signature ldsift with --ldsift-thickness {CALIBRATED_THICKNESS:g})")
+        whose = "the library's own calibration" if calibration is not None else "the shipped calibration"
+        chance = (f"; probability that {r.label} is right {r.probability:.2f} ({whose})" if r.calibrated else
+                  f" (under {MARGIN_DOUBT}: doubtful; the shipped probability is calibrated only for the default "
+                  f"--k-nearest and --signature ldsift with --ldsift-thickness {CALIBRATED_THICKNESS:g}: fit the "
+                  "library's own with --calibration)")
         print(f"margin {r.margin:.3g}: the second class's score less the first's{chance}")
     if a.out:
         out = {"part": str(a.part), "library": str(a.library), "k_nearest": a.k_nearest, "signature": a.signature,
                "ldsift_edge": edge,
                "classes": list(r.classes), "scores": [float(x) for x in r.scores], "margin": r.margin,
                "probability": None if np.isnan(r.probability) else r.probability,
+               "calibration": None if not r.calibrated else (a.calibration or "shipped"),
                "members": [[shapes.names[j] for j in m] for m in r.members],
                "whole_costs": {n: float(c) for n, c in zip(shapes.names, r.whole_costs)}}
         Path(a.out).write_text(json.dumps(out, indent=1))
         print(f"saved {a.out}")
+
+
+def _retrieval_calibration(a: argparse.Namespace, comparer: Any, wholes: list, labels: list, options: Any) -> Any:
+    """`wpot retrieve --calibration`: None without it; else the calibration read from its file, or fitted on the
+    library and saved there."""
+    from wpot.comparison import calibration_differences
+    from wpot.maps.retrieval import RetrievalCalibration
+
+    if a.calibration is None:
+        return None
+    path = Path(a.calibration)
+    if path.exists():
+        try:
+            cal = RetrievalCalibration.from_json(path.read_text())
+        except (ValueError, OSError, UnicodeDecodeError) as e:
+            raise CliError(f"--calibration {a.calibration}: {e}") from None
+        differ = calibration_differences(cal, comparer.config, options)
+        if differ:
+            raise CliError(f"--calibration {a.calibration} was fitted with other settings than these (--k-nearest, "
+                           f"--signature and its options): {'; '.join(differ)}. Fit one for these settings under "
+                           "another file name")
+        return cal
+    if a.calibration_parts < 1:
+        raise CliError(f"--calibration-parts must be at least 1, got {a.calibration_parts}")
+    try:
+        cal = comparer.calibrate_retrieval(wholes, labels, n_parts=a.calibration_parts, options=options)
+    except ValueError as e:
+        raise CliError(f"--calibration: cannot calibrate on the library {a.library}: {e}") from None
+    path.write_text(cal.to_json())
+    print(f"calibrated on the library: {cal.n_right} of {cal.n_parts} parts cut from its wholes were looked up "
+          f"right; saved {a.calibration}")
+    return cal
 
 
 def cmd_classify(a: argparse.Namespace) -> None:

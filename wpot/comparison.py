@@ -41,7 +41,8 @@ from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
-from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, RetrievalWarning, rank_classes, retrieval_sample,
+from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, RetrievalCalibration, RetrievalOptions,
+                                 RetrievalWarning, calibration_of, calibration_parts, rank_classes, retrieval_sample,
                                  size_spread)
 from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
@@ -670,9 +671,7 @@ class Comparer:
     def nearest_signature_distance(self, part: Mesh, whole: Mesh) -> float:
         """The mean, over the vertices of ``part``, of the cost from its signature to the nearest signature of
         ``whole`` (`wpot.cost.nearest_costs`): how well the whole explains each vertex of the part, whatever
-        their places. Asymmetric, no transport, no map: a distance for retrieving a part's class among whole
-        shapes (`retrieve` ranks a library's classes from the same per-vertex costs; the docs' Results page
-        compares the two)."""
+        their places. Asymmetric, no transport, no map (`retrieve` ranks classes from the same costs)."""
         self._fit_to_pair(part, whole, ("part", "whole"))
         return float(self.nearest_costs(part, [whole]).mean())
 
@@ -683,25 +682,27 @@ class Comparer:
         needs fitting (WKS) must be fitted first (`fit`)."""
         return library_costs(self, part, wholes)
 
-    def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None) -> Any:
-        """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`): from each
-        vertex's cost to the nearest signature of each whole (`nearest_costs`; for a part of more than
-        ``options.max_points`` vertices, those of its `wpot.maps.retrieval.retrieval_sample` only), standardised
-        per vertex, a class scored by the union of its nearest members. ``labels`` gives each whole's class; ``options`` is
-        a `wpot.maps.retrieval.RetrievalOptions`. Returns a `wpot.maps.retrieval.ClassRanking`, whose ``whole_costs``
-        are `nearest_signature_distance` for each whole."""
-        return retrieve(self, part, wholes, labels, options)
+    def retrieve(self, part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], *, options: Any = None,
+                 calibration: Any = None) -> Any:
+        """Rank the classes of a library of whole shapes for ``part`` (`wpot.maps.retrieval.rank_classes`) from each
+        vertex's cost to the nearest signature of each whole (`nearest_costs`, on the part's `retrieval_sample`),
+        standardised per vertex, a class scored by the union of its nearest members. ``labels``: each whole's class;
+        ``options``: a `wpot.maps.retrieval.RetrievalOptions`; ``calibration``: the library's own probability
+        (`calibrate_retrieval`), else the shipped one. Returns a `wpot.maps.retrieval.ClassRanking`."""
+        return retrieve(self, part, wholes, labels, options, calibration)
+
+    def calibrate_retrieval(self, wholes: Sequence[Mesh], labels: Sequence[str], *, n_parts: int = 100, seed: int = 0,
+                            options: Any = None) -> Any:
+        """`retrieve`'s probability fitted to this library: ``n_parts`` parts cut from its wholes, each looked up
+        among the others (`wpot.maps.retrieval.RetrievalCalibration`); a one-off of ``n_parts`` lookups."""
+        return calibrate_retrieval(self, wholes, labels, n_parts=n_parts, seed=seed, options=options)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
-        """Locate ``part`` in ``whole`` and map every vertex of it (`wpot.maps.locate.locate_part`): this comparer's
-        signatures propose the matches, geodesic consistency chooses among them. For a part against a whole
-        in another pose, where the transport's own ``correspondence`` lands on the true place for few
-        vertices; ``options`` is a `wpot.maps.locate.LocateOptions` (with ``edge="whole"``, LD-SIFT at the whole's
-        edge length for both meshes). Returns a `wpot.maps.locate.PartMap`.
-
-        With ``scale="fit"`` and LD-SIFT at a set edge length (``edge="whole"``, or ``ldsift_edge``), whose images
-        see the part at its own size, a part found at another scale is described again at the whole's and
-        located at that scale."""
+        """Locate ``part`` in ``whole`` (another pose, say) and map every vertex of it (`wpot.maps.locate.locate_part`):
+        this comparer's signatures propose the matches, geodesic consistency chooses among them. ``options``: a
+        `wpot.maps.locate.LocateOptions` (``edge="whole"``: LD-SIFT at the whole's edge length for both meshes;
+        ``scale="fit"`` with LD-SIFT at a set edge length: the part described again at the scale found). Returns a
+        `wpot.maps.locate.PartMap`."""
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate(self, part, whole, options)
 
@@ -721,26 +722,89 @@ def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
     return dataclasses.replace(again, scale=pm.scale)
 
 
-def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any) -> Any:
+def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any,
+             calibration: Any = None) -> Any:
     """`Comparer.retrieve`."""
     wholes = list(wholes)
     if len(wholes) != len(labels):
         raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} wholes and {len(labels)} labels")
+    if calibration is not None and not isinstance(calibration, RetrievalCalibration):
+        raise TypeError(f"calibration must be a RetrievalCalibration (Comparer.calibrate_retrieval), got "
+                        f"{type(calibration).__name__}")
     if wholes:
         check_part(part, max(wholes, key=lambda w: w.area), RetrievalWarning, "the library's largest whole")
-        spread = size_spread(wholes, labels)
-        if spread is not None and spread[1] > SIZE_SPREAD:
-            warnings.warn(f"the library's wholes of class {spread[0]!r} differ in size by up to {spread[1]:.2f} "
-                          "times (square root of area): retrieve reads size, so a part may be taken for another "
-                          "class's member of its size. Were the shapes scaled one by one? Bring each class to one "
-                          "scale, or with LD-SIFT describe each mesh at its own (RetrievalOptions(edge='own'))",
-                          RetrievalWarning, stacklevel=3)
+        _warn_size_spread(wholes, labels, stacklevel=4)
     sample = retrieval_sample(part, options)
     rows, weights = (None, None) if sample is None else (sample.indices, sample.counts)
     if (options is None or options.edge == "library") and wholes:
         comparer = at_common_edge(comparer, wholes)
     costs = library_costs(comparer, part, wholes, rows=rows)
-    return _as_calibrated(rank_classes(costs, labels, weights=weights, options=options), comparer.config)
+    ranking = rank_classes(costs, labels, weights=weights, options=options)
+    if calibration is None:
+        return _as_calibrated(ranking, comparer.config)
+    differ = calibration_differences(calibration, comparer.config, options)
+    if differ:
+        raise ValueError("calibration was fitted with other settings than this lookup's: " + "; ".join(differ)
+                         + ". Fit it again with these (Comparer.calibrate_retrieval)")
+    return dataclasses.replace(ranking, calibrated=True, coefficients=calibration.coefficients)
+
+
+def calibration_differences(calibration: RetrievalCalibration, config: ComparisonConfig, options: Any) -> list[str]:
+    """What differs between the settings ``calibration`` was fitted with and a lookup's (its comparer's
+    ``config``, its `wpot.maps.retrieval.RetrievalOptions`): empty when it applies."""
+    return [f"{what} {mine} (calibrated with {theirs})" for what, mine, theirs in (
+        ("options", _retrieval_options(options), calibration.options),
+        ("signature", signature_key(config), calibration.signature)) if mine != theirs]
+
+
+def _warn_size_spread(wholes: Sequence[Mesh], labels: Sequence[str], stacklevel: int) -> None:
+    """Warn (`RetrievalWarning`) when two wholes of one class differ in size by more than `SIZE_SPREAD`."""
+    spread = size_spread(wholes, labels)
+    if spread is not None and spread[1] > SIZE_SPREAD:
+        warnings.warn(f"the library's wholes of class {spread[0]!r} differ in size by up to {spread[1]:.2f} "
+                      "times (square root of area): retrieve reads size, so a part may be taken for another "
+                      "class's member of its size. Were the shapes scaled one by one? Bring each class to one "
+                      "scale, or with LD-SIFT describe each mesh at its own (RetrievalOptions(edge='own'))",
+                      RetrievalWarning, stacklevel=stacklevel)
+
+
+def signature_key(config: ComparisonConfig) -> str:
+    """The signature and its options, as text, less LD-SIFT's edge length (which `Comparer.retrieve` sets from
+    each library): what a `wpot.maps.retrieval.RetrievalCalibration` was fitted with."""
+    opts = config.signature_options
+    if config.signature == "ldsift":
+        opts = dataclasses.replace(opts, edge=None)
+    return f"{config.signature} {opts!r}"
+
+
+def _retrieval_options(options: Any) -> RetrievalOptions:
+    return RetrievalOptions() if options is None else options
+
+
+def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Sequence[str], *, n_parts: int,
+                        seed: int, options: Any) -> RetrievalCalibration:
+    """`Comparer.calibrate_retrieval`: each part of `wpot.maps.retrieval.calibration_parts` ranked by `retrieve`
+    among the library less its whole (every lookup at the whole library's edge length, so the library is described
+    once), then `wpot.maps.retrieval.calibration_of` on the margins and outcomes."""
+    wholes, labels = list(wholes), [str(x) for x in labels]
+    parts = calibration_parts(wholes, labels, n_parts, seed=seed)
+    _warn_size_spread(wholes, labels, stacklevel=4)
+    if _retrieval_options(options).edge == "library":
+        comparer = at_common_edge(comparer, wholes)
+    margins, right = [], []
+    bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part")
+    try:
+        for j, part in parts:
+            others = [i for i in range(len(wholes)) if i != j]
+            with warnings.catch_warnings():  # said once above
+                warnings.simplefilter("ignore", RetrievalWarning)
+                r = retrieve(comparer, part, [wholes[i] for i in others], [labels[i] for i in others], options)
+            margins.append(r.margin)
+            right.append(r.label == labels[j])
+            bar.update()
+    finally:
+        bar.close()
+    return calibration_of(margins, right, options, signature_key(comparer.config))
 
 
 def locating_comparer(comparer: "Comparer", whole: Mesh, options: Any) -> "Comparer":

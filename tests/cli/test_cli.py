@@ -414,3 +414,39 @@ def test_retrieve_prints_and_saves_the_library_ranking(dataset, tmp_path):
     _one_line_error(bad, "no such folder or list file")
     bad = wpot("retrieve", str(tmp_path / "part.off"), str(library[0]))
     _one_line_error(bad, "got the single mesh")
+
+
+@pytest.mark.slow
+def test_retrieve_calibrates_on_the_library_once_and_reuses_it(dataset, tmp_path):
+    """`wpot retrieve --calibration F`: the first call fits the library's calibration (as
+    `Comparer.calibrate_retrieval` does) and saves it to F; later calls read F and print the same probability; a
+    calibration of other settings, or a file that is not one, is a one-line error naming the flag."""
+    import wpot as wp_
+    from wpot.io import save_mesh
+    from wpot.maps.retrieval import RetrievalCalibration
+
+    blob = wp_.load_mesh(dataset / "blob1.off")
+    save_mesh(wp_.cut(blob, np.arange(blob.n_vertices // 2))[0], tmp_path / "part.off")
+    cal_file = tmp_path / "cal.json"
+    args = ("retrieve", str(tmp_path / "part.off"), str(dataset), "--calibration", str(cal_file),
+            "--calibration-parts", "3", "--device", "cpu", "--out", str(tmp_path / "r.json"))
+    first = wpot(*args)
+    assert first.returncode == 0, first.stderr
+    assert "calibrated on the library" in first.stdout and cal_file.exists()
+    cal = RetrievalCalibration.from_json(cal_file.read_text())
+    library = sorted(dataset.glob("*.off"))
+    ref = wp_.Comparer(signature="ldsift", device="cpu", cache_dir=False).calibrate_retrieval(
+        [wp_.load_mesh(p) for p in library], [wp_.class_label(p.stem) for p in library], n_parts=3)
+    assert cal.n_parts == 3 and cal.coefficients == pytest.approx(ref.coefficients, rel=1e-6)
+    saved = json.loads((tmp_path / "r.json").read_text())
+    assert saved["calibration"] == str(cal_file)
+    assert saved["probability"] == pytest.approx(cal.probability(saved["margin"]))
+    assert "(the library's own calibration)" in first.stdout
+    again = wpot(*args)
+    assert again.returncode == 0, again.stderr
+    assert "calibrated on the library" not in again.stdout
+    assert json.loads((tmp_path / "r.json").read_text())["probability"] == pytest.approx(saved["probability"])
+    bad = wpot(*args, "--k-nearest", "1")
+    _one_line_error(bad, "was fitted with other settings than these")
+    cal_file.write_text("not json")
+    _one_line_error(wpot(*args), f"--calibration {cal_file}: not a RetrievalCalibration's JSON")

@@ -240,3 +240,114 @@ def test_probability_grows_with_the_margin_and_needs_the_calibrated_options():
     assert r.calibrated and r.probability == pytest.approx(probability_of(r.margin))
     other = rank_classes(c, labels, options=RetrievalOptions(k_nearest=1))
     assert not other.calibrated and np.isnan(other.probability)
+
+
+def _penalised_log_likelihood(a, x, y, prior, weight):
+    z = a[0] + a[1] * x
+    return float(np.sum(y * z - np.logaddexp(0.0, z)) - 0.5 * np.sum(np.asarray(weight) * (a - prior) ** 2))
+
+
+@pytest.mark.parametrize("prior,weight", [((0.0, 0.0), (0.0, 1e-3)), ((-0.9, 25.0), (1.0, 0.04))])
+def test_fit_logistic_agrees_with_a_general_optimiser(prior, weight):
+    """Newton's fit is the maximum of the penalised log-likelihood that scipy's BFGS finds from scratch, and on
+    many outcomes drawn from a known logistic it lands near that logistic."""
+    from scipy.optimize import minimize
+
+    from wpot.maps.retrieval import fit_logistic
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 0.4, 2000)
+    y = (rng.uniform(size=x.size) < 1.0 / (1.0 + np.exp(-(-1.0 + 15.0 * x)))).astype(float)
+    a = np.array(fit_logistic(x, y, prior=prior, weight=weight))
+    ref = minimize(lambda c: -_penalised_log_likelihood(c, x, y, np.array(prior), weight), np.zeros(2),
+                   method="BFGS", options={"gtol": 1e-9}).x
+    np.testing.assert_allclose(a, ref, rtol=1e-4, atol=1e-4)
+    assert abs(a[0] + 1.0) < 0.3 and abs(a[1] - 15.0) < 2.5
+
+
+def test_fit_logistic_when_every_outcome_is_the_same():
+    """All right: no maximum without a prior on the intercept (NaN, as said), a finite one with it, surer than
+    the prior at the data; bad input is named."""
+    from wpot.maps.retrieval import CALIBRATION, fit_logistic, probability_of
+
+    x = np.linspace(0.0, 0.3, 50)
+    assert np.isnan(fit_logistic(x, np.ones_like(x))).all()
+    a = fit_logistic(x, np.ones_like(x), prior=CALIBRATION, weight=(1.0, float(np.mean(x ** 2))))
+    assert np.isfinite(a).all()
+    assert all(probability_of(v, a) > probability_of(v) for v in x)
+    with pytest.raises(ValueError, match="x and y must be finite and of one nonzero length"):
+        fit_logistic(x, np.ones(3))
+
+
+def _library():
+    import wpot
+
+    wholes = [wpot.example_mesh(300, seed=s) for s in (1, 2, 3, 4, 5)]
+    return wholes, ["x", "y", "x", "y", "z"]
+
+
+def test_calibration_parts_are_drawn_class_by_class_and_cut_as_said():
+    """Parts of classes of two or more wholes only, classes in turn, connected, no larger than PART_FRACTIONS
+    allows; the same for a seed; a library without a class of two wholes is refused."""
+    from wpot.maps.retrieval import PART_FRACTIONS, calibration_parts
+
+    wholes, labels = _library()
+    parts = calibration_parts(wholes, labels, 8, seed=3)
+    assert len(parts) == 8
+    classes = [labels[j] for j, _ in parts]
+    assert "z" not in classes and all(a != b for a, b in zip(classes, classes[1:]))
+    for j, p in parts:
+        assert p.n_components == 1 and 20 <= p.n_vertices < wholes[j].n_vertices
+        assert p.area <= PART_FRACTIONS[1] * wholes[j].area + 1e-9
+    again = calibration_parts(wholes, labels, 8, seed=3)
+    assert all(j == k and np.array_equal(p.vertices, q.vertices) for (j, p), (k, q) in zip(parts, again))
+    with pytest.raises(ValueError, match="no class has two wholes"):
+        calibration_parts(wholes[:3], ["x", "y", "z"], 4)
+
+
+def test_retrieval_calibration_round_trips_and_checks_its_fields():
+    from wpot.maps.retrieval import RetrievalCalibration
+
+    cal = RetrievalCalibration(-0.5, 12.0, 40, 31, RetrievalOptions(k_nearest=2), "ldsift ...")
+    assert RetrievalCalibration.from_json(cal.to_json()) == cal
+    assert cal.probability(0.1) == pytest.approx(1.0 / (1.0 + np.exp(-(-0.5 + 1.2))))
+    with pytest.raises(ValueError, match="not a RetrievalCalibration's JSON"):
+        RetrievalCalibration.from_json('{"intercept": 1}')
+    with pytest.raises(ValueError, match="n_right .* cannot exceed n_parts"):
+        RetrievalCalibration(0.0, 1.0, 3, 4, RetrievalOptions(), "s")
+    with pytest.raises(ValueError, match="slope must be a finite number"):
+        RetrievalCalibration(0.0, float("nan"), 3, 2, RetrievalOptions(), "s")
+
+
+def test_comparer_calibrates_retrieval_on_its_library():
+    """`Comparer.calibrate_retrieval`: its counts are those of the parts of `calibration_parts` looked up among
+    the other wholes, its coefficients `calibration_of` their margins; `retrieve` with it gives that logistic's
+    probability, and refuses a calibration made with other options or another signature."""
+    import wpot
+    from wpot.maps.retrieval import calibration_of, calibration_parts
+
+    c = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    wholes, labels = _library()
+    cal = c.calibrate_retrieval(wholes, labels, n_parts=4, seed=1)
+    margins, right = [], []
+    for j, part in calibration_parts(wholes, labels, 4, seed=1):
+        keep = [i for i in range(len(wholes)) if i != j]
+        # the lookups of the calibration see the whole library's edge length, not the four wholes'
+        r = c.with_options(ldsift_edge=wpot.signatures._frames.common_edge(wholes)).retrieve(
+            part, [wholes[i] for i in keep], [labels[i] for i in keep])
+        margins.append(r.margin)
+        right.append(r.label == labels[j])
+    assert (cal.n_parts, cal.n_right) == (4, sum(right))
+    ref = calibration_of(margins, right, None, cal.signature)
+    assert cal.coefficients == pytest.approx(ref.coefficients)
+    part = wpot.cut(wpot.example_mesh(300, seed=6), np.arange(150))[0]
+    r = c.retrieve(part, wholes, labels, calibration=cal)
+    assert r.calibrated and r.probability == pytest.approx(cal.probability(r.margin))
+    with pytest.raises(ValueError, match=r"other settings.*options RetrievalOptions\(k_nearest=1"):
+        c.retrieve(part, wholes, labels, calibration=cal, options=RetrievalOptions(k_nearest=1))
+    with pytest.raises(ValueError, match=r"other settings.*signature ldsift .*thickness=2\.0"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            c.with_options(ldsift_thickness=2.0).retrieve(part, wholes, labels, calibration=cal)
+    with pytest.raises(TypeError, match="calibration must be a RetrievalCalibration"):
+        c.retrieve(part, wholes, labels, calibration=(0.0, 1.0))

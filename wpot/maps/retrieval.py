@@ -27,6 +27,9 @@ of whole shapes).
 """
 from __future__ import annotations
 
+import dataclasses
+import json
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -34,11 +37,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wpot import _validate
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, MeshWarning, cut
 from wpot.sampling import Subsample, farthest_point_sampling
 
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
-           "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread"]
+           "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread",
+           "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -58,12 +62,40 @@ MARGIN_DOUBT = 0.12
 SIZE_SPREAD = 1.1
 
 
-def probability_of(margin: float) -> float:
-    """The calibrated probability (`CALIBRATION`) that a ranking whose margin is ``margin`` has the right first
-    class; 1 for an infinite margin."""
+#: the share of its whole's area that each part `calibration_parts` cuts takes, drawn uniformly between these
+PART_FRACTIONS = (0.1, 0.6)
+
+
+def probability_of(margin: float, coefficients: tuple[float, float] = CALIBRATION) -> float:
+    """The calibrated probability that a ranking whose margin is ``margin`` has the right first class: the logistic
+    ``1 / (1 + exp(-(intercept + slope · margin)))`` of ``coefficients`` (default the shipped `CALIBRATION`); 1
+    for an infinite margin."""
     if np.isinf(margin):
         return 1.0
-    return float(1.0 / (1.0 + np.exp(-(CALIBRATION[0] + CALIBRATION[1] * float(margin)))))
+    return float(1.0 / (1.0 + np.exp(-(coefficients[0] + coefficients[1] * float(margin)))))
+
+
+def fit_logistic(x: ArrayLike, y: ArrayLike, *, prior: tuple[float, float] = (0.0, 0.0),
+                 weight: tuple[float, float] = (0.0, 1e-3), n_iter: int = 100) -> tuple[float, float]:
+    """(intercept, slope) of ``P(y = 1) = 1 / (1 + exp(-(a + b x)))``: the maximum of the log-likelihood of the
+    outcomes ``y`` (N,) in {0, 1} at ``x`` (N,), less ``½ Σ weight_i (coefficient_i − prior_i)²``, by Newton's
+    method. The default, a small ridge on the slope, keeps the fit finite when the set is separable but not when
+    every outcome is the same: then (NaN, NaN) unless the intercept has a weight, which holds it near its prior."""
+    x, y = np.asarray(x, dtype=np.float64).ravel(), np.asarray(y, dtype=np.float64).ravel()
+    if x.shape != y.shape or not len(y) or not np.isfinite(x).all():
+        raise ValueError(f"x and y must be finite and of one nonzero length, got {len(x)} and {len(y)}")
+    if y.min() == y.max() and weight[0] <= 0:
+        return float("nan"), float("nan")
+    a0, lam = np.asarray(prior, dtype=np.float64), np.diag(np.asarray(weight, dtype=np.float64))
+    a = a0.copy()
+    X = np.stack([np.ones_like(x), x], axis=1)
+    for _ in range(n_iter):
+        p = 1.0 / (1.0 + np.exp(-(X @ a)))
+        step = np.linalg.solve((X * (p * (1 - p))[:, None]).T @ X + lam, X.T @ (y - p) - lam @ (a - a0))
+        a = a + step
+        if np.abs(step).max() < 1e-10:
+            break
+    return float(a[0]), float(a[1])
 
 
 class RetrievalWarning(UserWarning):
@@ -143,7 +175,10 @@ class ClassRanking:
     whole_costs : (M,) float64, each whole's mean per-vertex cost (`Comparer.nearest_signature_distance`; a
         weighted mean with `rank_classes`'s ``weights``)
     calibrated : whether the ranking was made as `probability` was calibrated: the default options, and (when
-        `Comparer.retrieve` made it) LD-SIFT at its defaults (its thickness column at `CALIBRATED_THICKNESS`, none)
+        `Comparer.retrieve` made it) LD-SIFT at its defaults (its thickness column at `CALIBRATED_THICKNESS`, none);
+        or the options and signature of the `RetrievalCalibration` given to `Comparer.retrieve`
+    coefficients : (intercept, slope) of `probability`'s logistic: the shipped `CALIBRATION`, or a library's own
+        (`RetrievalCalibration`)
     """
 
     classes: tuple[str, ...]
@@ -151,6 +186,7 @@ class ClassRanking:
     members: tuple[tuple[int, ...], ...]
     whole_costs: np.ndarray
     calibrated: bool = False
+    coefficients: tuple[float, float] = CALIBRATION
 
     @property
     def label(self) -> str:
@@ -166,12 +202,13 @@ class ClassRanking:
 
     @property
     def probability(self) -> float:
-        """The chance that `label` is the part's class, from the margin (`probability_of`): calibrated on parts
-        of TOSCA shapes looked up in a library of TOSCA's other poses with LD-SIFT at its defaults
-        (`benchmarks/retrieval_calibration.py`), so a guide for libraries like it: where the classes are alike
-        (FAUST's people, a class per person) it is too sure. NaN for a ranking made
-        otherwise (``calibrated`` False: other options or signatures), whose margins are on another scale."""
-        return probability_of(self.margin) if self.calibrated else float("nan")
+        """The chance that `label` is the part's class, from the margin (`probability_of` with ``coefficients``).
+        The shipped calibration was fitted on parts of TOSCA shapes looked up in a library of TOSCA's other poses
+        with LD-SIFT at its defaults (`benchmarks/retrieval_calibration.py`), so it is a guide for libraries like
+        that one; a library whose classes are more alike (FAUST's people, a class per person) calls for its own
+        (`Comparer.calibrate_retrieval`). NaN for a ranking made otherwise (``calibrated`` False: other options
+        or signatures), whose margins are on another scale."""
+        return probability_of(self.margin, self.coefficients) if self.calibrated else float("nan")
 
     def rank(self, label: str) -> int:
         """1-based rank of class ``label`` (1 = best)."""
@@ -242,3 +279,122 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, weights: ArrayLike 
     order = np.argsort(scores, kind="stable")
     return ClassRanking(tuple(names[i] for i in order), np.asarray(scores)[order],
                         tuple(members[i] for i in order), whole_costs, calibrated=o == RetrievalOptions())
+
+
+@dataclass(frozen=True)
+class RetrievalCalibration:
+    """`ClassRanking.probability` fitted to one library (`Comparer.calibrate_retrieval`): parts cut from its own
+    wholes (`calibration_parts`), each looked up among the other wholes, and a logistic regression of "the first
+    class is right" on the ranking's margin (`fit_logistic`), held near the shipped `CALIBRATION` by a prior worth
+    (`calibration_of`), so that a library on which every part is right still gets a finite fit.
+
+    Attributes
+    ----------
+    intercept, slope : the logistic's coefficients (`probability_of`)
+    n_parts, n_right : how many parts were looked up, and how many of them came out right
+    options : the `RetrievalOptions` the parts were ranked with; `Comparer.retrieve` uses the calibration only
+        with these
+    signature : the signature the parts were described with (`wpot.comparison.signature_key`), likewise
+    """
+
+    intercept: float
+    slope: float
+    n_parts: int
+    n_right: int
+    options: RetrievalOptions
+    signature: str
+
+    def __post_init__(self) -> None:
+        for name in ("intercept", "slope"):
+            object.__setattr__(self, name, _validate.finite(name, getattr(self, name)))
+        for name, least in (("n_parts", 1), ("n_right", 0)):
+            object.__setattr__(self, name, _validate.integer_at_least(name, getattr(self, name), least))
+        if self.n_right > self.n_parts:
+            raise ValueError(f"n_right ({self.n_right}) cannot exceed n_parts ({self.n_parts})")
+        if not isinstance(self.options, RetrievalOptions):
+            raise TypeError(f"options must be a RetrievalOptions, got {type(self.options).__name__}")
+        if not isinstance(self.signature, str):
+            raise TypeError(f"signature must be a str, got {type(self.signature).__name__}")
+
+    @property
+    def coefficients(self) -> tuple[float, float]:
+        """(intercept, slope)."""
+        return (self.intercept, self.slope)
+
+    def probability(self, margin: float) -> float:
+        """The chance that a ranking of margin ``margin`` has the right first class."""
+        return probability_of(margin, self.coefficients)
+
+    def to_json(self) -> str:
+        """The calibration as JSON text (`from_json` reads it back): keep it beside the library."""
+        return json.dumps(dataclasses.asdict(self), indent=1)
+
+    @classmethod
+    def from_json(cls, text: str) -> "RetrievalCalibration":
+        """Read `to_json`'s text; ValueError naming what is missing or wrong."""
+        try:
+            d = json.loads(text)
+            d["options"] = RetrievalOptions(**d["options"])
+            return cls(**d)
+        except (json.JSONDecodeError, TypeError, KeyError) as e:
+            raise ValueError(f"not a RetrievalCalibration's JSON: {e}") from None
+
+
+def calibration_of(margins: ArrayLike, right: ArrayLike, options: RetrievalOptions | None, signature: str
+                   ) -> RetrievalCalibration:
+    """The `RetrievalCalibration` of parts whose rankings had ``margins`` (N,) and came out ``right`` (N,) or not:
+    `fit_logistic` held near the shipped `CALIBRATION` by a weak prior, of unit weight on the intercept and on the
+    slope times the margins' root mean square (a change of one in the logit at a typical margin costs as much as
+    one in the intercept)."""
+    m, y = np.asarray(margins, dtype=np.float64), np.asarray(right, dtype=bool)
+    if m.shape != y.shape or not len(m) or not np.isfinite(m).all():
+        raise ValueError(f"margins must be finite and one per outcome, got {m.shape} and {y.shape}")
+    rms2 = max(float(np.mean(m ** 2)), 1e-12)
+    a, b = fit_logistic(m, y, prior=CALIBRATION, weight=(1.0, rms2))
+    return RetrievalCalibration(a, b, len(m), int(y.sum()), _options(options), signature)
+
+
+def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: int, *, seed: int = 0
+                      ) -> list[tuple[int, Mesh]]:
+    """``n_parts`` parts cut from a library's wholes, for `Comparer.calibrate_retrieval`: (the whole's index, the
+    part). The wholes are drawn class by class in turn (so that every class counts alike), among the classes of
+    at least two wholes (a part of a class of one cannot be looked up once its whole is left out). Parts alternate
+    between two cuts, each taking a share of the whole's area drawn uniformly in `PART_FRACTIONS`: the vertices
+    within a Euclidean ball around a random vertex (a head, a hand, a disc), and those on one side of a plane of
+    random direction (a cut); the largest connected piece is kept. Deterministic for a seed."""
+    labels = [str(x) for x in labels]
+    if len(labels) != len(wholes):
+        raise ValueError(f"wholes and labels must be of one length, got {len(wholes)} and {len(labels)}")
+    n_parts = _validate.integer_at_least("n_parts", n_parts, 1)
+    by: dict[str, list[int]] = {}
+    for i, label in enumerate(labels):
+        by.setdefault(label, []).append(i)
+    classes = sorted(c for c, members in by.items() if len(members) > 1)
+    if not classes:
+        raise ValueError("no class has two wholes: a part cut from a whole cannot be looked up once that whole is "
+                         "left out, so there is nothing to calibrate on")
+    rng = np.random.default_rng(seed)
+    out: list[tuple[int, Mesh]] = []
+    start = int(rng.integers(len(classes)))
+    while len(out) < n_parts:
+        j = int(rng.choice(by[classes[(start + len(out)) % len(classes)]]))
+        mesh = wholes[j]
+        v, areas = mesh.vertices, mesh.vertex_areas
+        if len(out) % 2 == 0:  # a ball around a random vertex
+            height = np.linalg.norm(v - v[rng.integers(mesh.n_vertices)], axis=1)
+        else:  # one side of a plane of random direction
+            d = rng.normal(size=3)
+            height = v @ (d / np.linalg.norm(d))
+        order = np.argsort(height, kind="stable")
+        share = np.cumsum(areas[order]) / areas.sum()
+        keep = order[:int(np.searchsorted(share, rng.uniform(*PART_FRACTIONS))) + 1]
+        try:
+            with warnings.catch_warnings():  # the pieces a cut leaves are dropped here
+                warnings.simplefilter("ignore", MeshWarning)
+                part, _ = cut(mesh, keep)
+                part, _ = part.cleaned(keep_largest_component=True)
+        except ValueError:
+            continue
+        if part.n_vertices >= 20:
+            out.append((j, part))
+    return out
