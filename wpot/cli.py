@@ -371,8 +371,9 @@ def _retrieve_parser(sub: Any) -> None:
     p.add_argument("--calibration", default=None, metavar="JSON",
                    help="the library's own calibration of the printed probability: read from this file, or when it "
                         "does not exist yet, fitted on the library (--calibration-parts parts cut from its wholes, "
-                        "each looked up among the others: a one-off of that many lookups) and saved there (default: "
-                        "the shipped calibration, fitted on TOSCA)")
+                        "each looked up among the others: a one-off of that many lookups, kept in JSON.lookups.jsonl "
+                        "as they are made, so that a stopped calibration resumes) and saved there (default: the "
+                        "shipped calibration, fitted on TOSCA)")
     p.add_argument("--calibration-parts", type=int, default=100,
                    help="parts that fit a new --calibration (default 100)")
     p.add_argument("--signature", choices=signature_names(), default="ldsift",
@@ -1125,11 +1126,14 @@ def _retrieval_calibration(a: argparse.Namespace, comparer: Any, wholes: list, l
         return cal
     if a.calibration_parts < 1:
         raise CliError(f"--calibration-parts must be at least 1, got {a.calibration_parts}")
+    record = path.with_name(path.name + ".lookups.jsonl")  # a stopped calibration resumes from it
     try:
-        cal = comparer.calibrate_retrieval(wholes, labels, n_parts=a.calibration_parts, options=options)
+        cal = comparer.calibrate_retrieval(wholes, labels, n_parts=a.calibration_parts, options=options,
+                                           record=record)
     except ValueError as e:
         raise CliError(f"--calibration: cannot calibrate on the library {a.library}: {e}") from None
     path.write_text(cal.to_json())
+    record.unlink()
     print(f"calibrated on the library: {cal.n_right} of {cal.n_parts} parts cut from its wholes were looked up "
           f"right; saved {a.calibration}")
     return cal

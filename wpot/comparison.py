@@ -41,9 +41,9 @@ from wpot._warp import available_memory, resolve_device
 from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
-from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, RetrievalCalibration, RetrievalOptions,
-                                 RetrievalWarning, calibration_of, calibration_parts, rank_classes, retrieval_sample,
-                                 size_spread)
+from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, CalibrationRecord, RetrievalCalibration,
+                                 RetrievalOptions, RetrievalWarning, calibration_of, calibration_parts, rank_classes,
+                                 retrieval_sample, size_spread)
 from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
@@ -692,10 +692,10 @@ class Comparer:
         return retrieve(self, part, wholes, labels, options, calibration)
 
     def calibrate_retrieval(self, wholes: Sequence[Mesh], labels: Sequence[str], *, n_parts: int = 100, seed: int = 0,
-                            options: Any = None) -> Any:
-        """`retrieve`'s probability fitted to this library: ``n_parts`` parts cut from its wholes, each looked up
-        among the others (`wpot.maps.retrieval.RetrievalCalibration`); a one-off of ``n_parts`` lookups."""
-        return calibrate_retrieval(self, wholes, labels, n_parts=n_parts, seed=seed, options=options)
+                            options: Any = None, record: str | Path | None = None) -> Any:
+        """`retrieve`'s probability fitted to this library (`wpot.maps.retrieval.RetrievalCalibration`): ``n_parts``
+        parts cut from its wholes, each looked up among the others, and saved to a ``record`` file to resume from."""
+        return calibrate_retrieval(self, wholes, labels, n_parts=n_parts, seed=seed, options=options, record=record)
 
     def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
         """Locate ``part`` in ``whole`` (another pose, say) and map every vertex of it (`wpot.maps.locate.locate_part`):
@@ -782,29 +782,39 @@ def _retrieval_options(options: Any) -> RetrievalOptions:
 
 
 def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Sequence[str], *, n_parts: int,
-                        seed: int, options: Any) -> RetrievalCalibration:
+                        seed: int, options: Any, record: str | Path | None = None) -> RetrievalCalibration:
     """`Comparer.calibrate_retrieval`: each part of `wpot.maps.retrieval.calibration_parts` ranked by `retrieve`
     among the library less its whole (every lookup at the whole library's edge length, so the library is described
-    once), then `wpot.maps.retrieval.calibration_of` on the margins and outcomes."""
+    once), then `wpot.maps.retrieval.calibration_of` on the margins and outcomes. With ``record`` (a file), each
+    lookup is saved as it is made and a rerun resumes from them (`wpot.maps.retrieval.CalibrationRecord`)."""
     wholes, labels = list(wholes), [str(x) for x in labels]
     parts = calibration_parts(wholes, labels, n_parts, seed=seed)
     _warn_size_spread(wholes, labels, stacklevel=4)
     if _retrieval_options(options).edge == "library":
         comparer = at_common_edge(comparer, wholes)
-    margins, right = [], []
+    key = signature_key(comparer.config)
+    done = None if record is None else CalibrationRecord(record, {
+        "n_parts": len(parts), "seed": seed, "options": dataclasses.asdict(_retrieval_options(options)),
+        "signature": key, "library": [[w.fingerprint, x] for w, x in zip(wholes, labels)]})
+    found = {} if done is None else dict(done.done)
     bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part")
+    bar.update(len(found))
     try:
-        for j, part in parts:
+        for k, (j, part) in enumerate(parts):
+            if k in found:
+                continue
             others = [i for i in range(len(wholes)) if i != j]
             with warnings.catch_warnings():  # said once above
                 warnings.simplefilter("ignore", RetrievalWarning)
                 r = retrieve(comparer, part, [wholes[i] for i in others], [labels[i] for i in others], options)
-            margins.append(r.margin)
-            right.append(r.label == labels[j])
+            found[k] = (r.margin, r.label == labels[j])
+            if done is not None:
+                done.add(k, *found[k])
             bar.update()
     finally:
         bar.close()
-    return calibration_of(margins, right, options, signature_key(comparer.config))
+    margins, right = zip(*(found[k] for k in range(len(parts))))
+    return calibration_of(margins, right, options, key)
 
 
 def locating_comparer(comparer: "Comparer", whole: Mesh, options: Any) -> "Comparer":

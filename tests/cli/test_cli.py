@@ -433,6 +433,7 @@ def test_retrieve_calibrates_on_the_library_once_and_reuses_it(dataset, tmp_path
     first = wpot(*args)
     assert first.returncode == 0, first.stderr
     assert "calibrated on the library" in first.stdout and cal_file.exists()
+    assert not (tmp_path / "cal.json.lookups.jsonl").exists()  # the lookups' record, once the result is saved
     cal = RetrievalCalibration.from_json(cal_file.read_text())
     library = sorted(dataset.glob("*.off"))
     ref = wp_.Comparer(signature="ldsift", device="cpu", cache_dir=False).calibrate_retrieval(

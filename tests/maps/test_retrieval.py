@@ -351,3 +351,32 @@ def test_comparer_calibrates_retrieval_on_its_library():
             c.with_options(ldsift_thickness=2.0).retrieve(part, wholes, labels, calibration=cal)
     with pytest.raises(TypeError, match="calibration must be a RetrievalCalibration"):
         c.retrieve(part, wholes, labels, calibration=(0.0, 1.0))
+
+
+def test_a_stopped_calibration_resumes_from_its_record(tmp_path):
+    """With ``record``, every lookup is saved as it is made: a calibration stopped midway (here: its record cut
+    after two lookups, the last line half written) resumes with the parts left, and gives what an unbroken one
+    gives; a record of other settings is refused, naming what differs."""
+    import json
+
+    import wpot
+
+    c = wpot.Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    wholes, labels = _library()
+    rec = tmp_path / "cal.jsonl"
+    whole_run = c.calibrate_retrieval(wholes, labels, n_parts=4, seed=2, record=rec)
+    lines = rec.read_text().splitlines()
+    assert len(lines) == 5 and json.loads(lines[0])["n_parts"] == 4
+    assert sorted(json.loads(x)["part"] for x in lines[1:]) == [0, 1, 2, 3]
+    assert c.calibrate_retrieval(wholes, labels, n_parts=4, seed=2, record=rec) == whole_run  # all read back
+    rec.write_text("\n".join(lines[:3]) + "\n" + lines[3][:9])  # stopped while writing the third lookup
+    resumed = c.calibrate_retrieval(wholes, labels, n_parts=4, seed=2, record=rec)
+    assert resumed == whole_run
+    after = rec.read_text().splitlines()  # the two lookups kept, not made again; the two left appended
+    assert after[:3] == lines[:3] and len(after) == 5
+    assert sorted(json.loads(x)["part"] for x in after[1:]) == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match=r"holds the lookups of another calibration \(its seed differ\)"):
+        c.calibrate_retrieval(wholes, labels, n_parts=4, seed=3, record=rec)
+    with pytest.raises(ValueError, match=r"its library differ"):
+        c.calibrate_retrieval(wholes[:4] + [wholes[4].transformed(scale=1.01)], labels, n_parts=4, seed=2,
+                              record=rec)

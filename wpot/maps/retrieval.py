@@ -31,6 +31,7 @@ import dataclasses
 import json
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -42,7 +43,8 @@ from wpot.sampling import Subsample, farthest_point_sampling
 
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
            "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread",
-           "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS"]
+           "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS",
+           "CalibrationRecord"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -398,3 +400,39 @@ def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: in
         if part.n_vertices >= 20:
             out.append((j, part))
     return out
+
+
+class CalibrationRecord:
+    """The lookups of `Comparer.calibrate_retrieval` so far, in a JSON-lines file, so that a stopped calibration
+    resumes: a first line with its settings (``header``: the parts' count and seed, the options, the signature and
+    the library's content), then one line per part looked up (its index, margin and outcome). A file of other
+    settings is refused by name; a last line cut short by a stop is dropped and looked up again."""
+
+    def __init__(self, path: str | Path, header: dict) -> None:
+        self.path, self.done = Path(path), {}
+        if self.path.exists() and self.path.stat().st_size:
+            lines = self.path.read_text().splitlines()
+            try:
+                found = json.loads(lines[0])
+            except json.JSONDecodeError:
+                raise ValueError(f"record {self.path}: not a retrieval calibration's record") from None
+            if found != header:
+                differ = sorted(k for k in set(found) | set(header) if found.get(k) != header.get(k))
+                raise ValueError(f"record {self.path} holds the lookups of another calibration (its "
+                                 f"{', '.join(differ)} differ): give another file, or delete it to start again")
+            for line in lines[1:]:
+                try:
+                    d = json.loads(line)
+                    self.done[int(d["part"])] = (float(d["margin"]), bool(d["right"]))
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    break  # cut short by a stop: looked up again
+            self.path.write_text("".join(x + "\n" for x in lines[:1 + len(self.done)]))
+        else:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text(json.dumps(header) + "\n")
+
+    def add(self, part: int, margin: float, right: bool) -> None:
+        """Record part ``part``'s lookup (appended at once)."""
+        self.done[part] = (float(margin), bool(right))
+        with open(self.path, "a") as f:
+            f.write(json.dumps({"part": part, "margin": float(margin), "right": bool(right)}) + "\n")
