@@ -380,3 +380,21 @@ def test_a_stopped_calibration_resumes_from_its_record(tmp_path):
     with pytest.raises(ValueError, match=r"its library differ"):
         c.calibrate_retrieval(wholes[:4] + [wholes[4].transformed(scale=1.01)], labels, n_parts=4, seed=2,
                               record=rec)
+
+
+def test_a_library_calibration_serves_other_signatures():
+    """The shipped probability holds for LD-SIFT only (NaN for WKS); a calibration fitted with the WKS comparer
+    gives its rankings a probability, its own logistic of the margin."""
+    import wpot
+
+    wholes, labels = _library()
+    c = wpot.Comparer(signature="wks", device="cpu", cache_dir=False, n_eigen=30, n_energies=40)
+    c.fit(wholes)
+    part = wpot.cut(wpot.example_mesh(300, seed=6), np.arange(150))[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the smallest parts have fewer vertices than n_eigen
+        cal = c.calibrate_retrieval(wholes, labels, n_parts=4)
+        plain, mine = c.retrieve(part, wholes, labels), c.retrieve(part, wholes, labels, calibration=cal)
+    assert cal.signature.startswith("wks ") and np.isnan(plain.probability)
+    assert mine.calibrated and mine.probability == pytest.approx(cal.probability(mine.margin))
+    assert mine.classes == plain.classes
