@@ -42,8 +42,8 @@ from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
 from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, CalibrationRecord, RetrievalCalibration,
-                                 RetrievalOptions, RetrievalWarning, calibration_of, calibration_parts, rank_classes,
-                                 retrieval_sample, size_spread)
+                                 RetrievalOptions, RetrievalWarning, calibration_of, calibration_parts, library_digest,
+                                 rank_classes, retrieval_sample, size_spread)
 from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
@@ -746,6 +746,10 @@ def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: S
     if differ:
         raise ValueError("calibration was fitted with other settings than this lookup's: " + "; ".join(differ)
                          + ". Fit it again with these (Comparer.calibrate_retrieval)")
+    if calibration.library and calibration.library != library_digest(wholes, labels):
+        warnings.warn(f"calibration was fitted on another library than these {len(wholes)} wholes (other meshes or "
+                      "classes): its probability is that library's. Fit one on this library "
+                      "(Comparer.calibrate_retrieval)", RetrievalWarning, stacklevel=3)
     return dataclasses.replace(ranking, calibrated=True, coefficients=calibration.coefficients)
 
 
@@ -792,10 +796,10 @@ def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Se
     _warn_size_spread(wholes, labels, stacklevel=4)
     if _retrieval_options(options).edge == "library":
         comparer = at_common_edge(comparer, wholes)
-    key = signature_key(comparer.config)
+    key, library = signature_key(comparer.config), library_digest(wholes, labels)
     done = None if record is None else CalibrationRecord(record, {
         "n_parts": len(parts), "seed": seed, "options": dataclasses.asdict(_retrieval_options(options)),
-        "signature": key, "library": [[w.fingerprint, x] for w, x in zip(wholes, labels)]})
+        "signature": key, "library": library})
     found = {} if done is None else dict(done.done)
     bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part")
     bar.update(len(found))
@@ -814,7 +818,7 @@ def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Se
     finally:
         bar.close()
     margins, right = zip(*(found[k] for k in range(len(parts))))
-    return calibration_of(margins, right, options, key)
+    return calibration_of(margins, right, options, key, library)
 
 
 def locating_comparer(comparer: "Comparer", whole: Mesh, options: Any) -> "Comparer":

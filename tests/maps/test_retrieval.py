@@ -351,6 +351,15 @@ def test_comparer_calibrates_retrieval_on_its_library():
             c.with_options(ldsift_thickness=2.0).retrieve(part, wholes, labels, calibration=cal)
     with pytest.raises(TypeError, match="calibration must be a RetrievalCalibration"):
         c.retrieve(part, wholes, labels, calibration=(0.0, 1.0))
+    # the library it was fitted on, in any order: silent; another library: said, the probability still given
+    from wpot.maps.retrieval import RetrievalWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrievalWarning)
+        c.retrieve(part, wholes[::-1], labels[::-1], calibration=cal)
+    with pytest.warns(RetrievalWarning, match="fitted on another library than these 4 wholes"):
+        other = c.retrieve(part, wholes[:4], labels[:4], calibration=cal)
+    assert other.probability == pytest.approx(cal.probability(other.margin))
 
 
 def test_a_stopped_calibration_resumes_from_its_record(tmp_path):

@@ -28,6 +28,7 @@ of whole shapes).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import warnings
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from wpot.sampling import Subsample, farthest_point_sampling
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
            "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread",
            "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS",
-           "CalibrationRecord"]
+           "CalibrationRecord", "library_digest"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -297,6 +298,8 @@ class RetrievalCalibration:
     options : the `RetrievalOptions` the parts were ranked with; `Comparer.retrieve` uses the calibration only
         with these
     signature : the signature the parts were described with (`wpot.comparison.signature_key`), likewise
+    library : the library's content (`library_digest`); `Comparer.retrieve` warns when it is used with another
+        library ("" leaves it unchecked)
     """
 
     intercept: float
@@ -305,6 +308,7 @@ class RetrievalCalibration:
     n_right: int
     options: RetrievalOptions
     signature: str
+    library: str = ""
 
     def __post_init__(self) -> None:
         for name in ("intercept", "slope"):
@@ -315,8 +319,9 @@ class RetrievalCalibration:
             raise ValueError(f"n_right ({self.n_right}) cannot exceed n_parts ({self.n_parts})")
         if not isinstance(self.options, RetrievalOptions):
             raise TypeError(f"options must be a RetrievalOptions, got {type(self.options).__name__}")
-        if not isinstance(self.signature, str):
-            raise TypeError(f"signature must be a str, got {type(self.signature).__name__}")
+        for name in ("signature", "library"):
+            if not isinstance(getattr(self, name), str):
+                raise TypeError(f"{name} must be a str, got {type(getattr(self, name)).__name__}")
 
     @property
     def coefficients(self) -> tuple[float, float]:
@@ -342,8 +347,17 @@ class RetrievalCalibration:
             raise ValueError(f"not a RetrievalCalibration's JSON: {e}") from None
 
 
-def calibration_of(margins: ArrayLike, right: ArrayLike, options: RetrievalOptions | None, signature: str
-                   ) -> RetrievalCalibration:
+def library_digest(wholes: Sequence[Mesh], labels: Sequence[str]) -> str:
+    """A content key of a labelled library: SHA-1 of its (mesh `wpot.Mesh.fingerprint`, class) pairs, sorted, so
+    that the order of the wholes does not count."""
+    h = hashlib.sha1()
+    for fingerprint, label in sorted((w.fingerprint, str(x)) for w, x in zip(wholes, labels)):
+        h.update(f"{fingerprint} {label}\n".encode())
+    return h.hexdigest()
+
+
+def calibration_of(margins: ArrayLike, right: ArrayLike, options: RetrievalOptions | None, signature: str,
+                   library: str = "") -> RetrievalCalibration:
     """The `RetrievalCalibration` of parts whose rankings had ``margins`` (N,) and came out ``right`` (N,) or not:
     `fit_logistic` held near the shipped `CALIBRATION` by a weak prior, of unit weight on the intercept and on the
     slope times the margins' root mean square (a change of one in the logit at a typical margin costs as much as
@@ -353,7 +367,7 @@ def calibration_of(margins: ArrayLike, right: ArrayLike, options: RetrievalOptio
         raise ValueError(f"margins must be finite and one per outcome, got {m.shape} and {y.shape}")
     rms2 = max(float(np.mean(m ** 2)), 1e-12)
     a, b = fit_logistic(m, y, prior=CALIBRATION, weight=(1.0, rms2))
-    return RetrievalCalibration(a, b, len(m), int(y.sum()), _options(options), signature)
+    return RetrievalCalibration(a, b, len(m), int(y.sum()), _options(options), signature, library)
 
 
 def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: int, *, seed: int = 0
