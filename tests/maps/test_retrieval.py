@@ -303,6 +303,14 @@ def test_calibration_parts_are_drawn_class_by_class_and_cut_as_said():
     assert all(j == k and np.array_equal(p.vertices, q.vertices) for (j, p), (k, q) in zip(parts, again))
     with pytest.raises(ValueError, match="no class has two wholes"):
         calibration_parts(wholes[:3], ["x", "y", "z"], 4)
+    import trimesh
+
+    import wpot
+
+    ico = trimesh.creation.icosphere(subdivisions=0)  # 12 vertices: no part reaches MIN_PART_VERTICES
+    coarse = [wpot.Mesh(ico.vertices * s, ico.faces) for s in (1.0, 1.1)]
+    with pytest.raises(ValueError, match="too coarse to cut parts from: 0 of 3 parts"):
+        calibration_parts(coarse, ["x", "x"], 3)
 
 
 def test_retrieval_calibration_round_trips_and_checks_its_fields():

@@ -20,6 +20,10 @@ away from them:
    scored by the union of the same number of members: ``k_nearest``, or the smallest class's size when that is
    smaller (the least of three costs is lower than the least of two even when no member fits).
 
+`ClassRanking.probability` turns the margin between the first two classes into the chance that the first is
+right: a logistic shipped as `CALIBRATION` (fitted on TOSCA), or one fitted to a user's own library
+(`RetrievalCalibration`: parts cut from its wholes by `calibration_parts`, each looked up among the others).
+
 With LD-SIFT (`benchmarks/part_retrieval.py`: parts cut from TOSCA 5k poses, each against the 75 other shapes)
 the two steps together rank the true class first more often than the nearest whole's class from the same costs,
 on each of three part sets, and each step alone gains less (the docs' Results page: Parts looked up in a library
@@ -45,7 +49,7 @@ from wpot.sampling import Subsample, farthest_point_sampling
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
            "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread",
            "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS",
-           "CalibrationRecord", "library_digest"]
+           "CalibrationRecord", "library_digest", "MIN_PART_VERTICES"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -67,6 +71,8 @@ SIZE_SPREAD = 1.1
 
 #: the share of its whole's area that each part `calibration_parts` cuts takes, drawn uniformly between these
 PART_FRACTIONS = (0.1, 0.6)
+#: `calibration_parts` keeps parts of at least this many vertices
+MIN_PART_VERTICES = 20
 
 
 def probability_of(margin: float, coefficients: tuple[float, float] = CALIBRATION) -> float:
@@ -288,7 +294,7 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, weights: ArrayLike 
 class RetrievalCalibration:
     """`ClassRanking.probability` fitted to one library (`Comparer.calibrate_retrieval`): parts cut from its own
     wholes (`calibration_parts`), each looked up among the other wholes, and a logistic regression of "the first
-    class is right" on the ranking's margin (`fit_logistic`), held near the shipped `CALIBRATION` by a prior worth
+    class is right" on the ranking's margin (`fit_logistic`), held near the shipped `CALIBRATION` by a weak prior
     (`calibration_of`), so that a library on which every part is right still gets a finite fit.
 
     Attributes
@@ -392,7 +398,9 @@ def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: in
     rng = np.random.default_rng(seed)
     out: list[tuple[int, Mesh]] = []
     start = int(rng.integers(len(classes)))
-    while len(out) < n_parts:
+    for _ in range(20 * n_parts):
+        if len(out) == n_parts:
+            break
         j = int(rng.choice(by[classes[(start + len(out)) % len(classes)]]))
         mesh = wholes[j]
         v, areas = mesh.vertices, mesh.vertex_areas
@@ -411,8 +419,11 @@ def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: in
                 part, _ = part.cleaned(keep_largest_component=True)
         except ValueError:
             continue
-        if part.n_vertices >= 20:
+        if part.n_vertices >= MIN_PART_VERTICES:
             out.append((j, part))
+    if len(out) < n_parts:
+        raise ValueError(f"the wholes are too coarse to cut parts from: {len(out)} of {n_parts} parts had "
+                         f"{MIN_PART_VERTICES} vertices or more")
     return out
 
 
@@ -434,13 +445,15 @@ class CalibrationRecord:
                 differ = sorted(k for k in set(found) | set(header) if found.get(k) != header.get(k))
                 raise ValueError(f"record {self.path} holds the lookups of another calibration (its "
                                  f"{', '.join(differ)} differ): give another file, or delete it to start again")
+            good = 1
             for line in lines[1:]:
                 try:
                     d = json.loads(line)
                     self.done[int(d["part"])] = (float(d["margin"]), bool(d["right"]))
                 except (json.JSONDecodeError, KeyError, TypeError, ValueError):
                     break  # cut short by a stop: looked up again
-            self.path.write_text("".join(x + "\n" for x in lines[:1 + len(self.done)]))
+                good += 1
+            self.path.write_text("".join(x + "\n" for x in lines[:good]))
         else:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.path.write_text(json.dumps(header) + "\n")
