@@ -1108,7 +1108,7 @@ def _retrieval_calibration(a: argparse.Namespace, comparer: Any, wholes: list, l
     """`wpot retrieve --calibration`: None without it; else the calibration read from its file, or fitted on the
     library and saved there."""
     from wpot.comparison import calibration_differences
-    from wpot.maps.retrieval import RetrievalCalibration
+    from wpot.maps.retrieval import RetrievalCalibration, library_digest
 
     if a.calibration is None:
         return None
@@ -1123,6 +1123,9 @@ def _retrieval_calibration(a: argparse.Namespace, comparer: Any, wholes: list, l
             raise CliError(f"--calibration {a.calibration} was fitted with other settings than these (--k-nearest, "
                            f"--signature and its options): {'; '.join(differ)}. Fit one for these settings under "
                            "another file name")
+        if cal.library and cal.library != library_digest(wholes, labels):
+            raise CliError(f"--calibration {a.calibration} was fitted on another library (its meshes or classes "
+                           f"differ from {a.library}'s): delete it, or name another file, to fit one for this library")
         return cal
     if a.calibration_parts < 1:
         raise CliError(f"--calibration-parts must be at least 1, got {a.calibration_parts}")

@@ -449,5 +449,11 @@ def test_retrieve_calibrates_on_the_library_once_and_reuses_it(dataset, tmp_path
     assert json.loads((tmp_path / "r.json").read_text())["probability"] == pytest.approx(saved["probability"])
     bad = wpot(*args, "--k-nearest", "1")
     _one_line_error(bad, "was fitted with other settings than these")
+    fewer = tmp_path / "fewer"
+    fewer.mkdir()
+    for p in library[1:]:
+        (fewer / p.name).write_bytes(p.read_bytes())
+    _one_line_error(wpot("retrieve", str(tmp_path / "part.off"), str(fewer), "--calibration", str(cal_file),
+                         "--device", "cpu"), "was fitted on another library")
     cal_file.write_text("not json")
     _one_line_error(wpot(*args), f"--calibration {cal_file}: not a RetrievalCalibration's JSON")
