@@ -94,7 +94,7 @@ def report_set(name: str, m: np.ndarray, ok: np.ndarray, probabilities: dict[str
 
 def library_calibration(data: Path, wholes: dict, n_parts: int, out: Path):
     """`Comparer.calibrate_retrieval` on every whole of ``data`` (LD-SIFT at its defaults, the default options),
-    read from ``out`` when a run before stored it (JSON)."""
+    read from ``out`` when a run before stored it (JSON); a stopped one resumes from its lookups' record there."""
     import wpot
     from benchmarks.partial_poses import shape_class
     from wpot.maps.retrieval import RetrievalCalibration
@@ -103,9 +103,10 @@ def library_calibration(data: Path, wholes: dict, n_parts: int, out: Path):
     if path.exists():
         return RetrievalCalibration.from_json(path.read_text())
     names = sorted(wholes)
-    cal = wpot.Comparer(signature="ldsift", device="cpu").calibrate_retrieval(
-        [wholes[n] for n in names], [shape_class(n) for n in names], n_parts=n_parts)
     out.mkdir(parents=True, exist_ok=True)
+    cal = wpot.Comparer(signature="ldsift", device="cpu").calibrate_retrieval(
+        [wholes[n] for n in names], [shape_class(n) for n in names], n_parts=n_parts,
+        record=path.with_suffix(".lookups.jsonl"))
     path.write_text(cal.to_json())
     return cal
 
