@@ -768,7 +768,8 @@ def _warn_size_spread(wholes: Sequence[Mesh], labels: Sequence[str], stacklevel:
         warnings.warn(f"the library's wholes of class {spread[0]!r} differ in size by up to {spread[1]:.2f} "
                       "times (square root of area): retrieve reads size, so a part may be taken for another "
                       "class's member of its size. Were the shapes scaled one by one? Bring each class to one "
-                      "scale, or with LD-SIFT describe each mesh at its own (RetrievalOptions(edge='own'))",
+                      "scale, and the parts with the shapes they come from, or with LD-SIFT describe each mesh at "
+                      "its own (RetrievalOptions(edge='own'))",
                       RetrievalWarning, stacklevel=stacklevel)
 
 
