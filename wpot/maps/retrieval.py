@@ -214,8 +214,8 @@ class ClassRanking:
         """The chance that `label` is the part's class, from the margin (`probability_of` with ``coefficients``).
         The shipped calibration was fitted on parts of TOSCA shapes looked up in a library of TOSCA's other poses
         with LD-SIFT at its defaults (`benchmarks/retrieval_calibration.py`), so it is a guide for libraries like
-        that one; a library whose classes are more alike (FAUST's people, a class per person) calls for its own
-        (`Comparer.calibrate_retrieval`). NaN for a ranking made otherwise (``calibrated`` False: other options
+        that one; a library unlike it (FAUST's people as distributed, scaled one by one, where it is too sure)
+        calls for its own (`Comparer.calibrate_retrieval`). NaN for a ranking made otherwise (``calibrated`` False: other options
         or signatures), whose margins are on another scale."""
         return probability_of(self.margin, self.coefficients) if self.calibrated else float("nan")
 
