@@ -42,8 +42,8 @@ from wpot.cache import Cache
 from wpot.cost import cost_matrix, cost_mean, NearestCosts
 from wpot.maps.locate import check_part, locate_part
 from wpot.maps.retrieval import (CALIBRATED_THICKNESS, SIZE_SPREAD, CalibrationRecord, RetrievalCalibration,
-                                 RetrievalOptions, RetrievalWarning, calibration_of, calibration_parts, library_digest,
-                                 rank_classes, retrieval_sample, size_spread)
+                                 RetrievalWarning, calibration_of, calibration_parts, library_digest, rank_classes,
+                                 retrieval_options, retrieval_sample, size_spread)
 from wpot.signatures._frames import common_edge
 from wpot.ot import debiased, FeatureCost, make_solver, TransportProblem
 from wpot.runs.history import debias_history
@@ -757,7 +757,7 @@ def calibration_differences(calibration: RetrievalCalibration, config: Compariso
     """What differs between the settings ``calibration`` was fitted with and a lookup's (its comparer's
     ``config``, its `wpot.maps.retrieval.RetrievalOptions`): empty when it applies."""
     return [f"{what} {mine} (calibrated with {theirs})" for what, mine, theirs in (
-        ("options", _retrieval_options(options), calibration.options),
+        ("options", retrieval_options(options), calibration.options),
         ("signature", signature_key(config), calibration.signature)) if mine != theirs]
 
 
@@ -782,24 +782,20 @@ def signature_key(config: ComparisonConfig) -> str:
     return f"{config.signature} {opts!r}"
 
 
-def _retrieval_options(options: Any) -> RetrievalOptions:
-    return RetrievalOptions() if options is None else options
-
-
 def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Sequence[str], *, n_parts: int,
                         seed: int, options: Any, record: str | Path | None = None) -> RetrievalCalibration:
     """`Comparer.calibrate_retrieval`: each part of `wpot.maps.retrieval.calibration_parts` ranked by `retrieve`
     among the library less its whole (every lookup at the whole library's edge length, so the library is described
     once), then `wpot.maps.retrieval.calibration_of` on the margins and outcomes. With ``record`` (a file), each
     lookup is saved as it is made and a rerun resumes from them (`wpot.maps.retrieval.CalibrationRecord`)."""
-    wholes, labels = list(wholes), [str(x) for x in labels]
+    wholes, labels, options = list(wholes), [str(x) for x in labels], retrieval_options(options)
     parts = calibration_parts(wholes, labels, n_parts, seed=seed)
     _warn_size_spread(wholes, labels, stacklevel=4)
-    if _retrieval_options(options).edge == "library":
+    if options.edge == "library":
         comparer = at_common_edge(comparer, wholes)
     key, library = signature_key(comparer.config), library_digest(wholes, labels)
     done = None if record is None else CalibrationRecord(record, {
-        "n_parts": len(parts), "seed": seed, "options": dataclasses.asdict(_retrieval_options(options)),
+        "n_parts": len(parts), "seed": seed, "options": dataclasses.asdict(options),
         "signature": key, "library": library})
     found = {} if done is None else dict(done.done)
     bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part")

@@ -359,6 +359,8 @@ def test_comparer_calibrates_retrieval_on_its_library():
             c.with_options(ldsift_thickness=2.0).retrieve(part, wholes, labels, calibration=cal)
     with pytest.raises(TypeError, match="calibration must be a RetrievalCalibration"):
         c.retrieve(part, wholes, labels, calibration=(0.0, 1.0))
+    with pytest.raises(TypeError, match="options must be a RetrievalOptions, got str"):
+        c.calibrate_retrieval(wholes, labels, n_parts=2, options="library")
     # the library it was fitted on, in any order: silent; another library: said, the probability still given
     from wpot.maps.retrieval import RetrievalWarning
 

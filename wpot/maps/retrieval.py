@@ -49,7 +49,8 @@ from wpot.sampling import Subsample, farthest_point_sampling
 __all__ = ["RetrievalWarning", "RetrievalOptions", "ClassRanking", "rank_classes", "CALIBRATION", "MARGIN_DOUBT",
            "CALIBRATED_THICKNESS", "probability_of", "retrieval_sample", "SIZE_SPREAD", "size_spread",
            "RetrievalCalibration", "fit_logistic", "calibration_of", "calibration_parts", "PART_FRACTIONS",
-           "CalibrationRecord", "library_digest", "MIN_PART_VERTICES"]
+           "CalibrationRecord", "library_digest", "MIN_PART_VERTICES",
+           "retrieval_options"]
 
 #: (intercept, slope) of `ClassRanking.probability`, ``1 / (1 + exp(-(intercept + slope · margin)))``: a logistic
 #: regression of "the first class is right" on the margin, fitted on the development parts of
@@ -153,7 +154,8 @@ class RetrievalOptions:
         _validate.one_of("edge", self.edge, EDGES)
 
 
-def _options(options: RetrievalOptions | None) -> RetrievalOptions:
+def retrieval_options(options: RetrievalOptions | None) -> RetrievalOptions:
+    """``options``, or the defaults for None; TypeError naming anything else."""
     o = RetrievalOptions() if options is None else options
     if not isinstance(o, RetrievalOptions):
         raise TypeError(f"options must be a RetrievalOptions, got {type(o).__name__}")
@@ -164,7 +166,7 @@ def retrieval_sample(part: Mesh, options: RetrievalOptions | None = None) -> Sub
     """The points that stand for ``part`` in `rank_classes`: None (every vertex) up to ``options.max_points``
     vertices, else that many Euclidean farthest-point samples (`wpot.sampling.farthest_point_sampling`); pass
     their ``indices`` to pick the costs' rows and their ``counts`` as ``weights``. Deterministic for a mesh."""
-    o = _options(options)
+    o = retrieval_options(options)
     if o.max_points is None or part.n_vertices <= o.max_points:
         return None
     return farthest_point_sampling(part, o.max_points, metric="euclidean")
@@ -247,7 +249,7 @@ def rank_classes(costs: ArrayLike, labels: Sequence[str], *, weights: ArrayLike 
     options : `RetrievalOptions` (default: standardised, ``k_nearest=3``); its ``max_points`` is for the caller
         (`retrieval_sample`): the rows given here are all used
     """
-    o = _options(options)
+    o = retrieval_options(options)
     c = np.asarray(costs, dtype=np.float64)
     labels = [str(x) for x in labels]
     if c.ndim != 2 or c.shape[0] == 0 or c.shape[1] == 0:
@@ -373,7 +375,7 @@ def calibration_of(margins: ArrayLike, right: ArrayLike, options: RetrievalOptio
         raise ValueError(f"margins must be finite and one per outcome, got {m.shape} and {y.shape}")
     rms2 = max(float(np.mean(m ** 2)), 1e-12)
     a, b = fit_logistic(m, y, prior=CALIBRATION, weight=(1.0, rms2))
-    return RetrievalCalibration(a, b, len(m), int(y.sum()), _options(options), signature, library)
+    return RetrievalCalibration(a, b, len(m), int(y.sum()), retrieval_options(options), signature, library)
 
 
 def calibration_parts(wholes: Sequence[Mesh], labels: Sequence[str], n_parts: int, *, seed: int = 0
