@@ -798,8 +798,12 @@ def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Se
         "n_parts": len(parts), "seed": seed, "options": dataclasses.asdict(options),
         "signature": key, "library": library})
     found = {} if done is None else dict(done.done)
-    bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part")
-    bar.update(len(found))
+    # the first lookup describes the library, with its progress; the others read it from the shared cache, quietly
+    quiet = comparer.with_options()
+    quiet.progress = as_progress(False)
+    lookup = comparer
+    bar = comparer.progress.bar(len(parts), "retrieval calibration: parts of the library looked up", "part",
+                                initial=len(found))
     try:
         for k, (j, part) in enumerate(parts):
             if k in found:
@@ -807,7 +811,8 @@ def calibrate_retrieval(comparer: "Comparer", wholes: Sequence[Mesh], labels: Se
             others = [i for i in range(len(wholes)) if i != j]
             with warnings.catch_warnings():  # said once above
                 warnings.simplefilter("ignore", RetrievalWarning)
-                r = retrieve(comparer, part, [wholes[i] for i in others], [labels[i] for i in others], options)
+                r = retrieve(lookup, part, [wholes[i] for i in others], [labels[i] for i in others], options)
+            lookup = quiet
             found[k] = (r.margin, r.label == labels[j])
             if done is not None:
                 done.add(k, *found[k])
