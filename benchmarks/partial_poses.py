@@ -289,13 +289,9 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
     if how == "none":
         return mesh, None
     if how == "lowres":
-        root = folder if (folder / "vtx_5k").is_dir() else folder.parent  # the dataset, or its vtx_5k folder
-        path = (lowres or root.parent / "tosca_lowres") / f"{source}.mat"
-        if not path.is_file():
+        r, _ = lowres_twin(folder, source, lowres, mesh)
+        if r is None:
             return None, None
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a few non-manifold edges in TOSCA's low-resolution meshes
-            r = load_mesh(path)
         # repaired as the mesh's warning tells a user to: 47 of these meshes (most david and michael poses, about
         # 150 triangles each) have a patch wound against its neighbours, which turns every orientation read there
         r = r.cleaned(keep_largest_component=True)[0]
@@ -304,6 +300,27 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
 
         r = resized(mesh, int(round(float(how) * mesh.n_vertices)))
     return r, cKDTree(r.vertices).query(mesh.vertices)[1].astype(np.int64)
+
+
+def lowres_twin(folder: Path, source: str, lowres: Path | None = None, mesh=None):
+    """``source``'s pose in ``tosca_lowres`` (beside the dataset unless ``lowres``) as read, and why not: (mesh,
+    "") or (None, the reason), None when that folder lacks the name or holds another pose under it
+    (`wpot.paper.head.twin_offset` above `TWIN_TOL`: its victoria0 is a copy of victoria1). ``mesh``: the 5k
+    shape when already read."""
+    from wpot.io import load_mesh
+    from wpot.paper.head import TWIN_TOL, twin_offset
+
+    root = folder if (folder / "vtx_5k").is_dir() else folder.parent  # the dataset, or its vtx_5k folder
+    path = (lowres or root.parent / "tosca_lowres") / f"{source}.mat"
+    if not path.is_file():
+        return None, f"{path} not found"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a few non-manifold edges in TOSCA's low-resolution meshes
+        r = load_mesh(path)
+    offset = twin_offset(r, load_mesh(_vtx(folder) / f"{source}.off") if mesh is None else mesh)
+    if offset > TWIN_TOL:
+        return None, f"{path.name} lies {offset:.2f} edge lengths from {source}: another pose"
+    return r, ""
 
 
 def remesh_setting(value: str) -> str:
@@ -670,8 +687,14 @@ def plan(a, members: dict[str, list[str]]) -> tuple[list[str], dict, dict]:
     unknown = sorted(set(a.classes or []) - set(members))
     if unknown:
         raise SystemExit(f"unknown classes {unknown}; tosca_isometric_5k has {sorted(members)}")
-    per_class = {c: _spread(members[c], a.sources_per_class) for c in classes}
-    sources = [s for k in range(max(len(v) for v in per_class.values())) for c in classes
+    eligible = members
+    if a.remesh == "lowres":  # parts are cut from tosca_lowres: only poses it holds, under their own name
+        eligible = {c: [m for m in members[c] if lowres_twin(a.tosca, m)[0] is not None] for c in classes}
+        for c in classes:
+            for m in sorted(set(members[c]) - set(eligible[c])):
+                print(f"--remesh lowres: {m} is not a source ({lowres_twin(a.tosca, m)[1]})", file=sys.stderr)
+    per_class = {c: _spread(eligible[c], a.sources_per_class) for c in classes if eligible[c]}
+    sources = [s for k in range(max(len(v) for v in per_class.values())) for c in per_class
                for s in per_class[c][k:k + 1]]
     targets, others = {}, {}
     for s in sources:

@@ -17,7 +17,7 @@ from wpot.datasets import (
 )
 from wpot.io import save_mesh
 from wpot.mesh import Mesh
-from wpot.paper.head import build_head_dataset, head_ground_truth, load_head_dataset
+from wpot.paper.head import TWIN_TOL, build_head_dataset, head_ground_truth, load_head_dataset, lowres_template, twin_offset
 from wpot.paper.tosca8 import TOSCA8_CLASSES, tosca8, tosca8_draws
 
 
@@ -248,6 +248,34 @@ def test_head_dataset_round_trip(head):
         np.testing.assert_array_equal(back.template[h], ds.template[h])
     s = list_shapes(out, labels=out / "labels.csv")
     assert set(s.names) == set(ds.names)
+
+
+def test_twin_offset_tells_a_remeshing_from_another_pose():
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    whole = Mesh(sphere.vertices, sphere.faces)
+    # the same surface meshed apart: another subdivision, turned so that no vertex is shared
+    other = trimesh.creation.icosphere(subdivisions=3)
+    rot = trimesh.transformations.rotation_matrix(0.3, [1, 2, 3])[:3, :3]
+    coarse = Mesh(other.vertices @ rot.T, other.faces)
+    assert twin_offset(coarse, whole) < 0.5 * TWIN_TOL
+    assert twin_offset(coarse.transformed(scale=10.0), whole.transformed(scale=10.0)) == pytest.approx(
+        twin_offset(coarse, whole))
+    moved = Mesh(coarse.vertices + [0.3, 0.0, 0.0], coarse.faces)  # another pose: a shift of several edges
+    assert twin_offset(moved, whole) > TWIN_TOL
+    with pytest.raises(ValueError, match="another pose"):
+        lowres_template(moved, whole, np.arange(10))
+    np.testing.assert_array_equal(lowres_template(whole, whole, np.arange(10)), np.arange(10))
+
+
+@pytest.mark.data
+def test_tosca_lowres_victoria0_is_not_the_5k_pose(tosca5k, tosca_lowres):
+    from wpot.io import load_mesh
+
+    def offset(name):
+        return twin_offset(load_mesh(tosca_lowres / f"{name}.mat", warn=False), load_mesh(tosca5k / f"{name}.off"))
+
+    assert offset("cat0") < 0.5 * TWIN_TOL and offset("victoria1") < 0.5 * TWIN_TOL
+    assert offset("victoria0") > TWIN_TOL  # the file is a copy of victoria1 (data README: same names, same poses)
 
 
 @pytest.fixture(scope="module")

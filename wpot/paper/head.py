@@ -19,7 +19,8 @@ from wpot.mesh import Mesh, cut
 from wpot.datasets import class_label, correspondence_group, natural_key, read_label_csv, tosca_vts
 from wpot.evaluate import GeodesicDistances
 
-__all__ = ["HEAD_AREA_FRACTION", "HEAD_REFERENCES", "HeadDataset", "build_head_dataset", "head_ground_truth", "load_head_dataset", "lowres_template"]
+__all__ = ["HEAD_AREA_FRACTION", "HEAD_REFERENCES", "HeadDataset", "build_head_dataset", "head_ground_truth", "load_head_dataset",
+           "lowres_template", "twin_offset", "TWIN_TOL"]
 
 # ----------------------------------------------------------------------------- mesh files
 def _load_mesh(path: Path) -> Mesh:
@@ -120,10 +121,32 @@ def region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> flo
     return float(dist[order[np.searchsorted(cum, fraction)]])
 
 
+#: the most a low-resolution TOSCA shape may lie from its ``tosca_isometric_5k`` namesake (`twin_offset`) for the
+#: namesake's ground truth to be carried to it by nearest vertices. One edge length: the namesakes that are one
+#: pose lie 0.05-0.31 apart, and ``tosca_lowres``'s victoria0, a copy of its victoria1 (another pose), 1.6
+TWIN_TOL = 1.0
+
+
+def twin_offset(mesh: Mesh, mesh_5k: Mesh) -> float:
+    """How far a low-resolution shape lies from its ``tosca_isometric_5k`` namesake: the median distance from
+    the vertices of ``mesh`` to the nearest vertex of ``mesh_5k``, in ``mesh_5k``'s mean edge lengths. Below
+    `TWIN_TOL` the two are one pose meshed apart; above it, not the same pose (``tosca_lowres`` holds two pairs
+    of identical files, victoria0 = victoria1 and victoria13 = victoria22, so its victoria0 is not the 5k
+    victoria0)."""
+    d, _ = cKDTree(mesh_5k.vertices).query(mesh.vertices)
+    return float(np.median(d) / mesh_5k.mean_edge_length)
+
+
 def lowres_template(mesh: Mesh, mesh_5k: Mesh, vts_5k: np.ndarray) -> np.ndarray:
     """The TOSCA template carried to a low-resolution shape: (K,) int64, the vertex of ``mesh`` nearest to
     the template point's vertex ``vts_5k`` of the same-named ``tosca_isometric_5k`` shape ``mesh_5k`` (the two
-    sets share coordinates and poses: nearest neighbours are 0.1-0.25 of an edge apart, see the data README)."""
+    sets share coordinates and poses: nearest neighbours are 0.1-0.25 of an edge apart, see the data README).
+    Raises ValueError when ``mesh`` is not ``mesh_5k``'s pose (`twin_offset` above `TWIN_TOL`)."""
+    offset = twin_offset(mesh, mesh_5k)
+    if offset > TWIN_TOL:
+        raise ValueError(f"the low-resolution shape lies {offset:.2f} edge lengths from its tosca_isometric_5k "
+                         f"namesake (at most {TWIN_TOL:g} when they are one pose): it is another pose, and the "
+                         "namesake's ground truth does not carry to it")
     _, nn = cKDTree(mesh.vertices).query(mesh_5k.vertices[vts_5k])
     return nn.astype(np.int64)
 
