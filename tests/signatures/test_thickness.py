@@ -156,6 +156,25 @@ def test_a_cut_cylinder_keeps_the_thickness_of_its_whole():
     np.testing.assert_allclose(t[far], t_whole[far], rtol=0.01)
 
 
+def test_the_field_says_which_vertices_the_part_measures():
+    """`thickness_field` on the open cylinder: a vertex with a value of its own has the whole's within 1 %, the
+    vertices next to a cut (whose rays run out along the axis) have none, every value lies within its own
+    rays' bounds, and on the closed whole every vertex has its own value."""
+    whole = _tube(12.0, 1.0, 73, 48, capped=True)
+    middle = np.abs(whole.vertices[whole.faces][:, :, 2]).max(axis=1) <= 3.0 + 1e-9
+    part, index = _open_part(whole, middle)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # most of the part's vertices see an opening
+        f = T.thickness_field(part)
+        np.testing.assert_array_equal(f.values, thickness(part))
+    w = T.thickness_field(whole)
+    assert w.own.all() and np.array_equal(w.low, w.high)
+    assert 0.05 < f.own.mean() < 0.95  # neither all nor none
+    np.testing.assert_allclose(f.values[f.own], w.values[index][f.own], rtol=0.01)
+    assert not f.own[_rings_from_boundary(part) == 0].any()
+    assert np.all(f.low <= f.values + 1e-12) and np.all(f.values <= f.high + 1e-12)
+
+
 def test_a_flat_patch_has_no_thickness():
     g = trimesh.creation.box(extents=(4.0, 4.0, 1.0))
     top = g.vertices[g.faces].mean(axis=1)[:, 2] > 0.4

@@ -30,6 +30,7 @@ lower bounds, and the warning says the column is not to be trusted there.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -37,7 +38,7 @@ import numpy as np
 from wpot.mesh import Mesh, boundary_caps, winding
 from wpot.signatures._frames import local_frames
 
-__all__ = ["thickness", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
+__all__ = ["thickness", "thickness_field", "ThicknessField", "N_RAYS", "CONE_ANGLE", "MIN_RAYS", "VERSION"]
 
 #: bumped whenever `thickness` changes its values; part of LD-SIFT's cache key when its thickness column is on
 VERSION = 2
@@ -86,10 +87,28 @@ def _ray_frames(outward: np.ndarray, e1: np.ndarray) -> np.ndarray:
     return np.stack([t, np.cross(outward, t), outward], axis=1)
 
 
+@dataclass(frozen=True)
+class ThicknessField:
+    """`thickness_field`'s result, for N vertices.
+
+    values : (N,) float64, the thickness (`thickness`), in the mesh's units.
+    own : (N,) bool, True where the value is the vertex's own median: enough rays cross the solid and none of the
+        rays that leave through an opening could move it. False where it was filled in from the neighbours.
+    low, high : (N,) float64, the vertex's median with its escaped rays at their bound and with them endless:
+        what its own rays allow (equal where ``own``; NaN without a ray that counts; ``high`` may be inf).
+    """
+
+    values: np.ndarray
+    own: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
 def thickness(
     mesh: Mesh, *, n_rays: int = N_RAYS, cone_angle: float = CONE_ANGLE, frames: Any = None, device: str | None = None
 ) -> np.ndarray:
     """The local thickness (shape diameter function) at every vertex: (N,) float64, in the mesh's units.
+    `thickness_field` (same arguments) also says which vertices have a value of their own.
 
     Parameters
     ----------
@@ -102,6 +121,15 @@ def thickness(
     Scales with the mesh (``thickness(s M) = s thickness(M)``) and does not change under rigid motions.
     See the module docstring for the definition and for the vertices whose value is filled in.
     """
+    return thickness_field(mesh, n_rays=n_rays, cone_angle=cone_angle, frames=frames, device=device).values
+
+
+def thickness_field(
+    mesh: Mesh, *, n_rays: int = N_RAYS, cone_angle: float = CONE_ANGLE, frames: Any = None, device: str | None = None
+) -> ThicknessField:
+    """`thickness`, with which vertices have a value of their own and the bounds their rays give
+    (`ThicknessField`). On a part cut from a whole, the ``own`` vertices are those whose thickness the part
+    shows; the others' is the whole's, which the part does not hold."""
     from render.raycast import DepthRenderer, inward_cone
 
     if not isinstance(mesh, Mesh):
@@ -139,11 +167,13 @@ def thickness(
             stacklevel=2,
         )
     if not known.any():  # every vertex sees an opening (half a shape): its lower bounds are all there is
-        return _spread(med, measured, mesh)
-    filled = _spread(med, known, mesh)
-    # a vertex whose escaped rays could move its median still bounds it: its rays read at the caps from below,
-    # and with the escaped ones taken as endless from above; its filled-in value stays between the two
-    return np.where(censored, np.clip(filled, med, med_high), filled)
+        values = _spread(med, measured, mesh)
+    else:
+        filled = _spread(med, known, mesh)
+        # a vertex whose escaped rays could move its median still bounds it: its rays read at the caps from
+        # below, and with the escaped ones taken as endless from above; its filled-in value stays between the two
+        values = np.where(censored, np.clip(filled, med, med_high), filled)
+    return ThicknessField(values, known, med, med_high)
 
 
 def _median_bounds(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
