@@ -27,6 +27,7 @@ from wpot.signatures.base import (
 # WKS first, then LD-SIFT: the registration order is the order of `signature_names` (and of the CLI's choices)
 from wpot.signatures._wks import WKS, EnergyGrid, wks, wks_energies, wks_from_eigenpairs, wks_weights
 from wpot.signatures._ldsift import LDSIFT, LocalFrames, ldsift, local_frames
+from wpot.signatures._thickness import ThicknessField, thickness, thickness_field
 
 for _module in pkgutil.iter_modules(__path__):
     importlib.import_module(f"{__name__}.{_module.name}")
@@ -36,5 +37,5 @@ __all__ = [
     "EnergyGrid", "LocalFrames", "ldsift", "local_frames", "wks", "wks_energies", "wks_from_eigenpairs", "wks_weights",
     "Signature", "SignatureOptions", "SIGNATURES", "get_signature", "signature_names", "register_signature",
     "unregister_signature", "signature_options", "add_signature_arguments", "signature_options_from_args",
-    "WKS", "LDSIFT",
+    "WKS", "LDSIFT", "ThicknessField", "thickness", "thickness_field",
 ]
