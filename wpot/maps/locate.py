@@ -35,8 +35,8 @@ geodesic distances to choose among them and to fill in the map:
    on the ground truth of the development benchmark (`benchmarks/partial_poses.py`) the true side's mean
    signature cost was below the mirror side's in nearly every pair (the docs' Results page). So of the
    candidates oriented within `ORIENT_MARGIN` of the best one, the one with the least mean signature cost is
-   kept. Those parts were cut from meshes that share the whole's connectivity; on a part meshed apart the costs
-   tell less, and ``orient_weight`` instead keeps the candidate of least ``cost / least cost − 1 −
+   kept. Those parts were cut from meshes made like the whole's (one mesher, one density); on a part meshed
+   apart the costs tell less, and ``orient_weight`` instead keeps the candidate of least ``cost / least cost − 1 −
    orient_weight · orientation score`` (`ORIENT_WEIGHT`). A whole whose symmetry is not detected gets (a) and
    (b) only. A part or whole whose orientation cannot be read (triangles wound against their neighbours, or no
    outside: `wpot.maps.orientation.unreadable`) skips this step, with a `LocateWarning` that names it and its
