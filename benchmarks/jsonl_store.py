@@ -67,3 +67,14 @@ def results_folder(out: Path):
         logf.flush()
 
     return out, log
+
+
+def stored_run(a, keys: tuple[str, str], run, report) -> int:
+    """A resumable benchmark's main steps: ``a.out``'s store (`results_folder`, `JsonlStore` keyed by ``keys``),
+    ``run(a, store, log)`` unless ``a.report_only``, then ``report(store, a, log)``. Returns the exit code, 0."""
+    out, log = results_folder(a.out)
+    store = JsonlStore(out, keys=keys, folder="arrays")
+    if not a.report_only:
+        run(a, store, log)
+    report(store, a, log)
+    return 0

@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.correspondence import _data_root  # noqa: E402
-from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
+from benchmarks.jsonl_store import JsonlStore, stored_run  # noqa: E402
 
 #: one pair of poses per class, the first pose against another (`tosca_isometric_5k`; FAUST: one person each)
 PAIRS = {
@@ -49,6 +49,16 @@ PAIRS = {
               "tr_reg_048:tr_reg_043", "tr_reg_060:tr_reg_065", "tr_reg_072:tr_reg_077", "tr_reg_084:tr_reg_089"],
 }
 FOLDERS = {"tosca": "tosca_isometric_5k", "faust": "faust_5k"}
+
+
+def dataset_folders(a, log):
+    """(name, its ``vtx_5k`` folder) for each of ``a.dataset`` under ``a.data``; a missing one is logged and skipped."""
+    for ds in a.dataset:
+        vtx = a.data / FOLDERS[ds] / "vtx_5k"
+        if vtx.is_dir():
+            yield ds, vtx
+        else:
+            log(f"{ds}: {vtx} is missing, skipped")
 
 
 def hits(images: np.ndarray, truth: np.ndarray, radius: float) -> np.ndarray:
@@ -102,11 +112,7 @@ def run(a, store: JsonlStore, log) -> None:
     from wpot.datasets import tosca_ground_truth
     from wpot.io import load_mesh
 
-    for ds in a.dataset:
-        vtx = a.data / FOLDERS[ds] / "vtx_5k"
-        if not vtx.is_dir():
-            log(f"{ds}: {vtx} is missing, skipped")
-            continue
+    for ds, vtx in dataset_folders(a, log):
         for pair in PAIRS[ds]:
             s, t = pair.split(":")
             todo = [(F, K) for F in a.densities for K in a.K
@@ -172,12 +178,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if 1.0 not in a.densities:
         ap.error("--densities must include 1 (the control: another triangulation at the same density)")
-    out, log = results_folder(a.out)
-    store = JsonlStore(out, keys=("pair", "density"), folder="arrays")
-    if not a.report_only:
-        run(a, store, log)
-    report(store, a, log)
-    return 0
+    return stored_run(a, ("pair", "density"), run, report)
 
 
 if __name__ == "__main__":

@@ -32,9 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.correspondence import _data_root  # noqa: E402
-from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
-
-FOLDERS = {"tosca": "tosca_isometric_5k", "faust": "faust_5k"}
+from benchmarks.jsonl_store import JsonlStore, stored_run  # noqa: E402
+from benchmarks.ldsift_support import FOLDERS, dataset_folders  # noqa: E402
 #: part sizes, shares of the whole's vertices
 SIZES = (0.15, 0.30, 0.50)
 #: within this relative difference, a vertex's thickness counts as its whole's (issue 41: "to 5 %")
@@ -81,11 +80,7 @@ def run(a, store: JsonlStore, log) -> None:
     from wpot.io import load_mesh
     from wpot.signatures._thickness import thickness_field
 
-    for ds in a.dataset:
-        vtx = a.data / FOLDERS[ds] / "vtx_5k"
-        if not vtx.is_dir():
-            log(f"{ds}: {vtx} is missing, skipped")
-            continue
+    for ds, vtx in dataset_folders(a, log):
         names = sorted(p.stem for p in vtx.glob("*.off"))
         names = [names[i] for i in np.unique(np.linspace(0, len(names) - 1, a.shapes).round().astype(int))]
         for name in names:
@@ -157,12 +152,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.shapes < 1 or a.per_size < 1 or a.rings < 0:
         ap.error("--shapes and --per-size must be at least 1, --rings at least 0")
-    out, log = results_folder(a.out)
-    store = JsonlStore(out, keys=("shape", "part"), folder="arrays")
-    if not a.report_only:
-        run(a, store, log)
-    report(store, a, log)
-    return 0
+    return stored_run(a, ("shape", "part"), run, report)
 
 
 if __name__ == "__main__":
