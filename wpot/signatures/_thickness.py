@@ -163,7 +163,7 @@ def thickness_field(
         warnings.warn(
             f"the thickness of LD-SIFT's thickness column (ldsift_thickness) was measured at only {known.mean():.0%} "
             f"of the mesh's vertices and filled in from their neighbours at the rest: {why}. Lower ldsift_thickness, "
-            "or set it to 0, for such meshes",
+            "or set it to 0, for such meshes (wpot.signatures.thickness_field says which vertices were measured)",
             stacklevel=2,
         )
     if not known.any():  # every vertex sees an opening (half a shape): its lower bounds are all there is
