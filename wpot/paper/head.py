@@ -123,7 +123,7 @@ def region_fraction_radius(mesh: Mesh, dist: np.ndarray, fraction: float) -> flo
 
 #: the most a low-resolution TOSCA shape may lie from its ``tosca_isometric_5k`` namesake (`twin_offset`) for the
 #: namesake's ground truth to be carried to it by nearest vertices. One edge length: the namesakes that are one
-#: pose lie 0.05-0.31 apart, and ``tosca_lowres``'s victoria0, a copy of its victoria1 (another pose), 1.6
+#: pose lie 0-0.31 apart, and ``tosca_lowres``'s victoria0, a copy of its victoria1 (another pose), 1.6
 TWIN_TOL = 1.0
 
 
