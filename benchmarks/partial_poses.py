@@ -386,7 +386,7 @@ def punch_holes(mesh, rng: np.random.Generator, n_lo: int, n_hi: int, f_lo: floa
     return largest_piece(mesh, ~removed), {"hole_centres": [int(c) for c in centres], "hole_fractions": fr}
 
 
-def _cut_one_piece(mesh, mask: np.ndarray):
+def cut_one_piece(mesh, mask: np.ndarray):
     """`wpot.cut`, then only its largest connected piece (pieces that touch only at a vertex or an edge without
     a triangle come apart in the cut). Returns the part and its index map into ``mesh``."""
     from wpot.mesh import cut
@@ -434,7 +434,7 @@ def make_parts(folder: Path, source: str, lm: Landmarks, seed: int, kinds=KINDS,
                 mask, detail = punch_holes(mesh, rng, *spec)
             else:
                 raise ValueError(f"unknown part kind {kind!r}")
-            part_mesh, idx = _cut_one_piece(mesh, mask)
+            part_mesh, idx = cut_one_piece(mesh, mask)
             frac = float(part_mesh.area / mesh.area)
             if remesh != "none":
                 detail["remesh"] = remesh
@@ -689,10 +689,10 @@ def plan(a, members: dict[str, list[str]]) -> tuple[list[str], dict, dict]:
         raise SystemExit(f"unknown classes {unknown}; tosca_isometric_5k has {sorted(members)}")
     eligible = members
     if a.remesh == "lowres":  # parts are cut from tosca_lowres: only poses it holds, under their own name
-        eligible = {c: [m for m in members[c] if lowres_twin(a.tosca, m)[0] is not None] for c in classes}
-        for c in classes:
-            for m in sorted(set(members[c]) - set(eligible[c])):
-                print(f"--remesh lowres: {m} is not a source ({lowres_twin(a.tosca, m)[1]})", file=sys.stderr)
+        why = {m: lowres_twin(a.tosca, m)[1] for c in classes for m in members[c]}
+        eligible = {c: [m for m in members[c] if not why[m]] for c in classes}
+        for m in sorted(m for m, reason in why.items() if reason):
+            print(f"--remesh lowres: {m} is not a source ({why[m]})", file=sys.stderr)
     per_class = {c: _spread(eligible[c], a.sources_per_class) for c in classes if eligible[c]}
     sources = [s for k in range(max(len(v) for v in per_class.values())) for c in per_class
                for s in per_class[c][k:k + 1]]

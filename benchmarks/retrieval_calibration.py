@@ -134,6 +134,7 @@ def main(argv=None) -> int:
     print(f"shipped calibration: intercept {CALIBRATION[0]:.3f}, slope {CALIBRATION[1]:.3f}; method "
           f"{method(a.weight, None, a.edge)}")
     wholes_of: dict[Path, dict] = {}
+    library_of: dict[Path, object] = {}  # each data folder's own calibration, once
     curves, pooled, seen = {}, [], set()
     for role, sets in (("development", a.dev), ("check", a.check)):
         for values in sets:
@@ -150,7 +151,9 @@ def main(argv=None) -> int:
                 continue
             probabilities = {"shipped": p}
             if a.library_parts:
-                cal = library_calibration(data, wholes_of[data], a.library_parts, a.out)
+                if data not in library_of:
+                    library_of[data] = library_calibration(data, wholes_of[data], a.library_parts, a.out)
+                cal = library_of[data]
                 print(f"\nthe library calibration of {data.name}: {cal.n_right} of {cal.n_parts} parts right, "
                       f"intercept {cal.intercept:.3f}, slope {cal.slope:.3f}")
                 probabilities[f"library's own ({data.name})"] = np.array([cal.probability(x) for x in m])

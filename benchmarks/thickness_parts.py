@@ -41,19 +41,13 @@ WITHIN = 0.05
 
 
 def ball_part(mesh, rng: np.random.Generator, share: float):
-    """A Euclidean ball of ``share`` of the vertices around a random vertex, the largest piece kept: (part, index
-    map into ``mesh``)."""
-    from wpot.mesh import cut
+    """A Euclidean ball of ``share`` of the vertices around a random vertex, the largest piece kept
+    (`partial_poses.cut_one_piece`): (part, index map into ``mesh``)."""
+    from benchmarks.partial_poses import cut_one_piece
 
     centre = mesh.vertices[rng.integers(mesh.n_vertices)]
     near = np.argsort(np.linalg.norm(mesh.vertices - centre, axis=1))[: int(round(share * mesh.n_vertices))]
-    part, idx = cut(mesh, near)
-    if part.n_components > 1:
-        lab = part.component_labels
-        keep = np.bincount(lab, part.vertex_areas).argmax()
-        part, sub = cut(part, lab == keep)
-        idx = idx[sub]
-    return part, idx
+    return cut_one_piece(mesh, near)
 
 
 def rings_from_cut(mesh) -> np.ndarray:
