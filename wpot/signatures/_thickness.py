@@ -121,7 +121,7 @@ def thickness(
     Scales with the mesh (``thickness(s M) = s thickness(M)``) and does not change under rigid motions.
     See the module docstring for the definition and for the vertices whose value is filled in.
     """
-    return thickness_field(mesh, n_rays=n_rays, cone_angle=cone_angle, frames=frames, device=device).values
+    return _field(mesh, n_rays, cone_angle, frames, device).values
 
 
 def thickness_field(
@@ -130,6 +130,11 @@ def thickness_field(
     """`thickness`, with which vertices have a value of their own and the bounds their rays give
     (`ThicknessField`). On a part cut from a whole, the ``own`` vertices are those whose thickness the part
     shows; the others' is the whole's, which the part does not hold."""
+    return _field(mesh, n_rays, cone_angle, frames, device)
+
+
+def _field(mesh: Mesh, n_rays: int, cone_angle: float, frames: Any, device: str | None) -> ThicknessField:
+    """`thickness_field`, called from it or from `thickness` (its warning names their caller's line)."""
     from render.raycast import DepthRenderer, inward_cone
 
     if not isinstance(mesh, Mesh):
@@ -164,7 +169,7 @@ def thickness_field(
             f"the thickness of LD-SIFT's thickness column (ldsift_thickness) was measured at only {known.mean():.0%} "
             f"of the mesh's vertices and filled in from their neighbours at the rest: {why}. Lower ldsift_thickness, "
             "or set it to 0, for such meshes (wpot.signatures.thickness_field says which vertices were measured)",
-            stacklevel=2,
+            stacklevel=3,
         )
     if not known.any():  # every vertex sees an opening (half a shape): its lower bounds are all there is
         values = _spread(med, measured, mesh)
