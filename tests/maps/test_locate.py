@@ -328,6 +328,8 @@ def test_bad_input_is_named(partial):
         LocateOptions(n_anchors=2)
     with pytest.raises(ValueError, match="tol"):
         LocateOptions(tol=0.0)
+    with pytest.raises(ValueError, match="n_polish"):
+        LocateOptions(n_polish=-1)
     for bad in ("fitted", 0, -1.0, float("inf"), True):
         with pytest.raises(ValueError, match=r"scale must be one of \('same', 'fit'\) or a positive number"):
             LocateOptions(scale=bad)
@@ -425,3 +427,32 @@ def test_a_part_wound_against_itself_is_named_and_not_oriented(partial):
         warnings.simplefilter("error", LocateWarning)
         fixed = locate_part(wound.cleaned()[0], partial.full, sp, sw)
     assert np.isfinite(fixed.orientation)
+
+
+def test_polish_weighs_the_near_anchors_around_a_hole():
+    """Step 3's polish: on a flat sheet, the part a square frame around a hole, so that the part's geodesics
+    between opposite sides go around the hole and are longer than the whole's. Redrawn from its exact images, the
+    map drifts by about two edges when distances are compared as they are (the far anchors, stretched most,
+    outweigh the near ones), and stays within an edge when they are compared relative to their length."""
+    from wpot.maps.locate import POLISH_OFFSET, _Redraw
+    from wpot.mesh import cut
+    from wpot.sampling import farthest_point_sampling
+
+    n = 41
+    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    v = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
+    v[:, :2] += np.random.default_rng(0).uniform(-0.2, 0.2, size=(n * n, 2)) / (n - 1)
+    corner = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    faces = np.r_[np.c_[corner, corner + 1, corner + n + 1], np.c_[corner, corner + n + 1, corner + n]]
+    whole = Mesh(v, faces)
+    r = np.linalg.norm(v[:, :2] - 0.5, axis=1)
+    part, idx = cut(whole, (r > 0.2) & (np.abs(v[:, :2] - 0.5).max(axis=1) < 0.45))
+    draw = _Redraw(part, whole, farthest_point_sampling(part, 96).indices)
+    edge = whole.edge_lengths.mean()
+
+    def drift(t):
+        return np.linalg.norm(whole.vertices[t] - whole.vertices[idx], axis=1).mean() / edge
+
+    absolute = drift(draw.rounds(idx.copy(), 1))
+    relative = drift(draw.rounds(idx.copy(), 1, offset=POLISH_OFFSET * np.sqrt(whole.area)))
+    assert absolute > 1.5 and relative < 0.7

@@ -22,7 +22,12 @@ geodesic distances to choose among them and to fill in the map:
 3. **Dense map.** Every vertex v of the part gets the vertex w of the whole whose geodesic distances to the
    matched anchors' images are nearest its own to the anchors: ``argmin_w ‖d_P(v, A) − d_W(w, B)‖``. Then,
    ``n_rounds`` times, ``n_refine`` farthest-point samples of the part and their current images serve as the
-   anchors, which spreads them evenly.
+   anchors, which spreads them evenly. Last, after step 4 (when the anchors' images are at their best), the map
+   is *polished*: redrawn ``n_polish`` more times with each distance compared relative to its length,
+   ``log(d + c)`` with c = `POLISH_OFFSET`·√area(W) in place of ``d``. A part's boundary and a change of pose
+   stretch a geodesic in proportion to its length (a path around a hole), so in the absolute comparison the far
+   anchors outweigh the near ones, which place a vertex best. Before step 4 the relative comparison would
+   amplify the errors of misplaced anchors instead.
 4. **Orientation** (``orient=True``). A map can reverse orientation in two ways: onto the mirror side (a
    left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
    (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
@@ -82,7 +87,7 @@ from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
-           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
+           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "POLISH_OFFSET", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
            "SCALE_DOUBT"]
 
 
@@ -92,6 +97,10 @@ ORIENT_MARGIN = 0.5
 #: weighs as much as 0.033 of orientation score. Chosen on parts re-meshed at the whole's density, checked on
 #: parts meshed apart (TOSCA's low-res poses) and on FAUST's people (the docs' Results page)
 ORIENT_WEIGHT = 0.3
+#: step 3's polish compares geodesic distances d as log(d + POLISH_OFFSET·√area(whole)): about two edge lengths on a
+#: 5,000-vertex shape, below which heat-method distances are not to be trusted relatively (0.02-0.2 gave the same
+#: maps to within 0.005 of mean error; the docs' Results page)
+POLISH_OFFSET = 0.05
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
 #: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
@@ -117,6 +126,7 @@ class LocateOptions:
     tol, rel_tol : the consistency tolerance σ = tol·√area(whole) + rel_tol·(the shorter distance) (step 2)
     n_refine : anchors of each refinement round (steps 3 and 4)
     n_rounds : refinement rounds (step 3), and unfolding rounds (step 4)
+    n_polish : rounds of step 3's polish after step 4, distances compared relative to their length (0: none)
     orient : repair the parts of the map that reverse orientation through the whole's symmetry (step 4)
     region_tol : a vertex of the whole is in `PartMap.region` when an image of a vertex of the part lies within
         this (a fraction of √area(whole), along its edges) of it: about two edges on a 5,000-vertex shape,
@@ -150,6 +160,7 @@ class LocateOptions:
     rel_tol: float = 0.1
     n_refine: int = 96
     n_rounds: int = 2
+    n_polish: int = 1
     orient: bool = True
     region_tol: float = 0.03
     rival_tol: float = 0.1
@@ -164,6 +175,7 @@ class LocateOptions:
         _validate.nonnegative_finite("rel_tol", self.rel_tol)
         _validate.integer_at_least("n_refine", self.n_refine, 3)
         _validate.integer_at_least("n_rounds", self.n_rounds, 0)
+        _validate.integer_at_least("n_polish", self.n_polish, 0)
         _validate.boolean("orient", self.orient)
         if self.orient_weight is not None:
             _validate.nonnegative_finite("orient_weight", self.orient_weight)
@@ -394,13 +406,15 @@ class _Redraw:
 
         return nearest_rows(self.on_part(from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
-    def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None) -> np.ndarray:
+    def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None, offset: float | None = None
+               ) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
-        current images."""
+        current images; with ``offset`` c, the distances d compared as log(d + c) (step 3's polish)."""
 
         k = np.ones(len(self.src), dtype=bool) if keep is None else keep
+        f = (lambda d: d) if offset is None else (lambda d: np.log(d + offset))
         for _ in range(n):
-            t = nearest_rows(self.d_src[:, k], _distances(self.g_whole, t[self.src[k]]).T)[0]
+            t = nearest_rows(f(self.d_src[:, k]), f(_distances(self.g_whole, t[self.src[k]]).T))[0]
         return t
 
     def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
@@ -548,12 +562,14 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
-        if unread:  # a patch wound the wrong way reverses every orientation read on it
-            score, mean_cost = float("nan"), cost(t)
-        elif opt.orient:
+        oriented = opt.orient and not unread
+        if oriented:
             t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
-        else:
-            score, mean_cost = orientation_score(part, whole, t), cost(t)
+        if opt.n_polish:
+            t = draw.rounds(t, opt.n_polish, offset=POLISH_OFFSET * scale)
+        if opt.n_polish or not oriented:  # NaN: a patch wound the wrong way reverses every orientation read on it
+            score = float("nan") if unread else orientation_score(part, whole, t)
+            mean_cost = cost(t)
         local = (np.zeros(part.n_vertices) if unread
                  else np.nan_to_num(local_orientation(part, whole, t), nan=0.0))
 
