@@ -87,8 +87,8 @@ from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
-           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "POLISH_OFFSET", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
-           "SCALE_DOUBT"]
+           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "POLISH_OFFSET", "SCALE_RANGE",
+           "SCALE_STEPS", "SCALE_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -98,8 +98,8 @@ ORIENT_MARGIN = 0.5
 #: parts meshed apart (TOSCA's low-res poses) and on FAUST's people (the docs' Results page)
 ORIENT_WEIGHT = 0.3
 #: step 3's polish compares geodesic distances d as log(d + POLISH_OFFSET·√area(whole)): about two edge lengths on a
-#: 5,000-vertex shape, below which heat-method distances are not to be trusted relatively (0.02-0.2 gave the same
-#: maps to within 0.005 of mean error; the docs' Results page)
+#: 5,000-vertex shape, below which heat-method distances are not to be trusted relatively. Not chosen by its
+#: figures: offsets from 0.02 to 0.2 did alike on the development parts and the checks (the docs' Results page)
 POLISH_OFFSET = 0.05
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
