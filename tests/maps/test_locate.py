@@ -434,7 +434,8 @@ def test_polish_weighs_the_near_anchors_around_a_hole():
     between opposite sides go around the hole and are longer than the whole's. Redrawn from its exact images, the
     map drifts by about two edges when distances are compared as they are (the far anchors, stretched most,
     outweigh the near ones), and stays within an edge when they are compared relative to their length."""
-    from wpot.maps.locate import POLISH_OFFSET, _Redraw
+    from wpot.maps.locate import _Redraw
+    from wpot.maps.seams import LOG_OFFSET
     from wpot.mesh import cut
     from wpot.sampling import farthest_point_sampling
 
@@ -454,5 +455,5 @@ def test_polish_weighs_the_near_anchors_around_a_hole():
         return np.linalg.norm(whole.vertices[t] - whole.vertices[idx], axis=1).mean() / edge
 
     absolute = drift(draw.rounds(idx.copy(), 1))
-    relative = drift(draw.rounds(idx.copy(), 1, offset=POLISH_OFFSET * np.sqrt(whole.area)))
+    relative = drift(draw.rounds(idx.copy(), 1, offset=LOG_OFFSET * max(part.mean_edge_length, edge)))
     assert absolute > 1.5 and relative < 0.7

@@ -24,10 +24,11 @@ geodesic distances to choose among them and to fill in the map:
    ``n_rounds`` times, ``n_refine`` farthest-point samples of the part and their current images serve as the
    anchors, which spreads them evenly. Last, after step 4 (when the anchors' images are at their best), the map
    is *polished*: redrawn ``n_polish`` more times with each distance compared relative to its length,
-   ``log(d + c)`` with c = `POLISH_OFFSET`·√area(W) in place of ``d``. A part's boundary and a change of pose
-   stretch a geodesic in proportion to its length (a path around a hole), so in the absolute comparison the far
-   anchors outweigh the near ones, which place a vertex best. Before step 4 the relative comparison would
-   amplify the errors of misplaced anchors instead.
+   ``log(d + h)`` in place of ``d``, h = `wpot.maps.seams.LOG_OFFSET` mean edge lengths of the coarser mesh (as
+   `wpot.maps.seams.reanchor` describes its vertices). A part's boundary and a change of pose stretch a geodesic
+   in proportion to its length (a path around a hole), so in the absolute comparison the far anchors outweigh
+   the near ones, which place a vertex best. Before step 4 the relative comparison would amplify the errors of
+   misplaced anchors instead.
 4. **Orientation** (``orient=True``). A map can reverse orientation in two ways: onto the mirror side (a
    left/right reflection is an isometry), or in place, reflected across a part that is nearly symmetric itself
    (a limb turned about its axis, a head front to back), where distances to the anchors cannot tell the two
@@ -82,13 +83,14 @@ from wpot.mesh import Mesh, edge_paths, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
 from wpot.maps.orientation import local_orientation, orientation_score, unreadable
+from wpot.maps.seams import LOG_OFFSET
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
-           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "POLISH_OFFSET", "SCALE_RANGE",
-           "SCALE_STEPS", "SCALE_DOUBT"]
+           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
+           "SCALE_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -97,10 +99,6 @@ ORIENT_MARGIN = 0.5
 #: weighs as much as 0.033 of orientation score. Chosen on parts re-meshed at the whole's density, checked on
 #: parts meshed apart (TOSCA's low-res poses) and on FAUST's people (the docs' Results page)
 ORIENT_WEIGHT = 0.3
-#: step 3's polish compares geodesic distances d as log(d + POLISH_OFFSET·√area(whole)): about two edge lengths on a
-#: 5,000-vertex shape, below which heat-method distances are not to be trusted relatively. Not chosen by its
-#: figures: offsets from 0.02 to 0.2 did alike on the development parts and the checks (the docs' Results page)
-POLISH_OFFSET = 0.05
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
 #: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
@@ -566,7 +564,8 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         if oriented:
             t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
         if opt.n_polish:
-            t = draw.rounds(t, opt.n_polish, offset=POLISH_OFFSET * scale)
+            h = LOG_OFFSET * max(part.mean_edge_length * part_scale, whole.mean_edge_length)
+            t = draw.rounds(t, opt.n_polish, offset=h)
         if opt.n_polish or not oriented:  # NaN: a patch wound the wrong way reverses every orientation read on it
             score = float("nan") if unread else orientation_score(part, whole, t)
             mean_cost = cost(t)

@@ -41,7 +41,7 @@ from wpot._validate import vertex_map
 from wpot.cost import nearest_rows
 from wpot.mesh import Mesh, edge_paths
 
-__all__ = ["SEAM_ANCHORS", "SEAM_JUMP", "SEAM_REGION", "map_regions", "reanchor"]
+__all__ = ["LOG_OFFSET", "SEAM_ANCHORS", "SEAM_JUMP", "SEAM_REGION", "map_regions", "reanchor"]
 
 #: an edge of A whose ends the map sends farther apart than its length by this (times sqrt(area(B))) is a
 #: seam. Chosen on FAUST pairs outside its test list, checked on TOSCA pairs outside it (the docs' Results page)
@@ -56,7 +56,7 @@ SEAM_ANCHORS = 32
 ANCHOR_OUTLIER = 2.0
 #: anchors always kept (the least distorted)
 MIN_ANCHORS = 8
-#: the offset of the log distances, in mean edge lengths
+#: the offset of the log distances, in mean edge lengths (also `wpot.maps.locate`'s polish)
 LOG_OFFSET = 3.0
 
 
