@@ -407,7 +407,7 @@ class _Redraw:
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None, offset: float | None = None
                ) -> np.ndarray:
         """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
-        current images; with ``offset`` c, the distances d compared as log(d + c) (step 3's polish)."""
+        current images; with ``offset`` h, the distances d compared as log(d + h) (step 3's polish)."""
 
         k = np.ones(len(self.src), dtype=bool) if keep is None else keep
         f = (lambda d: d) if offset is None else (lambda d: np.log(d + offset))
