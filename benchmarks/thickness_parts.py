@@ -50,14 +50,6 @@ def ball_part(mesh, rng: np.random.Generator, share: float):
     return cut_one_piece(mesh, near)
 
 
-def rings_from_cut(mesh) -> np.ndarray:
-    """(N,) the number of edges from each vertex to the mesh's boundary (inf on a component without one)."""
-    from scipy.sparse.csgraph import dijkstra
-
-    border = np.unique(mesh.boundary_edges.ravel())
-    return dijkstra((mesh.adjacency != 0).astype(float), indices=border, unweighted=True, min_only=True)
-
-
 def agreement(part: np.ndarray, whole: np.ndarray) -> dict:
     """Share within `WITHIN`, mean |log ratio| and median log ratio of ``part`` against ``whole`` (same shape),
     over the vertices where ``part`` has a value (the capped peer has none where no ray crosses the solid)."""
@@ -72,6 +64,7 @@ def agreement(part: np.ndarray, whole: np.ndarray) -> dict:
 
 def run(a, store: JsonlStore, log) -> None:
     from wpot.io import load_mesh
+    from wpot.mesh import boundary_rings
     from wpot.signatures._thickness import thickness_field
 
     for ds, vtx in dataset_folders(a, log):
@@ -90,7 +83,7 @@ def run(a, store: JsonlStore, log) -> None:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the part's own warning (few vertices measured) is expected
                     f = thickness_field(part, device=a.device)
-                far = rings_from_cut(part) >= a.rings
+                far = boundary_rings(part) >= a.rings
                 w = t_whole[idx]
                 rec = {"method": "ball", "shape": f"{ds}:{name}", "part": f"{share:g}:{k}", "dataset": ds,
                        "share": share, "n_vertices": int(part.n_vertices), "far": int(far.sum()),

@@ -312,3 +312,18 @@ def test_edge_paths_are_scipys_undirected_shortest_paths():
     # a one-ring neighbour is one edge away
     j = int(m.one_ring(0)[0])
     assert edge_paths(m, 0)[j] == pytest.approx(np.linalg.norm(m.vertices[0] - m.vertices[j]))
+
+
+def test_boundary_rings_count_edges_from_the_cut():
+    from wpot.mesh import boundary_rings, cut
+
+    m = example_mesh(900)
+    part, _ = cut(m, m.vertices[:, 2] > np.median(m.vertices[:, 2]))
+    rings = boundary_rings(part)
+    border = np.unique(part.boundary_edges.ravel())
+    assert np.all(rings[border] == 0) and rings.max() >= 3
+    # one ring in: a neighbour of the border that is not on it
+    inner = np.setdiff1d(np.unique(part.adjacency[border].indices), border)
+    assert np.all(rings[inner] == 1)
+    assert np.all(np.isinf(boundary_rings(m)))  # a closed surface has no cut
+

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from numpy.typing import ArrayLike
 
-__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "edge_paths", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "boundary_caps", "validate", "winding"]
+__all__ = ["Mesh", "MeshWarning", "REPAIR_MODES", "cut", "edge_paths", "repair_mesh", "repair_mode", "repair_setting", "signed_volume", "boundary_caps", "boundary_rings", "validate", "winding"]
 
 #: a triangle whose area is below this fraction of (mean edge length)^2 counts as degenerate
 DEGENERATE_AREA_RTOL = 1e-12
@@ -635,6 +635,17 @@ def edge_paths(mesh: Mesh, sources, *, limit: float = np.inf, min_only: bool = F
     from scipy.sparse.csgraph import dijkstra
 
     return dijkstra(mesh.edge_graph, directed=True, indices=sources, limit=limit, min_only=min_only)
+
+
+def boundary_rings(mesh: Mesh) -> np.ndarray:
+    """(N,) float64, the number of edges from each vertex to the nearest vertex of ``mesh``'s boundary (0 on it;
+    inf on a component without one): how far a vertex of a part lies from the cut."""
+    from scipy.sparse.csgraph import dijkstra
+
+    border = np.unique(mesh.boundary_edges.ravel())
+    if border.size == 0:
+        return np.full(mesh.n_vertices, np.inf)
+    return dijkstra((mesh.adjacency != 0).astype(float), indices=border, unweighted=True, min_only=True)
 
 
 def _edge_matrix(mesh: Mesh, values: np.ndarray) -> sp.csr_matrix:

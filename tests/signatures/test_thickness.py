@@ -9,7 +9,7 @@ import trimesh
 
 from helpers import random_rotation
 from render.raycast import DepthRenderer, inward_cone
-from wpot.mesh import Mesh
+from wpot.mesh import Mesh, boundary_rings
 from wpot.signatures import _ldsift as L
 from wpot.signatures import get_signature
 from wpot.signatures import _thickness as T
@@ -69,13 +69,6 @@ def test_vertices_without_rays_take_their_neighbours_values():
     np.testing.assert_allclose(out[6:], 3.0)
 
 
-def _rings_from_boundary(mesh: Mesh) -> np.ndarray:
-    from scipy.sparse.csgraph import dijkstra
-
-    border = np.unique(mesh.boundary_edges.ravel())
-    return dijkstra((mesh.adjacency != 0).astype(float), indices=border, unweighted=True, min_only=True)
-
-
 def _open_part(mesh: Mesh, keep_faces: np.ndarray) -> tuple[Mesh, np.ndarray]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -91,7 +84,7 @@ def test_a_cut_sphere_keeps_the_sphere_thickness(sphere):
     cut, _ = _open_part(sphere, sphere.vertices[sphere.faces].mean(axis=1)[:, 2] < 1.2)
     with pytest.warns(UserWarning, match="open boundary loop.*ldsift_thickness"):
         t = thickness(cut)
-    far = _rings_from_boundary(cut) >= 2
+    far = boundary_rings(cut) >= 2
     np.testing.assert_allclose(t[far], exact, rtol=0.05)
     # not vacuous: the escaped rays are many, and the rays that stay in the part alone read it thinner
     frames = T._ray_frames(cut.vertex_normals, L.local_frames(cut).frames[:, 0])
@@ -149,7 +142,7 @@ def test_a_cut_cylinder_keeps_the_thickness_of_its_whole():
         warnings.simplefilter("ignore")  # most of the part's vertices see an opening
         t = thickness(part)
     t_whole = thickness(whole)[index]
-    far = _rings_from_boundary(part) >= 3
+    far = boundary_rings(part) >= 3
     assert far.mean() > 0.8
     # within 1 %: the rays that stay in the part alone (dropping the escaped ones, the long ones along the
     # axis) read up to 3 % thinner here
@@ -171,7 +164,7 @@ def test_the_field_says_which_vertices_the_part_measures():
     assert w.own.all() and np.array_equal(w.low, w.high)
     assert 0.05 < f.own.mean() < 0.95  # neither all nor none
     np.testing.assert_allclose(f.values[f.own], w.values[index][f.own], rtol=0.01)
-    assert not f.own[_rings_from_boundary(part) == 0].any()
+    assert not f.own[boundary_rings(part) == 0].any()
     assert np.all(f.low <= f.values + 1e-12) and np.all(f.values <= f.high + 1e-12)
 
 
