@@ -305,10 +305,10 @@ def remeshed(folder: Path, source: str, how: str, lowres: Path | None = None):
 def lowres_twin(folder: Path, source: str, lowres: Path | None = None, mesh=None):
     """``source``'s pose in ``tosca_lowres`` (beside the dataset unless ``lowres``) as read, and why not: (mesh,
     "") or (None, the reason), None when that folder lacks the name or holds another pose under it
-    (`wpot.paper.head.twin_offset` above `TWIN_TOL`: its victoria0 is a copy of victoria1). ``mesh``: the 5k
-    shape when already read."""
+    (`wpot.paper.head.check_twin`: its victoria0 is a copy of victoria1). ``mesh``: the 5k shape when already
+    read."""
     from wpot.io import load_mesh
-    from wpot.paper.head import TWIN_TOL, twin_offset
+    from wpot.paper.head import check_twin
 
     root = folder if (folder / "vtx_5k").is_dir() else folder.parent  # the dataset, or its vtx_5k folder
     path = (lowres or root.parent / "tosca_lowres") / f"{source}.mat"
@@ -317,9 +317,10 @@ def lowres_twin(folder: Path, source: str, lowres: Path | None = None, mesh=None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a few non-manifold edges in TOSCA's low-resolution meshes
         r = load_mesh(path)
-    offset = twin_offset(r, load_mesh(_vtx(folder) / f"{source}.off") if mesh is None else mesh)
-    if offset > TWIN_TOL:
-        return None, f"{path.name} lies {offset:.2f} edge lengths from {source}: another pose"
+    try:
+        check_twin(r, load_mesh(_vtx(folder) / f"{source}.off") if mesh is None else mesh)
+    except ValueError as e:
+        return None, f"{path.name}: {e}"
     return r, ""
 
 

@@ -20,7 +20,7 @@ from wpot.datasets import class_label, correspondence_group, natural_key, read_l
 from wpot.evaluate import GeodesicDistances
 
 __all__ = ["HEAD_AREA_FRACTION", "HEAD_REFERENCES", "HeadDataset", "build_head_dataset", "head_ground_truth", "load_head_dataset",
-           "lowres_template", "twin_offset", "TWIN_TOL"]
+           "check_twin", "lowres_template", "twin_offset", "TWIN_TOL"]
 
 # ----------------------------------------------------------------------------- mesh files
 def _load_mesh(path: Path) -> Mesh:
@@ -137,16 +137,23 @@ def twin_offset(mesh: Mesh, mesh_5k: Mesh) -> float:
     return float(np.median(d) / mesh_5k.mean_edge_length)
 
 
-def lowres_template(mesh: Mesh, mesh_5k: Mesh, vts_5k: np.ndarray) -> np.ndarray:
-    """The TOSCA template carried to a low-resolution shape: (K,) int64, the vertex of ``mesh`` nearest to
-    the template point's vertex ``vts_5k`` of the same-named ``tosca_isometric_5k`` shape ``mesh_5k`` (the two
-    sets share coordinates and poses: nearest neighbours are 0.1-0.25 of an edge apart, see the data README).
-    Raises ValueError when ``mesh`` is not ``mesh_5k``'s pose (`twin_offset` above `TWIN_TOL`)."""
+def check_twin(mesh: Mesh, mesh_5k: Mesh) -> None:
+    """Raise ValueError when the low-resolution shape ``mesh`` is not the pose of its ``tosca_isometric_5k``
+    namesake ``mesh_5k`` (`twin_offset` above `TWIN_TOL`), so that the namesake's ground truth does not carry to
+    it."""
     offset = twin_offset(mesh, mesh_5k)
     if offset > TWIN_TOL:
         raise ValueError(f"the low-resolution shape lies {offset:.2f} edge lengths from its tosca_isometric_5k "
                          f"namesake (at most {TWIN_TOL:g} when they are one pose): it is another pose, and the "
                          "namesake's ground truth does not carry to it")
+
+
+def lowres_template(mesh: Mesh, mesh_5k: Mesh, vts_5k: np.ndarray) -> np.ndarray:
+    """The TOSCA template carried to a low-resolution shape: (K,) int64, the vertex of ``mesh`` nearest to
+    the template point's vertex ``vts_5k`` of the same-named ``tosca_isometric_5k`` shape ``mesh_5k`` (the two
+    sets share coordinates and poses: nearest neighbours are 0.1-0.25 of an edge apart, see the data README).
+    Raises ValueError when ``mesh`` is not ``mesh_5k``'s pose (`check_twin`)."""
+    check_twin(mesh, mesh_5k)
     _, nn = cKDTree(mesh.vertices).query(mesh_5k.vertices[vts_5k])
     return nn.astype(np.int64)
 
