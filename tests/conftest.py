@@ -52,6 +52,14 @@ def tosca5k(shared_data) -> Path:
     return p
 
 
+@pytest.fixture(scope="session")
+def faust5k(shared_data) -> Path:
+    p = shared_data / "faust_5k" / "vtx_5k"
+    if not p.is_dir():
+        pytest.skip(f"FAUST 5k meshes not found at {p}")
+    return p
+
+
 
 
 

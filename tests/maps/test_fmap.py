@@ -9,12 +9,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import wpot
-from wpot.maps.fmap import FmapEnergy, SpectralOperators, functional_map, point_map
+from wpot.maps.fmap import FmapEnergy, SpectralOperators, functional_map, point_map, pseudoscalars
 from wpot.mesh import Mesh
 from wpot.signatures import wks
 from wpot.signatures._wks import wks_energies
 
-from helpers import mirror_symmetric
+from helpers import mirror_symmetric, sphere_points
 
 
 def _descriptors(spec_a, spec_b, p: int = 40) -> tuple[np.ndarray, np.ndarray]:
@@ -160,3 +160,22 @@ def test_wks_terms_from_the_squared_eigenfunctions():
         assert _rel(weighed.fit(), c) < 1e-9
         for name, value in direct.terms(c).items():
             assert abs(weighed.terms(c)[name] - value) <= 1e-9 * abs(value)
+
+
+def test_pseudoscalars_closed_form_on_a_sphere_and_their_turn_under_a_reflection():
+    # on the unit sphere, with f = y and g = z: <n, grad f x grad g> = n_x = x; the mesh is read at area 1, so
+    # both gradients carry sqrt(area), and h = area * x (a random triangulation: per-vertex averages of flat faces)
+    u, f = sphere_points(3000, seed=1)
+    sphere = Mesh(u, f)
+    h = pseudoscalars(sphere, u[:, 1:])[:, 0] / sphere.area
+    assert np.sqrt(np.mean((h - u[:, 0]) ** 2)) < 0.03 and np.abs(h - u[:, 0]).max() < 0.15
+    h *= sphere.area
+    # the faces' winding does not matter (the outward normal is read), a reflection of the mesh turns the sign
+    np.testing.assert_allclose(pseudoscalars(Mesh(u, f[:, ::-1].copy()), u[:, 1:]), h[:, None], atol=1e-12)
+    m = mirror_symmetric()
+    x = m.vertices * np.array([-1.0, 1.0, 1.0])
+    mirrored = Mesh(x, m.faces[:, ::-1].copy())
+    vals = np.c_[m.vertices[:, 1], m.vertices[:, 2] ** 2, m.vertices[:, 0] ** 2]  # even in x
+    np.testing.assert_allclose(pseudoscalars(mirrored, vals), -pseudoscalars(m, vals), atol=1e-10)
+    with pytest.raises(ValueError, match="outward|outside|closed"):
+        pseudoscalars(Mesh(np.c_[u[:, :2], np.zeros(len(u))], f), u[:, 1:])

@@ -40,7 +40,7 @@ from wpot.cache import Cache
 from wpot.cost import nearest_rows
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
 
-__all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache", "functional_map", "point_map", "FMAP_K", "FMAP_DESCRIPTORS",
+__all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache", "functional_map", "point_map", "pseudoscalars", "FMAP_K", "FMAP_DESCRIPTORS",
            "FMAP_SPECTRUM", "FMAP_WEIGHTS"]
 
 #: default spectral resolution of the fitted functional map
@@ -84,6 +84,30 @@ def _face_gradients(faces: np.ndarray, hats: list[np.ndarray], values: np.ndarra
     for a, hat in enumerate(hats):
         grad += hat[:, :, None] * values[faces[:, a]][:, None, :]
     return grad
+
+
+def pseudoscalars(mesh: Mesh, values: np.ndarray) -> np.ndarray:
+    """(N, p(p−1)/2): for each pair i < j of the vertex functions ``values`` (N, p), ``⟨n, ∇f_i × ∇f_j⟩`` with n
+    the outward normal, per face (the mesh scaled to area 1), then averaged onto the vertices by face area.
+
+    The orientation operator's integrand, read pointwise: an isometry that carries every f_i to itself carries
+    these functions to themselves when it keeps orientation, and to their negatives when it reverses it (a
+    left/right reflection). So they tell a mirror map from a map that keeps orientation, which the f_i alone
+    (intrinsic, like WKS) cannot. Raises ValueError on a mesh whose outside cannot be read."""
+    side = winding(mesh)
+    if side == 0:
+        raise ValueError(f"pseudoscalars need a closed, consistently wound surface: this mesh {NO_OUTSIDE}")
+    values = np.asarray(values, dtype=np.float64)
+    normals = mesh.face_normals * side
+    grad = _face_gradients(mesh.faces, _hat_gradients(mesh, normals), values)  # (F, 3, p)
+    i, j = np.triu_indices(values.shape[1], k=1)
+    per_face = np.einsum("fc,fcq->fq", normals, np.cross(grad[:, :, i], grad[:, :, j], axis=1))
+    w = mesh.face_areas
+    out, weight = np.zeros((mesh.n_vertices, len(i))), np.zeros(mesh.n_vertices)
+    for c in range(3):
+        np.add.at(out, mesh.faces[:, c], per_face * w[:, None])
+        np.add.at(weight, mesh.faces[:, c], w)
+    return out / np.maximum(weight, 1e-300)[:, None]
 
 
 @dataclass(frozen=True)

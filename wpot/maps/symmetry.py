@@ -4,6 +4,12 @@
   vertex of the most similar WKS signature that is not near it (its mirror image has the same WKS), and
   ZoomOut makes that map consistent; it is kept only when it reverses orientation (score below
   ``-min_score``, `wpot.maps.orientation.orientation_score`) and moves the shape (it is not the identity).
+  WKS cannot tell the mirror from a self-map that keeps orientation, and at ZoomOut's first resolutions
+  neither can the spectrum: on a body whose limbs are posed apart, plain ZoomOut can settle on a half turn
+  (left to right *and* front to back, a near-isometry of a torso that keeps orientation) however close it
+  starts to the mirror. So its rounds up to k = `ORIENTED_K` also ask that each vertex's image carry the
+  negatives of its `wpot.maps.fmap.pseudoscalars` (``⟨n, ∇f × ∇g⟩`` for pairs of WKS functions f, g at
+  `PSEUDO_ENERGIES`): the mirror turns them around, a half turn does not.
 * `keep_orientation`: the vertices where a map is mirrored (`wpot.maps.orientation.local_orientation`) are sent
   where the map sends their mirror images (A's symmetry, else B's), the result is refined (ZoomOut), and the
   better-scoring map is returned.
@@ -22,12 +28,14 @@ from numpy.typing import ArrayLike
 from wpot._validate import integer_at_least, one_of, vertex_map
 from wpot.cache import Cache
 from wpot.maps.orientation import LOCAL_RADIUS, map_score, orientation_terms, spread, terms_score
-from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, spectrum_size
+from wpot.cost import nearest_rows
+from wpot.maps.fmap import pseudoscalars
+from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, spectral_basis, spectrum_size
 from wpot.mesh import Mesh, winding
 from wpot.signatures import wks
 from wpot.spectral import eigenpairs
 
-__all__ = ["EXCLUSION", "MIN_SCORE", "SYMMETRY_K_END", "Symmetry", "keep_orientation", "reflection_symmetry",
+__all__ = ["EXCLUSION", "MIN_SCORE", "ORIENTED_K", "PSEUDO_ENERGIES", "SYMMETRY_K_END", "Symmetry", "keep_orientation", "reflection_symmetry",
            "symmetry_cache"]
 
 #: symmetry maps, keyed by mesh content and the detection settings
@@ -38,8 +46,15 @@ MIN_SCORE = 0.3
 EXCLUSION = 0.1
 #: ZoomOut's last resolution for the symmetry map (`reflection_symmetry`'s ``k_end``)
 SYMMETRY_K_END = 200
+#: ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring); from the next on,
+#: plain ZoomOut, which keeps the mirror from there (it did on every FAUST and TOSCA 5k shape: the docs' Results
+#: page, Correspondence)
+ORIENTED_K = 50
+#: the WKS energies (of `_signature`'s 100, low to high) whose pairs give the pseudoscalars: five spread over the
+#: lower half, where the signature describes the body's large parts rather than the mesh's detail
+PSEUDO_ENERGIES = (5, 15, 25, 35, 45)
 #: version of the detection, part of the cache key
-_VERSION = 4
+_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -93,6 +108,25 @@ def _mirror_candidates(mesh: Mesh, sig: np.ndarray, exclusion: float, block: int
     return out
 
 
+def _reversing_rounds(mesh: Mesh, sig: np.ndarray, t: np.ndarray, k_end: int) -> np.ndarray:
+    """ZoomOut's rounds k = `ZOOMOUT_K_START`, ..., ``k_end`` (step `ZOOMOUT_STEP`) on every vertex of a connected
+    mesh, each vertex mapped to the one whose spectral embedding (carried by the round's functional map) is
+    nearest *and* whose pseudoscalars are nearest the negatives of its own (the module docstring). The two
+    parts weigh alike: the pseudoscalars are scaled to unit RMS and their block to the embedding's √k.
+    ``sig`` (N, 100) `_signature`; ``t`` (N,) the start map; the basis is the ZoomOut rounds' that follow
+    (`wpot.maps.zoom.spectral_basis`). Returns (N,) int64."""
+    h = pseudoscalars(mesh, sig[:, list(PSEUDO_ENERGIES)])
+    h /= np.maximum(np.sqrt((h * h).mean(axis=0, keepdims=True)), 1e-300)
+    phi = spectral_basis(mesh, None).evecs[:, :k_end]
+    mass = mesh.voronoi_areas
+    pinv = (phi * (mass / mass.sum())[:, None]).T  # (k, N): a vertex function's coefficients
+    for k in range(ZOOMOUT_K_START, k_end + 1, ZOOMOUT_STEP):
+        fmap = pinv[:k] @ phi[t, :k]
+        w = np.sqrt(k / h.shape[1])
+        t = nearest_rows(np.hstack([phi[:, :k], w * h]), np.hstack([phi[:, :k] @ fmap.T, -w * h]))[0]
+    return t
+
+
 def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: float = MIN_SCORE,
                         exclusion: float = EXCLUSION, k_end: int = SYMMETRY_K_END,
                         cache: bool = True) -> Symmetry | None:
@@ -133,11 +167,17 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     found = None
     if winding(mesh) != 0 and mesh.n_vertices >= 8:
         spec = eigenpairs(mesh, min(n_eigen, mesh.n_vertices))  # from the spectrum cache when it is there
-        cand = _mirror_candidates(mesh, _signature(spec), exclusion)
+        sig = _signature(spec)
+        cand = _mirror_candidates(mesh, sig, exclusion)
         ke = min(k_end, spectrum_size(mesh.n_vertices))
         if ke < ZOOMOUT_K_START:
             raise ValueError(f"k_start must be <= k_end, got k_start={ZOOMOUT_K_START}, k_end={ke}")
-        sym = Refiner(mesh, mesh, None, ZOOMOUT_SAMPLES)(cand, ZOOMOUT_K_START, ke, ZOOMOUT_STEP)
+        sym, k_done = cand, ZOOMOUT_K_START - ZOOMOUT_STEP
+        if mesh.n_components == 1:  # (`Refiner` refines each component on its own, with its own spectrum)
+            k_done = ZOOMOUT_K_START + (min(ORIENTED_K, ke) - ZOOMOUT_K_START) // ZOOMOUT_STEP * ZOOMOUT_STEP
+            sym = _reversing_rounds(mesh, sig, cand, k_done)
+        if k_done < ke:
+            sym = Refiner(mesh, mesh, None, ZOOMOUT_SAMPLES)(sym, min(k_done + ZOOMOUT_STEP, ke), ke, ZOOMOUT_STEP)
         score = map_score(mesh, mesh, sym)
         disp = float(np.linalg.norm(mesh.vertices[sym] - mesh.vertices, axis=1).mean() / np.sqrt(mesh.area))
         if score < -min_score and disp > 0.5 * exclusion:
