@@ -114,6 +114,10 @@ def test_finds_the_mirror_of_a_person_whose_plain_zoomout_settles_on_a_half_turn
     assert sym is not None and sym.score < -0.6
     err = np.linalg.norm(m.vertices[sym.map[a]] - m.vertices[b], axis=1) / np.sqrt(m.area)
     assert err.mean() < 0.04 and np.mean(err < 0.05) > 0.85
+    if name == "tr_reg_008":  # plain ZoomOut (no pseudoscalars) finds the half turn, which keeps orientation
+        assert reflection_symmetry(m, oriented_k=0, cache=False) is None
+    with pytest.raises(ValueError, match="oriented_k"):
+        reflection_symmetry(m, oriented_k=-1)
 
 
 def _planted_mirror(seed: int = 2):

@@ -47,8 +47,8 @@ EXCLUSION = 0.1
 #: ZoomOut's last resolution for the symmetry map (`reflection_symmetry`'s ``k_end``)
 SYMMETRY_K_END = 200
 #: ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring); from the next on,
-#: plain ZoomOut, which keeps the mirror from there (it did on every FAUST and TOSCA 5k shape: the docs' Results
-#: page, Correspondence)
+#: plain ZoomOut. On FAUST's pose 8, plain ZoomOut started from the true mirror keeps it from k = 50 and leaves it
+#: from k = 10 (the docs' Results page, §6)
 ORIENTED_K = 50
 #: the WKS energies (of `_signature`'s 100, low to high) whose pairs give the pseudoscalars: five spread over the
 #: lower half, where the signature describes the body's large parts rather than the mesh's detail
@@ -128,7 +128,7 @@ def _reversing_rounds(mesh: Mesh, sig: np.ndarray, t: np.ndarray, k_end: int) ->
 
 
 def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: float = MIN_SCORE,
-                        exclusion: float = EXCLUSION, k_end: int = SYMMETRY_K_END,
+                        exclusion: float = EXCLUSION, k_end: int = SYMMETRY_K_END, oriented_k: int = ORIENTED_K,
                         cache: bool = True) -> Symmetry | None:
     """The self-map exchanging left and right of a mirror-symmetric shape, or None when none is found.
 
@@ -142,6 +142,8 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     exclusion : a vertex's mirror candidate lies at least this far from it, times sqrt(area)
     k_end : ZoomOut's last spectral resolution for the self-map (`wpot.zoomout`, which starts at 10; fewer
         when ``spectrum_size`` gives fewer eigenpairs)
+    oriented_k : ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring; at
+        most ``k_end``); below `ZOOMOUT_K_START` (e.g. 0), none do: plain ZoomOut, as before they did
     cache : reuse (and store) the result in `symmetry_cache`
 
     Returns
@@ -155,8 +157,9 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
         raise TypeError(f"mesh must be a wpot.Mesh, got {type(mesh).__name__}")
     n_eigen = spectrum_size(mesh.n_vertices) if n_eigen is None else integer_at_least("n_eigen", n_eigen, 2)
     k_end = integer_at_least("k_end", k_end, 10)
+    oriented_k = integer_at_least("oriented_k", oriented_k, 0)
     params = {"n_eigen": int(n_eigen), "min_score": float(min_score), "exclusion": float(exclusion),
-              "k_end": int(k_end), "version": _VERSION}
+              "k_end": int(k_end), "oriented_k": oriented_k, "version": _VERSION}
     if cache:
         hit = symmetry_cache.get(mesh.fingerprint, params)
         if hit is not None:
@@ -173,8 +176,8 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
         if ke < ZOOMOUT_K_START:
             raise ValueError(f"k_start must be <= k_end, got k_start={ZOOMOUT_K_START}, k_end={ke}")
         sym, k_done = cand, ZOOMOUT_K_START - ZOOMOUT_STEP
-        if mesh.n_components == 1:  # (`Refiner` refines each component on its own, with its own spectrum)
-            k_done = ZOOMOUT_K_START + (min(ORIENTED_K, ke) - ZOOMOUT_K_START) // ZOOMOUT_STEP * ZOOMOUT_STEP
+        if mesh.n_components == 1 and oriented_k >= ZOOMOUT_K_START:  # (`Refiner` takes components one by one)
+            k_done = ZOOMOUT_K_START + (min(oriented_k, ke) - ZOOMOUT_K_START) // ZOOMOUT_STEP * ZOOMOUT_STEP
             sym = _reversing_rounds(mesh, sig, cand, k_done)
         if k_done < ke:
             sym = Refiner(mesh, mesh, None, ZOOMOUT_SAMPLES)(sym, min(k_done + ZOOMOUT_STEP, ke), ke, ZOOMOUT_STEP)
