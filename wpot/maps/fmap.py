@@ -40,8 +40,9 @@ from wpot.cache import Cache
 from wpot.cost import nearest_rows
 from wpot.mesh import NO_OUTSIDE, Mesh, winding
 
-__all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache", "functional_map", "point_map", "pseudoscalars", "FMAP_K", "FMAP_DESCRIPTORS",
-           "FMAP_SPECTRUM", "FMAP_WEIGHTS"]
+__all__ = ["DescriptorTerms", "FmapEnergy", "SpectralOperators", "squared_eigenfunction_terms", "terms_cache",
+           "functional_map", "point_map", "pseudoscalars", "FMAP_K", "FMAP_DESCRIPTORS", "FMAP_SPECTRUM",
+           "FMAP_WEIGHTS"]
 
 #: default spectral resolution of the fitted functional map
 FMAP_K = 30

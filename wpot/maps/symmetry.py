@@ -35,8 +35,8 @@ from wpot.mesh import Mesh, winding
 from wpot.signatures import wks
 from wpot.spectral import eigenpairs
 
-__all__ = ["EXCLUSION", "MIN_SCORE", "ORIENTED_K", "PSEUDO_ENERGIES", "SYMMETRY_K_END", "Symmetry", "keep_orientation", "reflection_symmetry",
-           "symmetry_cache"]
+__all__ = ["EXCLUSION", "MIN_SCORE", "ORIENTED_K", "PSEUDO_ENERGIES", "SYMMETRY_K_END", "Symmetry", "keep_orientation",
+           "reflection_symmetry", "symmetry_cache"]
 
 #: symmetry maps, keyed by mesh content and the detection settings
 symmetry_cache = Cache("symmetry", max_entries=128, max_bytes=64 << 20)
@@ -143,7 +143,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     k_end : ZoomOut's last spectral resolution for the self-map (`wpot.zoomout`, which starts at 10; fewer
         when ``spectrum_size`` gives fewer eigenpairs)
     oriented_k : ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring; at
-        most ``k_end``); below `ZOOMOUT_K_START` (e.g. 0), none do: plain ZoomOut, as before they did
+        most ``k_end``); below `ZOOMOUT_K_START` (e.g. 0), none do: plain ZoomOut throughout
     cache : reuse (and store) the result in `symmetry_cache`
 
     Returns
