@@ -2,8 +2,9 @@
 
 `keep_orientation` (whole-to-whole maps) and `locate`'s step 4 send a stretch that reverses orientation through a
 shape's mirror, so a shape without a detected mirror loses that repair. For every shape of each dataset, the
-mirror is detected with ``--oriented-k`` (the default, `ORIENTED_K`: ZoomOut's rounds to that resolution also
-match the pseudoscalars) and, as the peer, with ``oriented_k=0`` (plain ZoomOut), each without the symmetry
+mirror is detected with ``--oriented-k`` (the default, `ORIENTED_K`: where plain ZoomOut finds no mirror, a second
+try whose rounds to that resolution also match the pseudoscalars) and, as the peer, with ``oriented_k=0`` (plain
+ZoomOut alone), each without the symmetry
 cache and timed, the shape's spectrum computed first. The truth is the data's own: line i of ``<shape>.vts``
 and of ``<shape>.sym.vts`` are mirror images. Reported per dataset, for each variant: the shapes whose mirror is
 found (orientation score below ``-MIN_SCORE``), the mean and worst error over them (Euclidean, over √area, mean

@@ -44,20 +44,21 @@ def shared_data() -> Path:
     return DATA
 
 
+def _meshes(shared_data: Path, folder: str, label: str) -> Path:
+    p = shared_data / folder / "vtx_5k"
+    if not p.is_dir():
+        pytest.skip(f"{label} 5k meshes not found at {p}")
+    return p
+
+
 @pytest.fixture(scope="session")
 def tosca5k(shared_data) -> Path:
-    p = shared_data / "tosca_isometric_5k" / "vtx_5k"
-    if not p.is_dir():
-        pytest.skip(f"TOSCA 5k meshes not found at {p}")
-    return p
+    return _meshes(shared_data, "tosca_isometric_5k", "TOSCA")
 
 
 @pytest.fixture(scope="session")
 def faust5k(shared_data) -> Path:
-    p = shared_data / "faust_5k" / "vtx_5k"
-    if not p.is_dir():
-        pytest.skip(f"FAUST 5k meshes not found at {p}")
-    return p
+    return _meshes(shared_data, "faust_5k", "FAUST")
 
 
 

@@ -7,9 +7,12 @@
   WKS cannot tell the mirror from a self-map that keeps orientation, and at ZoomOut's first resolutions
   neither can the spectrum: on a body whose limbs are posed apart, plain ZoomOut can settle on a half turn
   (left to right *and* front to back, a near-isometry of a torso that keeps orientation) however close it
-  starts to the mirror. So its rounds up to k = `ORIENTED_K` also ask that each vertex's image carry the
-  negatives of its `wpot.maps.fmap.pseudoscalars` (``⟨n, ∇f × ∇g⟩`` for pairs of WKS functions f, g at
-  `PSEUDO_ENERGIES`): the mirror turns them around, a half turn does not.
+  starts to the mirror. So when plain ZoomOut finds no mirror, it runs again with its rounds up to
+  k = `ORIENTED_K` also asking that each vertex's image carry the negatives of its
+  `wpot.maps.fmap.pseudoscalars` (``⟨n, ∇f × ∇g⟩`` for pairs of WKS functions f, g at `PSEUDO_ENERGIES`): the
+  mirror turns them around, a half turn does not. Only then: where plain ZoomOut finds a mirror, the guided
+  rounds find one nearer the truth, but `locate`'s choice of side then takes the mirror side of a few parts by
+  a near-tie in signature cost (the docs' Results page, §6).
 * `keep_orientation`: the vertices where a map is mirrored (`wpot.maps.orientation.local_orientation`) are sent
   where the map sends their mirror images (A's symmetry, else B's), the result is refined (ZoomOut), and the
   better-scoring map is returned.
@@ -46,15 +49,15 @@ MIN_SCORE = 0.3
 EXCLUSION = 0.1
 #: ZoomOut's last resolution for the symmetry map (`reflection_symmetry`'s ``k_end``)
 SYMMETRY_K_END = 200
-#: ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring); from the next on,
-#: plain ZoomOut. On FAUST's pose 8, plain ZoomOut started from the true mirror keeps it from k = 50 and leaves it
+#: when plain ZoomOut finds no mirror, the second try's rounds up to this resolution also match the pseudoscalars
+#: (the module docstring); from the next on, plain ZoomOut. On FAUST's pose 8, plain ZoomOut started from the true mirror keeps it from k = 50 and leaves it
 #: from k = 10 (the docs' Results page, §6)
 ORIENTED_K = 50
 #: the WKS energies (of `_signature`'s 100, low to high) whose pairs give the pseudoscalars: five spread over the
 #: lower half, where the signature describes the body's large parts rather than the mesh's detail
 PSEUDO_ENERGIES = (5, 15, 25, 35, 45)
 #: version of the detection, part of the cache key
-_VERSION = 5
+_VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -142,8 +145,9 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
     exclusion : a vertex's mirror candidate lies at least this far from it, times sqrt(area)
     k_end : ZoomOut's last spectral resolution for the self-map (`wpot.zoomout`, which starts at 10; fewer
         when ``spectrum_size`` gives fewer eigenpairs)
-    oriented_k : ZoomOut's rounds up to this resolution also match the pseudoscalars (the module docstring; at
-        most ``k_end``); below `ZOOMOUT_K_START` (e.g. 0), none do: plain ZoomOut throughout
+    oriented_k : when plain ZoomOut finds no mirror, a second try whose rounds up to this resolution also match
+        the pseudoscalars (the module docstring; at most ``k_end``); below `ZOOMOUT_K_START` (e.g. 0), no second
+        try
     cache : reuse (and store) the result in `symmetry_cache`
 
     Returns
@@ -175,16 +179,20 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
         ke = min(k_end, spectrum_size(mesh.n_vertices))
         if ke < ZOOMOUT_K_START:
             raise ValueError(f"k_start must be <= k_end, got k_start={ZOOMOUT_K_START}, k_end={ke}")
-        sym, k_done = cand, ZOOMOUT_K_START - ZOOMOUT_STEP
-        if mesh.n_components == 1 and oriented_k >= ZOOMOUT_K_START:  # (`Refiner` takes components one by one)
+        refine = Refiner(mesh, mesh, None, ZOOMOUT_SAMPLES)
+
+        def mirror(sym: np.ndarray) -> Symmetry | None:
+            score = map_score(mesh, mesh, sym)
+            disp = float(np.linalg.norm(mesh.vertices[sym] - mesh.vertices, axis=1).mean() / np.sqrt(mesh.area))
+            if score < -min_score and disp > 0.5 * exclusion:
+                return Symmetry(sym, score, disp, _commutator_residual(mesh, spec, sym))
+            return None
+
+        found = mirror(refine(cand, ZOOMOUT_K_START, ke, ZOOMOUT_STEP))
+        if found is None and mesh.n_components == 1 and oriented_k >= ZOOMOUT_K_START:  # (one spectrum)
             k_done = ZOOMOUT_K_START + (min(oriented_k, ke) - ZOOMOUT_K_START) // ZOOMOUT_STEP * ZOOMOUT_STEP
             sym = _reversing_rounds(mesh, sig, cand, k_done)
-        if k_done < ke:
-            sym = Refiner(mesh, mesh, None, ZOOMOUT_SAMPLES)(sym, min(k_done + ZOOMOUT_STEP, ke), ke, ZOOMOUT_STEP)
-        score = map_score(mesh, mesh, sym)
-        disp = float(np.linalg.norm(mesh.vertices[sym] - mesh.vertices, axis=1).mean() / np.sqrt(mesh.area))
-        if score < -min_score and disp > 0.5 * exclusion:
-            found = Symmetry(sym, score, disp, _commutator_residual(mesh, spec, sym))
+            found = mirror(refine(sym, k_done + ZOOMOUT_STEP, ke, ZOOMOUT_STEP) if k_done < ke else sym)
     if cache:
         entry = {"found": found is not None}
         if found is not None:
