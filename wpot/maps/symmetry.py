@@ -11,8 +11,8 @@
   k = `ORIENTED_K` also asking that each vertex's image carry the negatives of its
   `wpot.maps.fmap.pseudoscalars` (``⟨n, ∇f × ∇g⟩`` for pairs of WKS functions f, g at `PSEUDO_ENERGIES`): the
   mirror turns them around, a half turn does not. Only then: where plain ZoomOut finds a mirror, the guided
-  rounds find one nearer the truth, but `locate`'s choice of side then takes the mirror side of a few parts by
-  a near-tie in signature cost (the docs' Results page, §6).
+  rounds find one nearer the truth, and with it `locate`'s choice of side took the mirror side of a few parts
+  by a near-tie in signature cost (the docs' Results page, §6).
 * `keep_orientation`: the vertices where a map is mirrored (`wpot.maps.orientation.local_orientation`) are sent
   where the map sends their mirror images (A's symmetry, else B's), the result is refined (ZoomOut), and the
   better-scoring map is returned.
@@ -50,8 +50,8 @@ EXCLUSION = 0.1
 #: ZoomOut's last resolution for the symmetry map (`reflection_symmetry`'s ``k_end``)
 SYMMETRY_K_END = 200
 #: when plain ZoomOut finds no mirror, the second try's rounds up to this resolution also match the pseudoscalars
-#: (the module docstring); from the next on, plain ZoomOut. On FAUST's pose 8, plain ZoomOut started from the true mirror keeps it from k = 50 and leaves it
-#: from k = 10 (the docs' Results page, §6)
+#: (the module docstring); from the next on, plain ZoomOut. On FAUST's pose 8, plain ZoomOut started from the true
+#: mirror keeps it from k = 50 and leaves it from k = 10 (the docs' Results page, §6)
 ORIENTED_K = 50
 #: the WKS energies (of `_signature`'s 100, low to high) whose pairs give the pseudoscalars: five spread over the
 #: lower half, where the signature describes the body's large parts rather than the mesh's detail
