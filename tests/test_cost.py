@@ -133,8 +133,10 @@ def test_nearest_rows_agrees_with_scipy_and_does_not_depend_on_the_block():
     idx, best = nearest_rows(q, p, dtype=np.float64)
     np.testing.assert_array_equal(idx, d.argmin(axis=1))
     np.testing.assert_allclose(best, d.min(axis=1), rtol=1e-9)
-    got = [nearest_rows(q, p, block=b) for b in (None, 2, 7, 64, 1000)]  # float32: the same answer, any block
+    # float32: the same rows, any block; the distances to float32 rounding (BLAS may take another kernel for a
+    # block of 2 rows than for 300, and round the last bit otherwise)
+    got = [nearest_rows(q, p, block=b) for b in (None, 2, 7, 64, 1000)]
     for i, b in got[1:]:
         np.testing.assert_array_equal(i, got[0][0])
-        np.testing.assert_array_equal(b, got[0][1])
+        np.testing.assert_allclose(b, got[0][1], rtol=1e-6)
     assert np.mean(got[0][0] == idx) > 0.99  # float32 differs from float64 only at near ties
