@@ -192,7 +192,7 @@ def reflection_symmetry(mesh: Mesh, *, n_eigen: int | None = None, min_score: fl
         if found is None and mesh.n_components == 1 and oriented_k >= ZOOMOUT_K_START:  # (one spectrum)
             k_done = ZOOMOUT_K_START + (min(oriented_k, ke) - ZOOMOUT_K_START) // ZOOMOUT_STEP * ZOOMOUT_STEP
             sym = _reversing_rounds(mesh, sig, cand, k_done)
-            found = mirror(refine(sym, k_done + ZOOMOUT_STEP, ke, ZOOMOUT_STEP) if k_done < ke else sym)
+            found = mirror(refine(sym, min(k_done + ZOOMOUT_STEP, ke), ke, ZOOMOUT_STEP) if k_done < ke else sym)
     if cache:
         entry = {"found": found is not None}
         if found is not None:
