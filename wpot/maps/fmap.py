@@ -103,12 +103,11 @@ def pseudoscalars(mesh: Mesh, values: np.ndarray) -> np.ndarray:
     grad = _face_gradients(mesh.faces, _hat_gradients(mesh, normals), values)  # (F, 3, p)
     i, j = np.triu_indices(values.shape[1], k=1)
     per_face = np.einsum("fc,fcq->fq", normals, np.cross(grad[:, :, i], grad[:, :, j], axis=1))
-    w = mesh.face_areas
-    out, weight = np.zeros((mesh.n_vertices, len(i))), np.zeros(mesh.n_vertices)
+    share = per_face * (mesh.face_areas / 3.0)[:, None]  # each corner's third, as `Mesh.vertex_areas` counts it
+    out = np.zeros((mesh.n_vertices, len(i)))
     for c in range(3):
-        np.add.at(out, mesh.faces[:, c], per_face * w[:, None])
-        np.add.at(weight, mesh.faces[:, c], w)
-    return out / np.maximum(weight, 1e-300)[:, None]
+        np.add.at(out, mesh.faces[:, c], share)
+    return out / np.maximum(mesh.vertex_areas, 1e-300)[:, None]
 
 
 @dataclass(frozen=True)

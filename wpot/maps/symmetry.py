@@ -32,7 +32,7 @@ from wpot._validate import integer_at_least, one_of, vertex_map
 from wpot.cache import Cache
 from wpot.maps.orientation import LOCAL_RADIUS, map_score, orientation_terms, spread, terms_score
 from wpot.cost import nearest_rows
-from wpot.maps.fmap import pseudoscalars
+from wpot.maps.fmap import SpectralOperators, pseudoscalars
 from wpot.maps.zoom import ZOOMOUT_K_START, ZOOMOUT_SAMPLES, ZOOMOUT_STEP, Refiner, spectral_basis, spectrum_size
 from wpot.mesh import Mesh, winding
 from wpot.signatures import wks
@@ -120,11 +120,10 @@ def _reversing_rounds(mesh: Mesh, sig: np.ndarray, t: np.ndarray, k_end: int) ->
     (`wpot.maps.zoom.spectral_basis`). Returns (N,) int64."""
     h = pseudoscalars(mesh, sig[:, list(PSEUDO_ENERGIES)])
     h /= np.maximum(np.sqrt((h * h).mean(axis=0, keepdims=True)), 1e-300)
-    phi = spectral_basis(mesh, None).evecs[:, :k_end]
-    mass = mesh.voronoi_areas
-    pinv = (phi * (mass / mass.sum())[:, None]).T  # (k, N): a vertex function's coefficients
+    ops = SpectralOperators(mesh, spectral_basis(mesh, None), k_end)
+    phi = ops.phi
     for k in range(ZOOMOUT_K_START, k_end + 1, ZOOMOUT_STEP):
-        fmap = pinv[:k] @ phi[t, :k]
+        fmap = ops.pinv[:k] @ phi[t, :k]
         w = np.sqrt(k / h.shape[1])
         t = nearest_rows(np.hstack([phi[:, :k], w * h]), np.hstack([phi[:, :k] @ fmap.T, -w * h]))[0]
     return t
