@@ -11,8 +11,8 @@
   k = `ORIENTED_K` also asking that each vertex's image carry the negatives of its
   `wpot.maps.fmap.pseudoscalars` (``⟨n, ∇f × ∇g⟩`` for pairs of WKS functions f, g at `PSEUDO_ENERGIES`): the
   mirror turns them around, a half turn does not. Only then: where plain ZoomOut finds a mirror, the guided
-  rounds find one nearer the truth, and with it `locate`'s choice of side took the mirror side of a few parts
-  by a near-tie in signature cost (the docs' Results page, §6).
+  rounds find one nearer the truth, but with that mirror `locate`'s choice of side, a near-tie in signature
+  cost for some parts, takes their mirror side (the docs' Results page, §6).
 * `keep_orientation`: the vertices where a map is mirrored (`wpot.maps.orientation.local_orientation`) are sent
   where the map sends their mirror images (A's symmetry, else B's), the result is refined (ZoomOut), and the
   better-scoring map is returned.
