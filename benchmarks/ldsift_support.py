@@ -4,7 +4,8 @@
 with the nearest LD-SIFT signatures. This measures how often the right vertex is among them when the two meshes
 were triangulated apart and at other densities, for each scale factor K (the image of a vertex covers 2 K D,
 D one edge length for both meshes: the target's, as ``LocateOptions(edge="whole")`` sets it; the paper's K is 3,
-the peer in every table).
+the peer in every table), and for each of LD-SIFT's ``--orientation`` (the paper's ``frame``, the peer, and SIFT's
+own ``gradient``).
 
 For each pair (S, T) of poses of one class: S is re-meshed at F times its vertices (`benchmarks.remesh.resized`:
 every vertex moves, no edge is S's; at 1× another triangulation at the same density), ``--samples``
@@ -79,13 +80,19 @@ def queries_on(source, remeshed, src: np.ndarray, dst: np.ndarray, sym: np.ndarr
     return queries, target.vertices[dst[nearest]], target.vertices[sym[nearest]]
 
 
-def ldsift(K: float, target):
+def ldsift(K: float, target, orientation: str = "frame"):
     """The LD-SIFT comparer at scale factor ``K`` and the target's edge length (what ``LocateOptions(edge="whole")``
-    gives both meshes), with the slab `partial_poses.py` uses."""
+    gives both meshes), with the slab `partial_poses.py` uses, and descriptors turned by ``orientation``."""
     from wpot.comparison import Comparer
     from wpot.signatures._frames import common_edge
 
-    return Comparer(signature="ldsift", ldsift_K=K, ldsift_edge=common_edge([target]), ldsift_slab=1.0)
+    return Comparer(signature="ldsift", ldsift_K=K, ldsift_edge=common_edge([target]), ldsift_slab=1.0,
+                    ldsift_orientation=orientation)
+
+
+def method(K: float, orientation: str) -> str:
+    """A variant's tag: ``K3`` for the paper's orientation (the tag of runs stored before it was a choice)."""
+    return f"K{K:g}" + ("" if orientation == "frame" else f"-{orientation}")
 
 
 def signatures(comparer, mesh) -> np.ndarray:
@@ -115,27 +122,27 @@ def run(a, store: JsonlStore, log) -> None:
     for ds, vtx in dataset_folders(a, log):
         for pair in PAIRS[ds]:
             s, t = pair.split(":")
-            todo = [(F, K) for F in a.densities for K in a.K
-                    if (f"K{K:g}", f"{ds}:{pair}", f"F{F:g}") not in store.done]
+            todo = [(F, K, o) for F in a.densities for K in a.K for o in a.orientation
+                    if (method(K, o), f"{ds}:{pair}", f"F{F:g}") not in store.done]
             if not todo:
                 continue
             source, target = load_mesh(vtx / f"{s}.off"), load_mesh(vtx / f"{t}.off")
             src, dst = tosca_ground_truth(vtx, s, t)
             _, sym = tosca_ground_truth(vtx, s, t, symmetric=True)
             # each re-meshing and its queries once, then each K's target signatures once
-            remeshed = {F: resized(source, int(round(F * source.n_vertices))) for F in sorted({F for F, _ in todo})}
+            remeshed = {F: resized(source, int(round(F * source.n_vertices))) for F in sorted({t[0] for t in todo})}
             queries = {F: queries_on(source, r, src, dst, sym, target, a.samples) for F, r in remeshed.items()}
-            for K in sorted({K for _, K in todo}):
-                comparer = ldsift(K, target)
+            for K, o in sorted({t[1:] for t in todo}):
+                comparer = ldsift(K, target, o)
                 s_t = signatures(comparer, target)
-                for F in [F for F, L in todo if L == K]:
+                for F in [F for F, L, p in todo if (L, p) == (K, o)]:
                     t0 = time.perf_counter()
                     s_r = signatures(comparer, remeshed[F])
                     rec = {**recall(s_r, s_t, *queries[F], target, a), "n_vertices": int(remeshed[F].n_vertices),
                            "signature_seconds": time.perf_counter() - t0}
-                    store.add({"method": f"K{K:g}", "pair": f"{ds}:{pair}", "density": f"F{F:g}", "dataset": ds,
-                               "K": K, "F": F, **rec}, None)
-                    log(f"{ds} {pair} F={F:g} K={K:g}: recall@{a.candidates} {rec['recall']:.3f}, "
+                    store.add({"method": method(K, o), "pair": f"{ds}:{pair}", "density": f"F{F:g}", "dataset": ds,
+                               "K": K, "orientation": o, "F": F, **rec}, None)
+                    log(f"{ds} {pair} F={F:g} K={K:g} {o}: recall@{a.candidates} {rec['recall']:.3f}, "
                         f"either {rec['either']:.3f}, recall@1 {rec['recall1']:.3f}")
 
 
@@ -144,14 +151,16 @@ def report(store: JsonlStore, a, log) -> None:
         recs = [r for r in store.records if r["dataset"] == ds]
         if not recs:
             continue
-        Ks, Fs = sorted({r["K"] for r in recs}), sorted({r["F"] for r in recs})
-        log(f"\n## {ds}: recall@{a.candidates} (either side) / recall@1, mean over the pairs; K = 3 is the paper's\n")
-        log("| K | " + " | ".join(f"re-meshed at {F:g}×" for F in Fs) + " | largest gap to 1× |")
-        log("|---|" + "---|" * (len(Fs) + 1))
-        for K in Ks:
+        variants = sorted({(r["K"], r.get("orientation", "frame")) for r in recs})
+        Fs = sorted({r["F"] for r in recs})
+        log(f"\n## {ds}: recall@{a.candidates} (either side) / recall@1, mean over the pairs; K = 3 and the frame's "
+            "orientation are the paper's\n")
+        log("| K | orientation | " + " | ".join(f"re-meshed at {F:g}×" for F in Fs) + " | largest gap to 1× |")
+        log("|---|---|" + "---|" * (len(Fs) + 1))
+        for K, o in variants:
             cells, rec_at = [], {}
             for F in Fs:
-                rows = [r for r in recs if r["K"] == K and r["F"] == F]
+                rows = [r for r in recs if (r["K"], r.get("orientation", "frame"), r["F"]) == (K, o, F)]
                 if not rows:
                     cells.append("–")
                     continue
@@ -159,7 +168,7 @@ def report(store: JsonlStore, a, log) -> None:
                 rec_at[F] = m["recall"]
                 cells.append(f"{m['recall']:.3f} ({m['either']:.3f}) / {m['recall1']:.3f}, {len(rows)} pairs")
             gap = (max(abs(v - rec_at[1.0]) for v in rec_at.values()) if 1.0 in rec_at else float("nan"))
-            log(f"| {K:g} | " + " | ".join(cells) + f" | {gap:.3f} |")
+            log(f"| {K:g} | {o} | " + " | ".join(cells) + f" | {gap:.3f} |")
 
 
 def main(argv=None) -> int:
@@ -168,6 +177,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="results folder (outside the repository)")
     ap.add_argument("--dataset", nargs="+", default=["tosca", "faust"], choices=list(PAIRS))
     ap.add_argument("--K", type=float, nargs="+", default=[3.0, 4.5, 6.0], help="LD-SIFT scale factors")
+    ap.add_argument("--orientation", nargs="+", default=["frame", "gradient"], choices=["frame", "gradient"],
+                    help="LD-SIFT's orientations (`LDSIFTOptions.orientation`; 'frame' is the paper's, the peer)")
     ap.add_argument("--densities", type=float, nargs="+", default=[1.0, 2.0, 0.5],
                     help="vertex ratios of the re-meshing")
     ap.add_argument("--samples", type=int, default=200, help="queries per pair")

@@ -550,7 +550,7 @@ class Matchers:
         kw = dict(signature=a.signature, transport=a.transport, max_vertices=a.max_vertices or None,
                   vertices_per_sample=a.vertices_per_sample, pooling=a.pooling, mass_penalty=a.mass_penalty,
                   penalty_scale=a.penalty_scale, ldsift_K=a.ldsift_K, ldsift_slab=a.ldsift_slab,
-                  ldsift_thickness=a.ldsift_thickness,
+                  ldsift_thickness=a.ldsift_thickness, ldsift_orientation=a.ldsift_orientation,
                   n_eigen=a.n_eigen, n_energies=a.n_energies)
         self.comparer = Comparer(device=a.device, **kw)
         self.device = a.device
@@ -972,6 +972,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ldsift-K", type=float, default=3.0, help="LD-SIFT's scale factor K (the paper's 3)")
     ap.add_argument("--ldsift-slab", type=float, default=1.0)
     ap.add_argument("--ldsift-thickness", type=float, default=0.0, help="weight of LD-SIFT's thickness column")
+    ap.add_argument("--ldsift-orientation", default="frame", choices=["frame", "gradient"],
+                    help="how LD-SIFT turns its descriptors (the paper's 'frame', or 'gradient')")
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
     ap.add_argument("--locate-options", default="{}",

@@ -47,9 +47,13 @@ def test_the_report_gives_the_largest_gap_to_the_control(ls, tmp_path):
     for pair, recalls in (("p1", {0.5: 0.2, 1.0: 0.5, 2.0: 0.6}), ("p2", {0.5: 0.4, 1.0: 0.5, 2.0: 0.4})):
         for F, r in recalls.items():
             store.add({"method": "K3", "pair": f"tosca:{pair}", "density": f"F{F:g}", "dataset": "tosca", "K": 3.0,
-                       "F": F, "recall": r, "either": r, "recall1": r / 2}, None)
+                       "F": F, "recall": r, "either": r, "recall1": r / 2}, None)  # stored before the orientation
+            store.add({"method": "K3-gradient", "pair": f"tosca:{pair}", "density": f"F{F:g}", "dataset": "tosca",
+                       "K": 3.0, "orientation": "gradient", "F": F, "recall": 0.7, "either": 0.8, "recall1": 0.4}, None)
     lines = []
     ls.report(store, argparse.Namespace(dataset=["tosca"], candidates=10), lines.append)
-    row = [line for line in lines if line.startswith("| 3 |")][0]
+    row = [line for line in lines if line.startswith("| 3 | frame |")][0]
     # means 0.3 / 0.5 / 0.5: the largest gap to 1x is 0.2 (at 0.5x)
     assert "0.300 (0.300) / 0.150, 2 pairs" in row and row.rstrip().endswith("| 0.200 |")
+    beside = [line for line in lines if line.startswith("| 3 | gradient |")][0]  # the other orientation, its own row
+    assert beside.count("0.700 (0.800) / 0.400, 2 pairs") == 3 and beside.rstrip().endswith("| 0.000 |")

@@ -79,14 +79,67 @@ def test_sift_average_is_invariant_under_180_degreerandom_rotation():
     assert L.keypoint_size(21) == 3.5  # 12 sigma = 21 pixels: the window covers the whole image
 
 
-def test_invariant_under_rigid_motion_scaling_and_relabelling(bumpy):
+def test_gradient_angle_closed_forms_and_turns():
+    """A linear ramp's gradient has one direction: its angle, in OpenCV's keypoint convention (from the columns'
+    axis towards the rows', rows down). An image turned by a quarter turn (an exact permutation of its pixels) has
+    its angle moved by 90 degrees, and the descriptor at that angle is the same, pixel for pixel, while the paper's
+    (0 and 180 degrees averaged) changes."""
+    from scipy.ndimage import gaussian_filter
+
+    y, x = np.mgrid[0:31, 0:31].astype(float)
+    for deg in (0.0, 30.0, 90.0, 200.0):
+        t = np.radians(deg)
+        ramp = 100 + 3 * (np.cos(t) * x + np.sin(t) * y)
+        assert L.gradient_angles(ramp[None], window=5.0)[0] == pytest.approx(deg, abs=1e-6)
+    rng = np.random.default_rng(0)
+    img = np.stack([gaussian_filter(rng.random((31, 31)), 2) for _ in range(6)])
+    g = (255 * (img - img.min()) / np.ptp(img)).round().astype(np.uint8)
+    window = L.GRADIENT_WINDOW * 21
+    a_g = L.gradient_angles(g, window=window)
+    a = L.sift_at_center(g, angles=a_g, window=21)
+    for k in (1, 2, 3):
+        turned = np.ascontiguousarray(np.rot90(g, k, axes=(1, 2)))  # counter-clockwise as drawn: -90 k degrees
+        a_t = L.gradient_angles(turned, window=window)
+        np.testing.assert_allclose((a_t - a_g + 90 * k) % 360, 0.0, atol=1e-6)
+        np.testing.assert_array_equal(L.sift_at_center(turned, angles=a_t, window=21), a)
+        paper = L.sift_at_center(turned, window=21)
+        assert np.median(np.linalg.norm(paper - a, axis=1) / np.linalg.norm(a, axis=1)) > 0.2
+    assert L.margin_resolution(21) == 31 and L.margin_resolution(8) == 12  # 21 √2 = 29.7; 8 √2 = 11.3
+    assert L.gradient_angles(np.full((1, 9, 9), 7.0), window=2.0)[0] == 0.0  # no gradient
+
+
+def test_gradient_orientation_does_not_follow_the_frames_first_axis(bumpy):
+    """The frames' e1 and e2 turned by 40 degrees about n (as another meshing or pose turns them where the
+    neighbours spread alike both ways): the paper's descriptors change, SIFT's own orientation keeps them (up to
+    the rays meeting the surface at other points). The margin image holds the plain one at its centre."""
+    import dataclasses
+
+    fr = L.local_frames(bumpy)
+    c, s = np.cos(np.radians(40)), np.sin(np.radians(40))
+    f = fr.frames.copy()
+    f[:, 0], f[:, 1] = c * fr.frames[:, 0] + s * fr.frames[:, 1], -s * fr.frames[:, 0] + c * fr.frames[:, 1]
+    turned = dataclasses.replace(fr, frames=f)
+
+    def moved(orientation):
+        d0 = L.ldsift(bumpy, device="cpu", frames=fr, orientation=orientation)
+        d1 = L.ldsift(bumpy, device="cpu", frames=turned, orientation=orientation)
+        return np.median(np.linalg.norm(d0 - d1, axis=1) / np.linalg.norm(d0, axis=1))
+
+    assert moved("gradient") < 0.1 and moved("frame") > 0.25
+    wide, plain = L.ldsift_images(bumpy, device="cpu", margin=True), L.ldsift_images(bumpy, device="cpu")
+    assert wide.shape[1:] == (31, 31)
+    np.testing.assert_allclose(wide[:, 5:26, 5:26], plain, atol=1e-5 * fr.half_sizes.max())
+
+
+@pytest.mark.parametrize("orientation", ["frame", "gradient"])
+def test_invariant_under_rigid_motion_scaling_and_relabelling(bumpy, orientation):
     rng = np.random.default_rng(1)
-    d0 = L.ldsift(bumpy, device="cpu")
+    d0 = L.ldsift(bumpy, device="cpu", orientation=orientation)
     assert d0.shape == (bumpy.n_vertices, 128) and d0.dtype == np.float64
     rot, t, s = random_rotation(rng), np.array([30.0, -5.0, 12.0]), 7.5
     perm = rng.permutation(bumpy.n_vertices)
     moved = bumpy.transformed(rot, t, s).relabelled(perm)
-    d1 = L.ldsift(moved, device="cpu")[np.argsort(perm)]
+    d1 = L.ldsift(moved, device="cpu", orientation=orientation)[np.argsort(perm)]
     rel = np.linalg.norm(d1 - d0, axis=1) / np.linalg.norm(d0, axis=1)
     # float32 rays and 8-bit levels may move a grey level by one here and there: tiny differences
     assert np.median(rel) < 0.01, np.median(rel)
@@ -232,6 +285,10 @@ def test_bad_input_errors(bumpy):
         L.ldsift(bumpy, resolution=4)
     with pytest.raises(ValueError, match=r"uint8"):
         L.sift_at_center(np.zeros((2, 21, 21)))
+    with pytest.raises(ValueError, match=r"orientation must be one of 'frame', 'gradient', got 'pca'"):
+        L.LDSIFTOptions(orientation="pca")
+    with pytest.raises(ValueError, match=r"angles must be 2 finite numbers"):
+        L.sift_at_center(np.zeros((2, 21, 21), np.uint8), angles=[0.0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         lonely = Mesh(np.r_[bumpy.vertices, [[5.0, 5, 5]]], bumpy.faces)  # an unreferenced vertex

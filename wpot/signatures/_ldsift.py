@@ -79,7 +79,8 @@ from wpot.signatures._thickness import thickness
 from wpot.signatures.base import Signature, SignatureOptions, option, register_signature
 
 __all__ = ["VERSION", "LocalFrames", "local_frames", "ldsift", "ldsift_images", "sift_at_center", "keypoint_size", "to_slab",
-           "MIN_NEIGHBOURS", "SLAB", "THICKNESS_UNIT", "LDSIFT", "LDSIFTOptions"]
+           "gradient_angles", "margin_resolution", "MIN_NEIGHBOURS", "SLAB", "THICKNESS_UNIT", "ORIENTATIONS",
+           "GRADIENT_WINDOW", "LDSIFT", "LDSIFTOptions"]
 
 #: bumped whenever this module's output changes; part of the signature cache keys (`LDSIFT.params`)
 VERSION = 1
@@ -90,6 +91,19 @@ SLAB = 1.0
 #: the thickness column is ``thickness * THICKNESS_UNIT * log t(v)``: 512 is the L2 norm OpenCV gives a SIFT
 #: descriptor, so a weight w costs w descriptor norms per unit of |log| thickness ratio
 THICKNESS_UNIT = 512.0
+#: how a descriptor is turned in its image plane (`ldsift`'s ``orientation``): along the frame's e1 (the paper's),
+#: or along the image's dominant gradient direction
+ORIENTATIONS = ("frame", "gradient")
+#: ``orientation="gradient"``: the Gaussian weighting the gradients, standard deviation in units of R (a quarter of
+#: the image side: wider than SIFT's own 1.5 keypoint scales, R / 8, because a depth image's gradients near its
+#: centre, on the tangent plane, are weak)
+GRADIENT_WINDOW = 0.25
+
+
+def check_orientation(orientation: str) -> str:
+    if orientation not in ORIENTATIONS:
+        raise ValueError(f"orientation must be one of {', '.join(map(repr, ORIENTATIONS))}, got {orientation!r}")
+    return orientation
 
 
 def _check_slab(slab: float) -> float:
@@ -101,17 +115,70 @@ def keypoint_size(resolution: int) -> float:
     return resolution / 6.0
 
 
-def sift_at_center(images: np.ndarray) -> np.ndarray:
-    """SIFT descriptor at the centre of each 8-bit image, averaged over keypoint angles 0 and 180 degrees.
+def margin_resolution(resolution: int) -> int:
+    """The side R' of an image, at the same pixel size, that holds a centred R x R window turned by any angle:
+    the least R' >= R sqrt(2) with R' - R even (so both share their centre pixel). 31 for R = 21."""
+    r = int(np.ceil(resolution * np.sqrt(2.0) - 1e-9))
+    return r + (r - resolution) % 2
+
+
+def gradient_angles(images: np.ndarray, *, window: float) -> np.ndarray:
+    """The dominant direction of each image's gradients, as a SIFT keypoint's angle (Lowe 2004, §5).
+
+    The gradients' directions are binned in 36 bins of 10 degrees (centred on multiples of 10), each weighted by its magnitude and by a
+    Gaussian of standard deviation ``window`` pixels about the centre; the histogram is smoothed (twice by a
+    circular 3-bin mean) and its peak located to a fraction of a bin by a parabola through the peak bin and its
+    neighbours. An image that a turn by α (about its centre) maps onto another has its angle moved by α.
 
     Parameters
     ----------
-    images : (n, R, R) uint8
+    images : (n, H, W) array (8-bit levels or heights)
+    window : the Gaussian's standard deviation, pixels (positive)
 
     Returns
     -------
-    (n, 128) float64; each entry is the mean of two OpenCV descriptor entries (integers in [0, 255]), so a
-    half-integer in [0, 255].
+    (n,) float64 degrees in [0, 360), in OpenCV's convention for ``cv2.KeyPoint.angle`` (from the columns' axis
+    towards the rows' axis, rows pointing down); 0 for an image without gradients.
+    """
+    a = np.asarray(images, dtype=np.float64)
+    if a.ndim != 3:
+        raise ValueError(f"images must be (n, H, W), got shape {a.shape}")
+    window = positive_finite(window, "window", " (pixels)")
+    n, h, w = a.shape
+    gy, gx = np.gradient(a, axis=(1, 2))
+    y, x = np.mgrid[0:h, 0:w]
+    gauss = np.exp(-(((x - (w - 1) / 2) ** 2 + (y - (h - 1) / 2) ** 2) / (2 * window**2)))
+    weight = np.hypot(gx, gy) * gauss
+    bins = np.floor(np.degrees(np.arctan2(gy, gx)) / 10.0 + 0.5).astype(np.int64) % 36  # bin k: 10 k ± 5 degrees
+    hist = np.zeros(n * 36)
+    np.add.at(hist, (bins + 36 * np.arange(n)[:, None, None]).ravel(), weight.ravel())
+    hist = hist.reshape(n, 36)
+    for _ in range(2):
+        hist = (np.roll(hist, 1, axis=1) + hist + np.roll(hist, -1, axis=1)) / 3.0
+    k = np.argmax(hist, axis=1)
+    rows = np.arange(n)
+    left, mid, right = hist[rows, (k - 1) % 36], hist[rows, k], hist[rows, (k + 1) % 36]
+    curve = left - 2 * mid + right
+    shift = np.divide(0.5 * (left - right), curve, out=np.zeros(n), where=curve < 0)
+    angles = np.where(mid > 0, (k + shift) * 10.0, 0.0)
+    return angles % 360.0
+
+
+def sift_at_center(images: np.ndarray, *, angles: np.ndarray | None = None, window: int | None = None) -> np.ndarray:
+    """SIFT descriptor at the centre of each 8-bit image: averaged over keypoint angles 0 and 180 degrees, or at
+    one given angle per image.
+
+    Parameters
+    ----------
+    images : (n, H, H) uint8
+    angles : None (the paper's: the mean of the descriptors at 0 and 180 degrees), or (n,) keypoint angles,
+        degrees (`gradient_angles`)
+    window : the side, in pixels, of the square the descriptor summarises (`keypoint_size`); None: the image's
+
+    Returns
+    -------
+    (n, 128) float64; each entry an OpenCV descriptor entry (an integer in [0, 255]), or with ``angles=None`` the
+    mean of two (a half-integer).
     """
     import cv2
 
@@ -120,15 +187,19 @@ def sift_at_center(images: np.ndarray) -> np.ndarray:
         raise ValueError(f"images must be (n, R, R) uint8, got shape {a.shape} dtype {a.dtype}")
     r = a.shape[1]
     mid = (r - 1) / 2.0
-    size = keypoint_size(r)
-    kps = (cv2.KeyPoint(mid, mid, size, 0.0), cv2.KeyPoint(mid, mid, size, 180.0))
+    size = keypoint_size(r if window is None else window)
+    if angles is not None:
+        angles = np.asarray(angles, dtype=np.float64)
+        if angles.shape != (len(a),) or not np.all(np.isfinite(angles)):
+            raise ValueError(f"angles must be {len(a)} finite numbers, one per image, got shape {angles.shape}")
     sift = cv2.SIFT_create()
     out = np.empty((len(a), 128), dtype=np.float64)
     for k in range(len(a)):
-        kp, d = sift.compute(a[k], kps)
-        if d is None or d.shape != (2, 128):
+        turns = (0.0, 180.0) if angles is None else (float(angles[k]),)
+        kp, d = sift.compute(a[k], [cv2.KeyPoint(mid, mid, size, t) for t in turns])
+        if d is None or d.shape != (len(turns), 128):
             raise RuntimeError(f"OpenCV SIFT dropped a centre keypoint on image {k} (got {None if d is None else d.shape})")
-        out[k] = 0.5 * (d[0].astype(np.float64) + d[1])
+        out[k] = d.astype(np.float64).mean(axis=0)
     return out
 
 
@@ -141,20 +212,25 @@ def ldsift_images(
     device: str | None = None,
     frames: LocalFrames | None = None,
     edge: float | None = None,
+    margin: bool = False,
 ) -> np.ndarray:
     """The LD-SIFT depth images of every vertex, before the 8-bit stretch: (N, R, R) float32 heights.
 
     Heights along each vertex's n, in the slab ``[-slab S(v), slab S(v)]`` (default `SLAB`): rays start at
     ``+slab S(v)``, deeper surfaces and empty pixels read ``-slab S(v)``. ``frames`` may pass precomputed
-    `local_frames`; ``edge`` is `local_frames`'s (one D for every vertex).
+    `local_frames`; ``edge`` is `local_frames`'s (one D for every vertex). ``margin=True`` renders (N, R', R')
+    pixels of the same size, R' = `margin_resolution` (R), about the same centre: room for the R x R window turned
+    by any angle (``orientation="gradient"``).
     """
     from render.raycast import DepthRenderer
 
     slab = _check_slab(slab)
     mesh = check_mesh(mesh)
     fr = local_frames(mesh, K=K, edge=edge) if frames is None else frames
+    side = margin_resolution(resolution) if margin else resolution
+    grow = side / resolution
     raw = DepthRenderer(mesh, device=device).render(
-        mesh.vertices, fr.frames, fr.half_sizes, resolution, ceiling=slab
+        mesh.vertices, fr.frames, fr.half_sizes * grow, side, ceiling=slab / grow
     )
     return to_slab(raw, fr.half_sizes, slab=slab)
 
@@ -167,7 +243,7 @@ def to_slab(images: np.ndarray, half_sizes: np.ndarray, *, slab: float = SLAB) -
 
 def ldsift(
     mesh: Mesh, *, K: float = 3.0, resolution: int = 21, slab: float = SLAB, device: str | None = None,
-    frames: LocalFrames | None = None, edge: float | None = None,
+    frames: LocalFrames | None = None, edge: float | None = None, orientation: str = "frame",
 ) -> np.ndarray:
     """LD-SIFT signature of every vertex (paper sections 2.2 and 3.1).
 
@@ -184,6 +260,13 @@ def ldsift(
     frames : precomputed `local_frames` of ``mesh`` at this K (computed here when None)
     edge : one edge length D for every vertex (``S = K edge``, in the mesh's units) instead of each vertex's own
         mean edge length: meshes of one surface at different densities then see the same images (`local_frames`)
+    orientation : how the descriptor is turned in the image plane. ``"frame"`` (default, the paper's): along e1,
+        averaged with its 180 degree turn, so it follows e1, which the covariance of the neighbours sets only as
+        well as their spread differs between its two axes (two meshes of one surface, or two poses, often turn it
+        by tens of degrees). ``"gradient"``: SIFT's own (Lowe 2004), along the dominant direction of the image's
+        gradients (`gradient_angles`, Gaussian of ``GRADIENT_WINDOW`` R), which follows the surface seen and not
+        the neighbours' covariance; the image is rendered with a margin (``margin=True``) so that the turned
+        window lies inside it
 
     Returns
     -------
@@ -198,8 +281,14 @@ def ldsift(
 
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 8:
         raise ValueError(f"resolution must be an integer >= 8 (SIFT needs room for its 4 x 4 bins), got {resolution!r}")
-    images = ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device, frames=frames, edge=edge)
-    return sift_at_center(to_uint8(images))
+    orientation = check_orientation(orientation)
+    gradient = orientation == "gradient"
+    images = to_uint8(ldsift_images(mesh, K=K, resolution=int(resolution), slab=slab, device=device, frames=frames,
+                                    edge=edge, margin=gradient))
+    if not gradient:
+        return sift_at_center(images)
+    angles = gradient_angles(images, window=GRADIENT_WINDOW * resolution)
+    return sift_at_center(images, angles=angles, window=int(resolution))
 
 
 # ---------------------------------------------------------------------------------------------- the registered signature
@@ -219,6 +308,8 @@ class LDSIFTOptions(SignatureOptions):
         vertex's own mean edge length D(v) (Eq. 1, None, the default): meshes of one surface at different
         densities (a part meshed apart from its whole) then see the same images. `Comparer.retrieve` sets it to
         its library's `wpot.signatures._frames.common_edge` unless given. Keys carry it only when set.
+    orientation : ``"frame"`` (default, the paper's) or ``"gradient"`` (`ldsift`). Keys carry it only when not
+        ``"frame"``.
     """
 
     K: float = option(3.0, keyword="ldsift_K", help="scale factor K: the image of a vertex covers 2 K D(v) (default {default:g})")
@@ -242,7 +333,15 @@ class LDSIFTOptions(SignatureOptions):
                                 help="one edge length D for every vertex, in the meshes' units (default: each "
                                      "vertex's own, the paper's)")
 
+    orientation: str = option(
+        "frame", keyword="ldsift_orientation", flag="--ldsift-orientation", key_omit_default=True,
+        help="how each descriptor is turned in its image: 'frame' (default, the paper's: along the dominant plane's "
+             "first axis, averaged with its half turn) or 'gradient' (SIFT's own: along the depth image's dominant "
+             "gradient, which holds better across meshings and poses; see the docs' Results page)",
+    )
+
     def __post_init__(self) -> None:
+        object.__setattr__(self, "orientation", check_orientation(self.orientation))
         object.__setattr__(self, "thickness", nonnegative_finite("thickness", self.thickness))
         if self.edge is not None:
             object.__setattr__(self, "edge", check_edge(self.edge))
@@ -300,7 +399,8 @@ class LDSIFT(Signature):
         fr = local_frames(check_mesh(mesh), K=o.K, edge=o.edge)
         out = {}
         if "descriptor" in names:
-            out["descriptor"] = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr)
+            out["descriptor"] = ldsift(mesh, K=o.K, resolution=o.resolution, slab=o.slab, device=self.device, frames=fr,
+                                       orientation=o.orientation)
         if "thickness" in names:
             out["thickness"] = thickness(mesh, frames=fr, device=self.device)
         return out
