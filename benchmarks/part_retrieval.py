@@ -51,10 +51,12 @@ from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
 from benchmarks.partial_poses import KINDS, LARGE, _tosca, _vtx, class_members, read_parts, shape_class  # noqa: E402
 
 
-def method(w: float, slab: float | None = None, edge: str = "own") -> str:
-    """The stored costs' name: LD-SIFT's thickness weight, its slab, and its edge length (``"library"``: the
-    library's for every mesh, as `Comparer.retrieve` does by default; ``"own"``: each mesh's, the paper's)."""
-    return f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}") + ("-libedge" if edge == "library" else "")
+def method(w: float, slab: float | None = None, edge: str = "own", orientation: str = "frame") -> str:
+    """The stored costs' name: LD-SIFT's thickness weight, its slab, its edge length (``"library"``: the
+    library's for every mesh, as `Comparer.retrieve` does by default; ``"own"``: each mesh's, the paper's) and its
+    orientation (``"frame"``, the paper's, is not named)."""
+    return (f"nn-ldsift-w{w:g}" + ("" if slab is None else f"-slab{slab:g}") + ("-libedge" if edge == "library" else "")
+            + ("" if orientation == "frame" else f"-{orientation}"))
 
 
 LIBRARY = "library"  # the second key of a record: the part's library (every whole but its source)
@@ -113,7 +115,7 @@ def score_part(costs: np.ndarray, wholes: list[str], cls: str, options, sample=N
 
 
 def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | None, options,
-          meshes: PartMeshes | None = None) -> dict:
+          meshes: PartMeshes | None = None, orientation: str = "frame") -> dict:
     """Per part with stored costs for weight ``w``: its kind, its size, and `score_part` on the rows of its
     `wpot.maps.retrieval.retrieval_sample` (``meshes`` gives the part's mesh; None: every row, as for parts of
     at most ``options.max_points`` vertices)."""
@@ -121,7 +123,7 @@ def score(store: JsonlStore, parts: dict[str, dict], w: float, slab: float | Non
 
     rows = {}
     for rec in store.records:
-        if rec["method"] != method(w, slab, options.edge) or rec["part"] not in parts:
+        if rec["method"] != method(w, slab, options.edge, orientation) or rec["part"] not in parts:
             continue
         p = parts[rec["part"]]
         with np.load(store.npz_path(rec["method"], rec["part"], LIBRARY), allow_pickle=False) as z:
@@ -146,14 +148,15 @@ def margin_line(w: float, rows: dict, share: float = 0.1) -> str:
 
 
 def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab: float | None, options,
-           meshes: PartMeshes | None, out: Path, log) -> None:
-    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}, edge length: {options.edge}; retrieve: "
+           meshes: PartMeshes | None, out: Path, log, orientation: str = "frame") -> None:
+    lines = [f"LD-SIFT slab: {'the default' if slab is None else f'{slab:g}'}, edge length: {options.edge}, "
+             f"orientation: {orientation}; retrieve: "
              f"k_nearest {options.k_nearest}, standardize {options.standardize}, max_points {options.max_points}", "",
              "| w | scoring | top-1, all parts | parts >= 20 % | < 20 % | " + " | ".join(KINDS)
              + " | mean rank of the class |", "|---|---|---|---|---|" + "---|" * len(KINDS) + "---|"]
     fails = []
     for w in weights:
-        rows = score(store, parts, w, slab, options, meshes)
+        rows = score(store, parts, w, slab, options, meshes, orientation)
         if not rows:
             continue
         for sc in SCORINGS:
@@ -186,6 +189,9 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default="0,1,2", help="LD-SIFT thickness weights w, comma-separated (default 0,1,2)")
     ap.add_argument("--ldsift-slab", type=float, default=None,
                     help="LD-SIFT's depth slab (ldsift_slab; default: LD-SIFT's own), a method of its own in --out")
+    ap.add_argument("--ldsift-orientation", choices=["frame", "gradient"], default="frame",
+                    help="LD-SIFT's orientation (ldsift_orientation; the paper's 'frame' by default), a method of its "
+                         "own in --out")
     ap.add_argument("--k-nearest", type=int, default=RetrievalOptions.k_nearest,
                     help="retrieve's k_nearest: a class is the union of this many of its members (default %(default)s)")
     ap.add_argument("--edge", choices=EDGES, default=RetrievalOptions.edge,
@@ -216,7 +222,7 @@ def main(argv=None) -> int:
     options = RetrievalOptions(k_nearest=a.k_nearest, edge=a.edge)
     if not a.report_only:
         run(a, parts, weights, store, wholes, meshes, log)
-    report(store, parts, weights, a.ldsift_slab, options, meshes, out, log)
+    report(store, parts, weights, a.ldsift_slab, options, meshes, out, log, a.ldsift_orientation)
     return 0
 
 
@@ -226,12 +232,12 @@ def run(a, parts: dict[str, dict], weights: list[float], store: JsonlStore, whol
     from wpot.comparison import at_common_edge
 
     slab = {} if a.ldsift_slab is None else {"ldsift_slab": a.ldsift_slab}
-    base = wpot.Comparer(signature="ldsift", device=a.device, **slab)
+    base = wpot.Comparer(signature="ldsift", device=a.device, ldsift_orientation=a.ldsift_orientation, **slab)
     comparers = {w: base.with_options(ldsift_thickness=w) for w in weights}
     log(f"{len(parts)} parts, {len(wholes)} wholes, weights {weights}; wpot {wpot.__file__}")
     t0 = time.perf_counter()
     for k, (pt, p) in enumerate(parts.items()):
-        name = {w: method(w, a.ldsift_slab, a.edge) for w in comparers}
+        name = {w: method(w, a.ldsift_slab, a.edge, a.ldsift_orientation) for w in comparers}
         todo = {w: c for w, c in comparers.items() if (name[w], pt, LIBRARY) not in store.done}
         if not todo:
             continue

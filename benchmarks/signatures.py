@@ -22,7 +22,8 @@ energies; LD-SIFT K = 3, 21 x 21 images):
 * LD-SIFT split into frames / raster / sift (``benchmarks/ldsift_parts.py``'s ``time_ldsift``), then
   ``wpot.ldsift(mesh)`` (the figure held against the goal); its peer in the same run: the vectorized numpy
   z-buffer of ``ldsift_parts.py`` for the raster stage (50 views, extrapolated to all vertices). Beside it, the
-  thickness column's extra time (``ldsift_thickness > 0``: frames again, then 32 Warp rays per vertex).
+  thickness column's extra time (``ldsift_thickness > 0``: frames again, then 32 Warp rays per vertex), and
+  ``wpot.ldsift(mesh, orientation="gradient")`` (images with a margin, 31 x 31, and each one's gradient angle).
 
 Timings are wall-clock and, on a shared 2-core machine, noisy: OpenBLAS threads in particular slow
 down badly when other processes compete for the cores (try ``OPENBLAS_NUM_THREADS=1``).
@@ -139,12 +140,12 @@ def time_scipy_eigsh(mesh: Mesh, *, n_eigen: int = 500) -> float:
     return dt
 
 
-def time_ldsift_api(mesh: Mesh, device: str | None = None) -> float:
-    """Seconds of ``wpot.ldsift(mesh)`` (kernel already loaded by the parts timing)."""
+def time_ldsift_api(mesh: Mesh, device: str | None = None, orientation: str = "frame") -> float:
+    """Seconds of ``wpot.ldsift(mesh, orientation=...)`` (kernel already loaded by the parts timing)."""
     from wpot.signatures import ldsift
 
     t0 = time.perf_counter()
-    d = ldsift(mesh, device=device)
+    d = ldsift(mesh, device=device, orientation=orientation)
     dt = time.perf_counter() - t0
     assert d.shape == (mesh.n_vertices, 128)
     return dt
@@ -210,7 +211,8 @@ def main() -> None:
     if args.solvers:
         cols += f" | {'other solvers':>39s}"
     if ldsift is not None:
-        cols += f" | {'frames':>6s} {'raster':>6s} {'sift':>6s} {'parts':>6s} {'wpot.ldsift':>11s} {'thickness':>9s}"
+        cols += (f" | {'frames':>6s} {'raster':>6s} {'sift':>6s} {'parts':>6s} {'wpot.ldsift':>11s} {'gradient':>8s}"
+                 f" {'thickness':>9s}")
         if not args.no_peers:
             cols += f" {'numpy raster':>12s}"
     print(cols)
@@ -238,7 +240,7 @@ def main() -> None:
             lapi = time_ldsift_api(mesh, args.device)
             line += (f" | {t.get('frames', float('nan')):6.2f} {t.get('raster', float('nan')):6.2f}"
                      f" {t.get('sift', float('nan')):6.2f} {tot:6.2f} {lapi:11.2f}"
-                     f" {time_thickness(mesh, args.device):9.2f}")
+                     f" {time_ldsift_api(mesh, args.device, 'gradient'):8.2f} {time_thickness(mesh, args.device):9.2f}")
             verdicts[-1] += f", LD-SIFT {lapi:.1f} s ({'within' if lapi <= args.goal else 'OVER'} {args.goal:g} s)"
             if not args.no_peers and hasattr(parts, "_peer_numpy_zbuffer"):
                 from wpot.signatures._ldsift import local_frames

@@ -155,6 +155,10 @@ def test_wks_and_ldsift_keys_are_those_of_stored_runs_and_caches():
     assert _json(s.run_key()) == '{"ldsift_K": 2.0, "ldsift_resolution": 25, "ldsift_slab": 0.25}'
     assert _json(s.params()) == '{"K": 2.0, "resolution": 25, "signature": "ldsift", "slab": 0.25, "version": 1}'
     assert cache_key("signatures", "fp", s.params()) == "e9dcb29ce8ccdbaaec12d1cfdef37c94deb87695"
+    s = LDSIFT(signature_options("ldsift", ldsift_orientation="gradient"))  # named only when not the paper's
+    assert _json(s.run_key()) == '{"ldsift_K": 3.0, "ldsift_orientation": "gradient", "ldsift_resolution": 21}'
+    assert _json(s.params()) == ('{"K": 3.0, "orientation": "gradient", "resolution": 21, "signature": "ldsift", '
+                                 '"version": 1}')
 
 
 # ------------------------------------------------------------------------------ state

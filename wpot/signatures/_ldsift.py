@@ -94,9 +94,10 @@ THICKNESS_UNIT = 512.0
 #: how a descriptor is turned in its image plane (`ldsift`'s ``orientation``): along the frame's e1 (the paper's),
 #: or along the image's dominant gradient direction
 ORIENTATIONS = ("frame", "gradient")
-#: ``orientation="gradient"``: the Gaussian weighting the gradients, standard deviation in units of R (a quarter of
-#: the image side: wider than SIFT's own 1.5 keypoint scales, R / 8, because a depth image's gradients near its
-#: centre, on the tangent plane, are weak)
+#: ``orientation="gradient"``: the Gaussian weighting the gradients, standard deviation in units of R: a quarter of
+#: the image side, wider than SIFT's own (1.5 keypoint scales, R / 8), because near its centre a depth image lies on
+#: the tangent plane and its gradients are weak there. Chosen on TOSCA's whole shapes, checked on FAUST's (the docs'
+#: Results page)
 GRADIENT_WINDOW = 0.25
 
 
@@ -125,10 +126,10 @@ def margin_resolution(resolution: int) -> int:
 def gradient_angles(images: np.ndarray, *, window: float) -> np.ndarray:
     """The dominant direction of each image's gradients, as a SIFT keypoint's angle (Lowe 2004, §5).
 
-    The gradients' directions are binned in 36 bins of 10 degrees (centred on multiples of 10), each weighted by its magnitude and by a
-    Gaussian of standard deviation ``window`` pixels about the centre; the histogram is smoothed (twice by a
-    circular 3-bin mean) and its peak located to a fraction of a bin by a parabola through the peak bin and its
-    neighbours. An image that a turn by α (about its centre) maps onto another has its angle moved by α.
+    The gradients' directions are binned in 36 bins of 10 degrees (centred on multiples of 10), each weighted by its
+    magnitude and by a Gaussian of standard deviation ``window`` pixels about the centre; the histogram is smoothed
+    (twice by a circular 3-bin mean) and its peak located to a fraction of a bin by a parabola through the peak bin
+    and its neighbours. An image that a turn by α (about its centre) maps onto another has its angle moved by α.
 
     Parameters
     ----------
