@@ -151,9 +151,7 @@ def gradient_angles(images: np.ndarray, *, window: float) -> np.ndarray:
     gauss = np.exp(-(((x - (w - 1) / 2) ** 2 + (y - (h - 1) / 2) ** 2) / (2 * window**2)))
     weight = np.hypot(gx, gy) * gauss
     bins = np.floor(np.degrees(np.arctan2(gy, gx)) / 10.0 + 0.5).astype(np.int64) % 36  # bin k: 10 k ± 5 degrees
-    hist = np.zeros(n * 36)
-    np.add.at(hist, (bins + 36 * np.arange(n)[:, None, None]).ravel(), weight.ravel())
-    hist = hist.reshape(n, 36)
+    hist = np.bincount((bins + 36 * np.arange(n)[:, None, None]).ravel(), weight.ravel(), 36 * n).reshape(n, 36)
     for _ in range(2):
         hist = (np.roll(hist, 1, axis=1) + hist + np.roll(hist, -1, axis=1)) / 3.0
     k = np.argmax(hist, axis=1)
