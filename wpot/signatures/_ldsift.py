@@ -44,7 +44,10 @@ For every vertex v of a mesh:
    angle 180 gives exactly the descriptor of the rotated image). The average is what makes the
    signature independent of the eigenvectors' joint sign; the renderer's ray offset
    (`render.raycast.RAY_OFFSET`, 1e-3 pixel) turns with the frame, so the two choices of sign give images
-   that are 180 degree turns of each other up to a 2e-3 pixel shift.
+   that are 180 degree turns of each other up to a 2e-3 pixel shift. With ``orientation="gradient"`` the
+   descriptor is instead taken at one keypoint angle, the dominant direction of the image's gradients
+   (`gradient_angles`), on an image rendered with a margin (`margin_resolution`): it then follows the surface
+   the image sees rather than e1, which another meshing or pose of a nearly isotropic neighbourhood turns.
 
 Keypoint size and VLFeat
 ------------------------
@@ -102,6 +105,7 @@ GRADIENT_WINDOW = 0.25
 
 
 def check_orientation(orientation: str) -> str:
+    """``orientation``, when it is one of `ORIENTATIONS`; else a ValueError that names them."""
     if orientation not in ORIENTATIONS:
         raise ValueError(f"orientation must be one of {', '.join(map(repr, ORIENTATIONS))}, got {orientation!r}")
     return orientation
@@ -129,7 +133,7 @@ def gradient_angles(images: np.ndarray, *, window: float) -> np.ndarray:
     The gradients' directions are binned in 36 bins of 10 degrees (centred on multiples of 10), each weighted by its
     magnitude and by a Gaussian of standard deviation ``window`` pixels about the centre; the histogram is smoothed
     (twice by a circular 3-bin mean) and its peak located to a fraction of a bin by a parabola through the peak bin
-    and its neighbours. An image that a turn by α (about its centre) maps onto another has its angle moved by α.
+    and its neighbours. An image turned by α about its centre (in that convention) has its angle moved by α.
 
     Parameters
     ----------
@@ -261,7 +265,7 @@ def ldsift(
         mean edge length: meshes of one surface at different densities then see the same images (`local_frames`)
     orientation : how the descriptor is turned in the image plane. ``"frame"`` (default, the paper's): along e1,
         averaged with its 180 degree turn, so it follows e1, which the covariance of the neighbours sets only as
-        well as their spread differs between its two axes (two meshes of one surface, or two poses, often turn it
+        well as their spread differs between its two axes (two meshes of one surface, or two poses, can turn it
         by tens of degrees). ``"gradient"``: SIFT's own (Lowe 2004), along the dominant direction of the image's
         gradients (`gradient_angles`, Gaussian of ``GRADIENT_WINDOW`` R), which follows the surface seen and not
         the neighbours' covariance; the image is rendered with a margin (``margin=True``) so that the turned
