@@ -129,10 +129,10 @@ def run(a, store: JsonlStore, log) -> None:
             source, target = load_mesh(vtx / f"{s}.off"), load_mesh(vtx / f"{t}.off")
             src, dst = tosca_ground_truth(vtx, s, t)
             _, sym = tosca_ground_truth(vtx, s, t, symmetric=True)
-            # each re-meshing and its queries once, then each K's target signatures once
-            remeshed = {F: resized(source, int(round(F * source.n_vertices))) for F in sorted({t[0] for t in todo})}
+            # each re-meshing and its queries once, then each (K, orientation)'s target signatures once
+            remeshed = {F: resized(source, int(round(F * source.n_vertices))) for F in sorted({job[0] for job in todo})}
             queries = {F: queries_on(source, r, src, dst, sym, target, a.samples) for F, r in remeshed.items()}
-            for K, o in sorted({t[1:] for t in todo}):
+            for K, o in sorted({job[1:] for job in todo}):
                 comparer = ldsift(K, target, o)
                 s_t = signatures(comparer, target)
                 for F in [F for F, L, p in todo if (L, p) == (K, o)]:
