@@ -172,12 +172,14 @@ def report(store: JsonlStore, a, log) -> None:
 
 
 def main(argv=None) -> int:
+    from wpot.signatures._ldsift import ORIENTATIONS
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=_data_root())
     ap.add_argument("--out", type=Path, required=True, help="results folder (outside the repository)")
     ap.add_argument("--dataset", nargs="+", default=["tosca", "faust"], choices=list(PAIRS))
     ap.add_argument("--K", type=float, nargs="+", default=[3.0, 4.5, 6.0], help="LD-SIFT scale factors")
-    ap.add_argument("--orientation", nargs="+", default=["frame", "gradient"], choices=["frame", "gradient"],
+    ap.add_argument("--orientation", nargs="+", default=list(ORIENTATIONS), choices=ORIENTATIONS,
                     help="LD-SIFT's orientations (`LDSIFTOptions.orientation`; 'frame' is the paper's, the peer)")
     ap.add_argument("--densities", type=float, nargs="+", default=[1.0, 2.0, 0.5],
                     help="vertex ratios of the re-meshing")

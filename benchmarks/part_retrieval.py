@@ -180,6 +180,7 @@ def report(store: JsonlStore, parts: dict[str, dict], weights: list[float], slab
 
 def main(argv=None) -> int:
     from wpot.maps.retrieval import EDGES, RetrievalOptions
+    from wpot.signatures._ldsift import ORIENTATIONS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", type=Path, required=True, help="a partial_poses.py --out folder (its parts)")
@@ -189,7 +190,7 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default="0,1,2", help="LD-SIFT thickness weights w, comma-separated (default 0,1,2)")
     ap.add_argument("--ldsift-slab", type=float, default=None,
                     help="LD-SIFT's depth slab (ldsift_slab; default: LD-SIFT's own), a method of its own in --out")
-    ap.add_argument("--ldsift-orientation", choices=["frame", "gradient"], default="frame",
+    ap.add_argument("--ldsift-orientation", choices=ORIENTATIONS, default="frame",
                     help="LD-SIFT's orientation (ldsift_orientation; the paper's 'frame' by default), a method of its "
                          "own in --out")
     ap.add_argument("--k-nearest", type=int, default=RetrievalOptions.k_nearest,

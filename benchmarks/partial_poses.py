@@ -942,6 +942,7 @@ def figure(store: Store, by_method: dict, common: set, parts: dict, methods: lis
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     from wpot.config import DEFAULT_MASS_PENALTY
+    from wpot.signatures._ldsift import ORIENTATIONS
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tosca", type=Path, default=_tosca(Path("/work/shared/data/tosca_isometric_5k")))
@@ -972,7 +973,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ldsift-K", type=float, default=3.0, help="LD-SIFT's scale factor K (the paper's 3)")
     ap.add_argument("--ldsift-slab", type=float, default=1.0)
     ap.add_argument("--ldsift-thickness", type=float, default=0.0, help="weight of LD-SIFT's thickness column")
-    ap.add_argument("--ldsift-orientation", default="frame", choices=["frame", "gradient"],
+    ap.add_argument("--ldsift-orientation", default="frame", choices=ORIENTATIONS,
                     help="how LD-SIFT turns its descriptors (the paper's 'frame', or 'gradient')")
     ap.add_argument("--n-eigen", type=int, default=200, help="WKS/HKS eigenpairs")
     ap.add_argument("--n-energies", type=int, default=100, help="WKS energies")
