@@ -109,6 +109,8 @@ LARGE = 0.20
 #: thresholds: the AUC range of ε = geodesic / sqrt(area(T)), and the "share < " threshold
 TMAX = 0.25
 SHARE_AT = 0.05
+#: a pair whose mean ε is above this is a gross failure (issue 41's item 5)
+GROSS = 0.3
 #: the issue's goals (parts >= 20 %: mean ε; all parts: mass on the true region, class retrieval)
 GOALS = {"mean_error": 0.10, "mass": 0.85, "retrieval": 0.99}
 QUADRUPEDS = ("cat", "dog", "horse", "wolf")
@@ -611,9 +613,8 @@ class Matchers:
             t0 = time.perf_counter()
             pm = self.comparer.locate(p, t, options=self.locate_options)
             dt = time.perf_counter() - t0
-        info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), "n_anchors": int(len(pm.anchors)),
-                "orientation": pm.orientation, "n_rival": int(len(pm.rival)),
-                "placement_confidence": pm.placement_confidence, "scale": pm.scale, "n_warnings": len(caught)}
+        info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), **pm.summary(),
+                "n_warnings": len(caught)}
         return pm.correspondence, dt, info, pm
 
     def nn_vertex(self, p, t) -> tuple[np.ndarray, float, dict]:
@@ -744,6 +745,28 @@ def _curve(store: Store, recs: list[dict], key: str, thr: np.ndarray) -> np.ndar
                     for r in recs], axis=0)
 
 
+def _doubts(recs: list[dict]) -> str | None:
+    """For `locate`'s records: how many gross failures (mean ε > GROSS) and how many good maps its pair-level
+    doubts flag (`PartMap.placement_confidence` below `PLACEMENT_DOUBT`, `PartMap.side_margin` below `SIDE_DOUBT`),
+    as a line of the report; None for records of other methods."""
+    from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT
+
+    recs = [r for r in recs if "placement_confidence" in r["info"]]
+    if not recs:
+        return None
+
+    def side(r):  # "inf" and None (not read) are not doubted
+        return isinstance(r["info"].get("side_margin"), float) and r["info"]["side_margin"] < SIDE_DOUBT
+
+    place = lambda r: r["info"]["placement_confidence"] < PLACEMENT_DOUBT  # noqa: E731
+    gross = [r for r in recs if r["mean"] > GROSS]
+    good = [r for r in recs if r["mean"] <= GROSS]
+    return (f"\npair-level doubts: of {len(gross)} gross failures (ε > {GROSS}), {sum(map(place, gross))} have "
+            f"placement_confidence < {PLACEMENT_DOUBT}, {sum(map(side, gross))} side_margin < {SIDE_DOUBT}, "
+            f"{sum(place(r) or side(r) for r in gross)} either; of {len(good)} other maps, "
+            f"{sum(place(r) or side(r) for r in good)} have either")
+
+
 def _pooled_confidence(store: Store, recs: list[dict]) -> dict:
     """Mean ε of the more and less confident halves (and the most confident tenth) of every pair's evaluated
     points pooled: a confidence that also tells good pairs from bad ones separates these more than within a
@@ -826,6 +849,9 @@ def report(store: Store, out: Path, log, tags: dict[str, str] | None, keep_parts
                          f"{t['pooled_bottom_half']:.3f}, most confident tenth {t['pooled_top_tenth']:.3f}; "
                          f"`region()` against the true region, by area: precision {t['region_precision']:.3f}, "
                          f"recall {t['region_recall']:.3f}")
+        doubts = _doubts(recs)
+        if doubts:
+            lines.append(doubts)
         other = [r for r in by_method[m].values() if r["relation"] == "other"]
         if other:
             lines.append(f"\nother-class comparisons (for retrieval): {len(other)}, median "

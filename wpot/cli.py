@@ -179,7 +179,7 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     transform that places it)."""
     if not getattr(a, "locate", False):
         return None
-    from wpot.maps.locate import PLACEMENT_DOUBT, LocateOptions
+    from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT, LocateOptions
 
     given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight),
                                ("scale", _locate_scale(a.locate_scale))) if v is not None}
@@ -191,6 +191,14 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
              if pm.placement_confidence < PLACEMENT_DOUBT else "")
     print(f"placement confidence {pm.placement_confidence:.2f}: {len(pm.anchors)} anchors vouch for this place, "
           f"{len(pm.rival)} for the best other{doubt}")
+    if np.isnan(pm.side_margin):
+        print("side: not read (no left/right symmetry found in B, or A has no side)")
+    elif np.isinf(pm.side_margin):
+        print("side margin inf: no candidate map lay on B's other side")
+    else:
+        side = (f" (below {SIDE_DOUBT}: the mirror side fits about as well; check left from right)"
+                if pm.side_margin < SIDE_DOUBT else "")
+        print(f"side margin {pm.side_margin:.3f}: how far this side of B was preferred to the mirror side{side}")
     if pm.scale != 1.0:
         print(f"scale: A's lengths times {pm.scale:.3g} are B's (--locate-scale {a.locate_scale})")
     reg = located_registration(ma, mb, pm)
@@ -982,11 +990,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
                  "settings": config.describe(), "signature_state": info, "repair": repair_setting(repair)}
         if located is not None:
             pm = located.map
-            extra["locate"] = {"n_anchors": int(len(pm.anchors)), "median_residual": float(np.median(pm.residual)),
-                               "orientation": pm.orientation, "region_vertices": int(pm.region().sum()),
-                               "median_confidence": float(np.median(pm.confidence)),
-                               "placement_confidence": pm.placement_confidence, "n_rival": int(len(pm.rival)),
-                               "scale": pm.scale, "registration": _registration_json(located.registration)}
+            extra["locate"] = {**pm.summary(), "registration": _registration_json(located.registration)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))
 

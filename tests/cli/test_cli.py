@@ -149,6 +149,12 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     printed = float(re.search(r"^placement confidence ([\d.]+):", r.stdout, re.M).group(1))
     assert printed == pytest.approx(info["placement_confidence"], abs=0.005)
     assert info["placement_confidence"] == pytest.approx(pm.placement_confidence)
+    if np.isfinite(pm.side_margin):  # the side margin, printed and saved (JSON: "inf" and null otherwise)
+        assert float(re.search(r"^side margin ([\d.]+):", r.stdout, re.M).group(1)) == pytest.approx(pm.side_margin,
+                                                                                               abs=5e-4)
+        assert info["side_margin"] == pytest.approx(pm.side_margin)
+    else:
+        assert info["side_margin"] == ("inf" if np.isinf(pm.side_margin) else None)
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
     # --locate-orient-weight is LocateOptions(orient_weight=...)
     r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-orient-weight",

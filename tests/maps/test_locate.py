@@ -1,6 +1,7 @@
 """wpot.maps.locate: a part located in a whole by geodesic consistency."""
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -280,11 +281,35 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
     assert np.median(err(folded)[disc]) > 1.5 and orientation_score(part, whole, folded) < 0.97
     old = keep_orientation(part, whole, folded, refine=lambda t0: draw.rounds(t0, 2), symmetry_of="b")[0]
     assert np.median(err(old)[disc]) > 1.5  # the repair through the symmetry does not see it
-    t, score, c = _orient(draw, folded, cost, 2)
+    far = 0.1 * np.sqrt(whole.area)
+    t, score, c, _ = _orient(draw, folded, cost, 2, far=far)
     assert np.median(err(t)[disc]) < 0.5 and np.quantile(err(t), 0.9) < 1.0
     assert score > 0.97 and c == pytest.approx(cost(t)) and c < cost(folded)
-    t, score, _ = _orient(draw, sym.map[idx], cost, 2)  # the mirror image of the true map
+    t, score, _, side = _orient(draw, sym.map[idx], cost, 2, far=far)  # the mirror image of the true map
     assert np.quantile(err(t), 0.9) < 1.0 and score > 0.97
+    assert side > 0.0  # candidate (b), the mirror side unfolded, costs more
+
+
+def test_other_side_tells_a_map_from_its_mirror_image():
+    """`_other_side`: a map, its mirror image and the map with a minority of its images mirrored, each read
+    against the true map and against its mirror; a part on the plane of symmetry has no side."""
+    from helpers import mirror_symmetric
+
+    from wpot.maps.locate import _other_side
+    from wpot.maps.symmetry import reflection_symmetry
+
+    whole = mirror_symmetric(1500, seed=1)
+    mirror = reflection_symmetry(whole, cache=False).map
+    far = 0.1 * np.sqrt(whole.area)
+    x = whole.vertices[:, 0]
+    idx = np.nonzero(x > 0.15)[0]
+    some = idx.copy()
+    some[::3] = mirror[idx[::3]]  # a third of the images mirrored
+    cands = [idx, mirror[idx], some]
+    assert _other_side(whole, mirror, idx, cands, far).tolist() == [False, True, False]
+    assert _other_side(whole, mirror, mirror[idx], cands, far).tolist() == [True, False, True]
+    plane = np.nonzero(np.abs(x) < 0.2 * far)[0]
+    assert _other_side(whole, mirror, plane, [plane, mirror[plane]], far) is None
 
 
 def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
@@ -457,3 +482,46 @@ def test_polish_weighs_the_near_anchors_around_a_hole():
     absolute = drift(draw.rounds(idx.copy(), 1))
     relative = drift(draw.rounds(idx.copy(), 1, offset=LOG_OFFSET * max(part.mean_edge_length, edge)))
     assert absolute > 1.5 and relative < 1.0
+
+
+def test_step_4_rule_values_in_closed_form():
+    """`_rule`: the relative cost r = cost / least cost − 1, less weight × orientation score; with no weight, r
+    for the candidates oriented within `ORIENT_MARGIN` of the best and inf for the others. `_pick` is its least."""
+    from wpot.maps.locate import ORIENT_MARGIN, _pick, _rule
+
+    scores, costs = [0.9, 0.9 - ORIENT_MARGIN - 0.01, np.nan], [2.0, 1.0, 2.5]
+    assert _rule(scores, costs).tolist() == [1.0, np.inf, np.inf]
+    low = 0.9 - ORIENT_MARGIN - 0.01
+    assert np.allclose(_rule(scores, costs, 0.3), [1.0 - 0.3 * 0.9, -0.3 * low, 1.5 + 0.3])  # NaN reads as -1
+    assert _pick(scores, costs) == 0 and _pick(scores, costs, 0.3) == 1
+
+
+def test_side_margin_read_on_a_mirror_symmetric_whole_and_not_read_without_one():
+    """A part of one side of a mirror-symmetric whole has no symmetry of its own, so a map onto the other side
+    cannot keep orientation: with signatures blind to the mirror (the same at a point and its mirror image) the
+    side is still orientation's call, the map is on the true side and its side margin is not in doubt. A whole
+    with no mirror symmetry, or ``orient=False``, leaves the side unread (NaN)."""
+    from helpers import mirror_symmetric, sphere_points
+
+    from wpot.maps.locate import SIDE_DOUBT
+    from wpot.mesh import cut
+
+    whole = mirror_symmetric(1500, seed=1)
+    part, idx = cut(whole, whole.vertices[:, 0] > 0.15)
+    blind = _smooth_signatures(whole) + _smooth_signatures(Mesh(whole.vertices * [-1.0, 1.0, 1.0], whole.faces))
+    for weight in (None, 0.3):
+        pm = locate_part(part, whole, blind[idx], blind, options=LocateOptions(orient_weight=weight))
+        x = whole.vertices
+        assert np.median(np.linalg.norm(x[pm.correspondence] - x[idx], axis=1)) < whole.mean_edge_length
+        assert pm.side_margin >= SIDE_DOUBT  # inf where every candidate kept the true side
+        back = json.loads(json.dumps(pm.summary(), allow_nan=False))  # plain JSON, inf written "inf"
+        assert back["side_margin"] == ("inf" if np.isinf(pm.side_margin) else pytest.approx(pm.side_margin))
+        assert back["placement_confidence"] == pm.placement_confidence and back["n_anchors"] == len(pm.anchors)
+    unread = locate_part(part, whole, blind[idx], blind, options=LocateOptions(orient=False))
+    assert np.isnan(unread.side_margin) and json.loads(json.dumps(unread.summary(), allow_nan=False))["side_margin"] is None
+
+    u, f = sphere_points(1200, seed=2)
+    bumpy = Mesh(u * (1.0 + 0.3 * np.exp((u @ np.array([0.6, 0.0, 0.8]) - 1.0) / 0.16))[:, None], f)
+    sig = _smooth_signatures(bumpy)
+    part, idx = cut(bumpy, bumpy.vertices[:, 2] > 0.2)
+    assert np.isnan(locate_part(part, bumpy, sig[idx], sig).side_margin)

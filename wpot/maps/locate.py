@@ -46,7 +46,9 @@ geodesic distances to choose among them and to fill in the map:
    orient_weight · orientation score`` (`ORIENT_WEIGHT`). A whole whose symmetry is not detected gets (a) and
    (b) only. A part or whole whose orientation cannot be read (triangles wound against their neighbours, or no
    outside: `wpot.maps.orientation.unreadable`) skips this step, with a `LocateWarning` that names it and its
-   repair.
+   repair. How near the choice of side was is the result's ``side_margin``: the rule's value of the best
+   candidate on the other side of the whole less that of the one kept (a candidate is on the other side when
+   most of the part's lateral images lie nearer the mirror images of the kept map's than its own).
 
 5. **Rival placement.** The candidate matches that lie neither where the map sends their anchors nor at the
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
@@ -89,8 +91,8 @@ from wpot.sampling import farthest_point_sampling
 
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
-           "PLACEMENT_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE", "SCALE_STEPS",
-           "SCALE_DOUBT"]
+           "PLACEMENT_DOUBT", "SIDE_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE",
+           "SCALE_STEPS", "SCALE_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -101,6 +103,11 @@ ORIENT_MARGIN = 0.5
 ORIENT_WEIGHT = 0.3
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
+#: a `PartMap.side_margin` below this: the map may be on the mirror side. The least round value under which every
+#: gross failure of TOSCA's re-meshed parts (1x, 2x, 0.5x; ``edge="whole", orient_weight=ORIENT_WEIGHT``, LD-SIFT
+#: turned by its gradients) was doubted by it or by `PLACEMENT_DOUBT`; checked on `tosca_lowres`, FAUST's people
+#: and the parts cut from the source's mesh at the defaults (the docs' Results page)
+SIDE_DOUBT = 0.15
 #: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
 SCALE_RANGE = 1.5
 #: ... on a geometric grid of this many scales (steps of about 8 %), then half a step to each side of the best
@@ -130,7 +137,8 @@ class LocateOptions:
         this (a fraction of √area(whole), along its edges) of it: about two edges on a 5,000-vertex shape,
         which closes the gaps between the images without reaching far past the part's border
     rival_tol : a candidate match belongs to the chosen placement when its vertex lies within this (a fraction
-        of √area(whole)) of where the map sends its anchor; the others may form a rival placement (step 5)
+        of √area(whole)) of where the map sends its anchor; the others may form a rival placement (step 5). Also
+        how far from its mirror image a vertex's image must lie to have a side (`PartMap.side_margin`)
     edge : for LD-SIFT in `Comparer.locate`, when the comparer leaves its edge length unset
         (`wpot.signatures.LDSIFTOptions.edge`): ``"own"`` (default) each mesh's own, the paper's Eq. 1;
         ``"whole"`` the whole's (`wpot.signatures._frames.common_edge`) for both meshes, so that a part meshed at
@@ -216,6 +224,13 @@ class PartMap:
         map, not only its low-``confidence`` vertices
     scale : the factor by which the part's lengths were taken to give the whole's (`LocateOptions.scale`: 1 with
         ``"same"``, the fitted one with ``"fit"``)
+    side_margin : >= 0, how far step 4's rule (`LocateOptions.orient_weight`) preferred this side of the whole to
+        the mirror side: the rule's value of the best candidate map on the other side less the kept one's (a
+        relative mean signature cost, less ``orient_weight`` times an orientation score). Below `SIDE_DOUBT` the
+        map may be on the mirror side (a left limb on the right one): the side was a near-tie. ``inf`` when no
+        candidate lay on the other side (or, with ``orient_weight`` None, none there was oriented within
+        `ORIENT_MARGIN` of the best); NaN when the side was not read (no left/right symmetry found in the
+        whole, an orientation that cannot be read, ``orient=False``, or a part on the plane of symmetry)
     """
 
     correspondence: np.ndarray
@@ -229,6 +244,7 @@ class PartMap:
     rival: np.ndarray
     placement_confidence: float
     scale: float = 1.0
+    side_margin: float = float("nan")
 
     def region(self, threshold: float | None = None) -> np.ndarray:
         """(N_W,) bool, the vertices of the whole that the part matched: ``image_distance <= threshold``
@@ -236,11 +252,24 @@ class PartMap:
         t = self.region_tol if threshold is None else _validate.positive_finite("threshold", threshold)
         return self.image_distance <= t
 
+    def summary(self) -> dict:
+        """The map's pair-level figures as plain JSON values (for result files): anchors, median residual and
+        confidence, orientation, region size, placement confidence, rivals, side margin and scale. JSON has no
+        inf or NaN: a side margin of inf is written "inf", and a NaN (orientation or side not read) None."""
+        def number(x: float) -> float | str | None:
+            return None if np.isnan(x) else "inf" if np.isinf(x) else float(x)
+
+        return {"n_anchors": int(len(self.anchors)), "median_residual": float(np.median(self.residual)),
+                "median_confidence": float(np.median(self.confidence)), "orientation": number(self.orientation),
+                "region_vertices": int(self.region().sum()), "placement_confidence": float(self.placement_confidence),
+                "n_rival": int(len(self.rival)), "side_margin": number(self.side_margin), "scale": float(self.scale)}
+
     def __repr__(self) -> str:
         return (f"PartMap({len(self.correspondence)} -> {len(self.image_distance)} vertices, {len(self.anchors)} "
                 f"consistent anchors, median residual {np.median(self.residual):.3g}, "
                 f"orientation {self.orientation:.2f}, region {int(self.region().sum())} vertices, placement confidence "
-                f"{self.placement_confidence:.2f}" + ("" if self.scale == 1.0 else f", scale {self.scale:.3g}") + ")")
+                f"{self.placement_confidence:.2f}, side margin {self.side_margin:.3g}"
+                + ("" if self.scale == 1.0 else f", scale {self.scale:.3g}") + ")")
 
 
 #: meshes whose geodesic distances (`wpot.evaluate.GeodesicDistances`, the rows computed so far) `locate_part` keeps
@@ -427,10 +456,11 @@ class _Redraw:
         return self.rounds(t, 1)
 
 
-def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None
-            ) -> tuple[np.ndarray, float, float]:
+def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0
+            ) -> tuple[np.ndarray, float, float, float]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
-    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score and its cost."""
+    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score, its cost and its
+    side margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in the whole's units)."""
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -440,19 +470,47 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
         cands.append(draw.unfold(sym.map[t], n))
     scores = [orientation_score(part, whole, c) for c in cands]
     costs = [cost(c) for c in cands]
-    best = _pick(scores, costs, weight)
-    return cands[best], float(scores[best]), float(costs[best])
+    rule = _rule(scores, costs, weight)
+    best = int(np.argmin(rule))
+    other = None if sym is None else _other_side(whole, sym.map, cands[best], cands, far)
+    margin = float("nan") if other is None else float(rule[other].min() - rule[best]) if other.any() else float("inf")
+    return cands[best], float(scores[best]), float(costs[best]), margin
+
+
+def _rule(scores, costs, weight: float | None = None) -> np.ndarray:
+    """Step 4's rule: a value per candidate, the least kept (`_pick`). ``costs`` are positive mean signature
+    costs, r = cost / least cost − 1; a NaN orientation score reads as −1. With ``weight`` None, r for the
+    candidates whose orientation score is within `ORIENT_MARGIN` of the best and inf for the others; else
+    r − weight · score."""
+    o = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-1.0)
+    c = np.asarray(costs, dtype=np.float64)
+    r = c / max(float(c.min()), 1e-300) - 1.0
+    if weight is None:
+        return np.where(o >= o.max() - ORIENT_MARGIN, r, np.inf)
+    return r - weight * o
 
 
 def _pick(scores, costs, weight: float | None = None) -> int:
-    """The candidate step 4 keeps (a NaN score reads as -1; the first on a tie): with ``weight`` None, of those
-    whose orientation score is within `ORIENT_MARGIN` of the best, the one with the least cost; else the one of
-    least ``cost / least cost - 1 - weight * score`` (``costs`` positive mean signature costs)."""
-    o = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-1.0)
-    c = np.asarray(costs, dtype=np.float64)
-    if weight is None:
-        return int(np.argmin(np.where(o >= o.max() - ORIENT_MARGIN, c, np.inf)))
-    return int(np.argmin(c / max(float(c.min()), 1e-300) - 1.0 - weight * o))
+    """The candidate step 4 keeps: the least of `_rule` (the first on a tie)."""
+    return int(np.argmin(_rule(scores, costs, weight)))
+
+
+def _other_side(whole: Mesh, mirror: np.ndarray, chosen: np.ndarray, cands: list, far: float) -> np.ndarray | None:
+    """(len(cands),) bool: the candidate maps that lie on the other side of the whole from ``chosen``, (N_P,)
+    vertices of the whole. Over the vertices of the part whose image under ``chosen`` is farther than ``far``
+    (straight-line) from its mirror image (``mirror`` (N_W,), the whole's symmetry), a candidate is on the other
+    side when more than half of its images lie nearer the mirror image than the chosen image. None when no image
+    is that far from its mirror: a part on the plane of symmetry has no side (a map reflected in place is
+    orientation's to tell)."""
+    x = whole.vertices
+    at, across = x[chosen], x[mirror[chosen]]
+    lateral = np.linalg.norm(at - across, axis=1) > far
+    if not lateral.any():
+        return None
+    at, across = at[lateral], across[lateral]
+    near = [np.linalg.norm(x[c[lateral]] - across, axis=1) < np.linalg.norm(x[c[lateral]] - at, axis=1)
+            for c in cands]
+    return np.array([np.mean(n) > 0.5 for n in near])
 
 
 def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: np.ndarray, d_anchor: np.ndarray,
@@ -560,9 +618,9 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
-        oriented = opt.orient and not unread
+        oriented, side = opt.orient and not unread, float("nan")  # side: not read unless step 4 reads it
         if oriented:
-            t, score, mean_cost = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight)
+            t, score, mean_cost, side = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, opt.rival_tol * scale)
         if opt.n_polish:
             h = LOG_OFFSET * max(part.mean_edge_length * part_scale, whole.mean_edge_length)
             t = draw.rounds(t, opt.n_polish, offset=h)
@@ -581,4 +639,5 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
                    region_tol=opt.region_tol,
                    rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
-                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)), scale=part_scale)
+                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)), scale=part_scale,
+                   side_margin=side)
