@@ -94,6 +94,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when run as a script
 from benchmarks.jsonl_store import JsonlStore, results_folder  # noqa: E402
+from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT  # noqa: E402
 import scipy.sparse as sp
 
 KINDS = ("head", "limb", "cut", "holes")
@@ -748,9 +749,8 @@ def _curve(store: Store, recs: list[dict], key: str, thr: np.ndarray) -> np.ndar
 def _doubts(recs: list[dict]) -> str | None:
     """For `locate`'s records: how many gross failures (mean ε > GROSS) and how many good maps its pair-level
     doubts flag (`PartMap.placement_confidence` below `PLACEMENT_DOUBT`, `PartMap.side_margin` below `SIDE_DOUBT`),
-    as a line of the report; None for records of other methods."""
-    from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT
-
+    and where the side is in doubt, how good the other side's map is, as a line of the report; None for records
+    of other methods."""
     recs = [r for r in recs if "placement_confidence" in r["info"]]
     if not recs:
         return None
@@ -761,10 +761,18 @@ def _doubts(recs: list[dict]) -> str | None:
     place = lambda r: r["info"]["placement_confidence"] < PLACEMENT_DOUBT  # noqa: E731
     gross = [r for r in recs if r["mean"] > GROSS]
     good = [r for r in recs if r["mean"] <= GROSS]
-    return (f"\npair-level doubts: of {len(gross)} gross failures (ε > {GROSS}), {sum(map(place, gross))} have "
+    line = (f"\npair-level doubts: of {len(gross)} gross failures (ε > {GROSS}), {sum(map(place, gross))} have "
             f"placement_confidence < {PLACEMENT_DOUBT}, {sum(map(side, gross))} side_margin < {SIDE_DOUBT}, "
             f"{sum(place(r) or side(r) for r in gross)} either; of {len(good)} other maps, "
             f"{sum(place(r) or side(r) for r in good)} have either")
+    two = [(r["mean"], r["other_side_mean"]) for r in recs if "other_side_mean" in r]
+    if two:
+        kept, alt = np.array(two).T
+        best = np.minimum(kept, alt)
+        line += (f". The {len(two)} pairs below {SIDE_DOUBT} with a map on the other side (`PartMap.other_side`): "
+                 f"mean ε {kept.mean():.3f} kept, {alt.mean():.3f} the other side's, {best.mean():.3f} the better "
+                 f"of the two; gross failures {int((kept > GROSS).sum())}, {int((best > GROSS).sum())}")
+    return line
 
 
 def _pooled_confidence(store: Store, recs: list[dict]) -> dict:
@@ -1148,6 +1156,8 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
                 else:  # nn-vertex: every vertex of the part sends the same mass to its nearest vertex
                     mass = float(truth.region[pred].mean())
                 rec.update(scores, mass=mass, uniform=truth.uniform, eval_seconds=time.perf_counter() - t_eval)
+                if m == "locate" and comp.other_side is not None and comp.side_margin < SIDE_DOUBT:
+                    rec["other_side_mean"] = score_map(geo, comp.other_side, truth)[0]["mean"]  # the other answer
                 if comp is not None:
                     rec.update(trust=trust_scores(comp, truth, arrays["errors"], tm.vertex_areas))
                     arrays["confidence"] = np.asarray(comp.confidence)[truth.src].astype(np.float32)

@@ -282,12 +282,13 @@ def test_orientation_step_redraws_a_fold_and_finds_the_side():
     old = keep_orientation(part, whole, folded, refine=lambda t0: draw.rounds(t0, 2), symmetry_of="b")[0]
     assert np.median(err(old)[disc]) > 1.5  # the repair through the symmetry does not see it
     far = 0.1 * np.sqrt(whole.area)
-    t, score, c, _ = _orient(draw, folded, cost, 2, far=far)
+    t, score, c, _, _ = _orient(draw, folded, cost, 2, far=far)
     assert np.median(err(t)[disc]) < 0.5 and np.quantile(err(t), 0.9) < 1.0
     assert score > 0.97 and c == pytest.approx(cost(t)) and c < cost(folded)
-    t, score, _, side = _orient(draw, sym.map[idx], cost, 2, far=far)  # the mirror image of the true map
+    t, score, _, side, alt = _orient(draw, sym.map[idx], cost, 2, far=far)  # the mirror image of the true map
     assert np.quantile(err(t), 0.9) < 1.0 and score > 0.97
-    assert side > 0.0  # candidate (b), the mirror side unfolded, costs more
+    # candidate (b), the mirror side unfolded, costs more, and is the other side's answer
+    assert side > 0.0 and np.median(np.linalg.norm(whole.vertices[alt] - whole.vertices[sym.map[idx]], axis=1)) < edge
 
 
 def test_other_side_tells_a_map_from_its_mirror_image():
@@ -514,11 +515,18 @@ def test_side_margin_read_on_a_mirror_symmetric_whole_and_not_read_without_one()
         x = whole.vertices
         assert np.median(np.linalg.norm(x[pm.correspondence] - x[idx], axis=1)) < whole.mean_edge_length
         assert pm.side_margin >= SIDE_DOUBT  # inf where every candidate kept the true side
+        if pm.other_side is not None:  # the other side's answer: most of its images nearer the mirror side
+            mirror = x[idx] * [-1.0, 1.0, 1.0]
+            assert np.mean(np.linalg.norm(x[pm.other_side] - mirror, axis=1)
+                           < np.linalg.norm(x[pm.other_side] - x[idx], axis=1)) > 0.5
+        else:
+            assert np.isinf(pm.side_margin)
         back = json.loads(json.dumps(pm.summary(), allow_nan=False))  # plain JSON, inf written "inf"
         assert back["side_margin"] == ("inf" if np.isinf(pm.side_margin) else pytest.approx(pm.side_margin))
         assert back["placement_confidence"] == pm.placement_confidence and back["n_anchors"] == len(pm.anchors)
     unread = locate_part(part, whole, blind[idx], blind, options=LocateOptions(orient=False))
-    assert np.isnan(unread.side_margin) and json.loads(json.dumps(unread.summary(), allow_nan=False))["side_margin"] is None
+    assert np.isnan(unread.side_margin) and unread.other_side is None
+    assert json.loads(json.dumps(unread.summary(), allow_nan=False))["side_margin"] is None
 
     u, f = sphere_points(1200, seed=2)
     bumpy = Mesh(u * (1.0 + 0.3 * np.exp((u @ np.array([0.6, 0.0, 0.8]) - 1.0) / 0.16))[:, None], f)

@@ -231,6 +231,10 @@ class PartMap:
         candidate lay on the other side (or, with ``orient_weight`` None, none there was oriented within
         `ORIENT_MARGIN` of the best); NaN when the side was not read (no left/right symmetry found in the
         whole, an orientation that cannot be read, ``orient=False``, or a part on the plane of symmetry)
+    other_side : (N_P,) int64 or None, the map step 4 preferred on the other side of the whole (its candidate of
+        least rule value there, polished like ``correspondence``): where the side is in doubt, the other answer, for
+        a caller who can tell left from right (None when no candidate lay on the other side, or the side was not
+        read)
     """
 
     correspondence: np.ndarray
@@ -245,6 +249,7 @@ class PartMap:
     placement_confidence: float
     scale: float = 1.0
     side_margin: float = float("nan")
+    other_side: np.ndarray | None = None
 
     def region(self, threshold: float | None = None) -> np.ndarray:
         """(N_W,) bool, the vertices of the whole that the part matched: ``image_distance <= threshold``
@@ -457,10 +462,11 @@ class _Redraw:
 
 
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0
-            ) -> tuple[np.ndarray, float, float, float]:
+            ) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
-    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score, its cost and its
-    side margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in the whole's units)."""
+    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score, its cost, its side
+    margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in the whole's units) and the candidate of
+    least rule value on the other side (None when no candidate lies there)."""
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -473,8 +479,31 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
     rule = _rule(scores, costs, weight)
     best = int(np.argmin(rule))
     other = None if sym is None else _other_side(whole, sym.map, cands[best], cands, far)
-    margin = float("nan") if other is None else float(rule[other].min() - rule[best]) if other.any() else float("inf")
-    return cands[best], float(scores[best]), float(costs[best]), margin
+    if other is None or not other.any():
+        return cands[best], float(scores[best]), float(costs[best]), float("inf" if other is not None else "nan"), None
+    alt = int(np.argmin(np.where(other, rule, np.inf))) if np.isfinite(rule[other]).any() else int(np.argmax(other))
+    return cands[best], float(scores[best]), float(costs[best]), float(rule[alt] - rule[best]), cands[alt]
+
+
+def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float, unread: bool) -> tuple:
+    """Step 4 (when ``opt.orient`` and the orientation can be read, ``unread`` False) and the polish after it.
+    Returns the map, its orientation score (NaN when unread) and mean cost, its local orientation (N_P,), the side
+    margin (NaN when not read) and the best map on the other side (polished too; None when there is none)."""
+    part, whole = draw.part, draw.whole
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
+        oriented, side, other = opt.orient and not unread, float("nan"), None
+        if oriented:
+            t, score, mean_cost, side, other = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, far)
+        if opt.n_polish:
+            h = LOG_OFFSET * max(part.mean_edge_length * draw.part_scale, whole.mean_edge_length)
+            t = draw.rounds(t, opt.n_polish, offset=h)
+            other = None if other is None else draw.rounds(other, opt.n_polish, offset=h)
+        if opt.n_polish or not oriented:  # NaN: a patch wound the wrong way reverses every orientation read on it
+            score = float("nan") if unread else orientation_score(part, whole, t)
+            mean_cost = cost(t)
+        local = np.zeros(part.n_vertices) if unread else np.nan_to_num(local_orientation(part, whole, t), nan=0.0)
+    return t, score, mean_cost, local, side, other
 
 
 def _rule(scores, costs, weight: float | None = None) -> np.ndarray:
@@ -616,19 +645,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         name, m, why = unread[0]
         warnings.warn(named(m.name, f"the {name} {why}, so locate cannot tell left from right: the map is not "
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
-        oriented, side = opt.orient and not unread, float("nan")  # side: not read unless step 4 reads it
-        if oriented:
-            t, score, mean_cost, side = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, opt.rival_tol * scale)
-        if opt.n_polish:
-            h = LOG_OFFSET * max(part.mean_edge_length * part_scale, whole.mean_edge_length)
-            t = draw.rounds(t, opt.n_polish, offset=h)
-        if opt.n_polish or not oriented:  # NaN: a patch wound the wrong way reverses every orientation read on it
-            score = float("nan") if unread else orientation_score(part, whole, t)
-            mean_cost = cost(t)
-        local = (np.zeros(part.n_vertices) if unread
-                 else np.nan_to_num(local_orientation(part, whole, t), nan=0.0))
+    t, score, mean_cost, local, side, other = _oriented(draw, t, cost, opt, opt.rival_tol * scale, bool(unread))
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0, fw0 = draw.on_part(a).T, _distances(g_whole, b).T
@@ -640,4 +657,4 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                    region_tol=opt.region_tol,
                    rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
                    placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)), scale=part_scale,
-                   side_margin=side)
+                   side_margin=side, other_side=None if other is None else other.astype(np.int64))
