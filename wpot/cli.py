@@ -134,7 +134,9 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--locate", action="store_true",
                    help="also locate A in B by geodesic consistency (wpot.maps.locate: A a part of a shape like B, in any "
                    "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
-                   "saved as correspondence_locate, confidence_locate and region_locate, and drawn in the picture")
+                   "saved as correspondence_locate, confidence_locate and region_locate (and "
+                   "correspondence_locate_other_side, the map on B's other side, when there is one), and drawn in the "
+                   "picture")
     p.add_argument("--locate-edge", choices=("own", "whole"), default=None,
                    help="LD-SIFT's edge length for --locate (with --signature ldsift): own (default) each mesh's own, "
                    "the paper's; whole: B's for both, for a part meshed at another density than B (a scan, a part "
@@ -196,8 +198,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     elif np.isinf(pm.side_margin):
         print("side margin inf: no candidate map lay on B's other side")
     else:
-        side = (f" (below {SIDE_DOUBT}: the mirror side fits about as well; check left from right)"
-                if pm.side_margin < SIDE_DOUBT else "")
+        side = (f" (below {SIDE_DOUBT}: the mirror side fits about as well; check left from right: the map there is "
+                "saved as correspondence_locate_other_side)" if pm.side_margin < SIDE_DOUBT else "")
         print(f"side margin {pm.side_margin:.3f}: how far this side of B was preferred to the mirror side{side}")
     if pm.scale != 1.0:
         print(f"scale: A's lengths times {pm.scale:.3g} are B's (--locate-scale {a.locate_scale})")
@@ -779,7 +781,8 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
                      refined: Any = None, located: _Located | None = None) -> list[Path]:
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined``, a
     `wpot.maps.zoomout.ZoomOutResult`, is given, its orientation confidence in the json; and
-    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located`` (`_locate`) is) and
+    ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located`` (`_locate`) is, and
+    ``correspondence_locate_other_side`` when its map has one, `PartMap.other_side`) and
     correspondence.png (`_save_picture`).
 
     Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
@@ -821,6 +824,8 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         arrays.update(correspondence_locate=on_input(located.map.correspondence),
                       confidence_locate=per_input(a, located.map.confidence, np.nan),
                       region_locate=per_input(b, located.map.region(), False))
+        if located.map.other_side is not None:
+            arrays["correspondence_locate_other_side"] = on_input(located.map.other_side)
     for name, m in (("index_map_a", a), ("index_map_b", b)):
         if m.index_map is not None:
             arrays[name] = m.index_map
