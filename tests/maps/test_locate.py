@@ -501,10 +501,11 @@ def test_side_margin_read_on_a_mirror_symmetric_whole_and_not_read_without_one()
     """A part of one side of a mirror-symmetric whole has no symmetry of its own, so a map onto the other side
     cannot keep orientation: with signatures blind to the mirror (the same at a point and its mirror image) the
     side is still orientation's call, the map is on the true side and its side margin is not in doubt. A whole
-    with no mirror symmetry, or ``orient=False``, leaves the side unread (NaN)."""
+    in which no mirror is found, or ``orient=False``, leaves the side unread (NaN)."""
     from helpers import mirror_symmetric, sphere_points
 
     from wpot.maps.locate import SIDE_DOUBT
+    from wpot.maps.symmetry import reflection_symmetry
     from wpot.mesh import cut
 
     whole = mirror_symmetric(1500, seed=1)
@@ -528,8 +529,10 @@ def test_side_margin_read_on_a_mirror_symmetric_whole_and_not_read_without_one()
     assert np.isnan(unread.side_margin) and unread.other_side is None
     assert json.loads(json.dumps(unread.summary(), allow_nan=False))["side_margin"] is None
 
+    # a sphere with one bump: its mirror planes (every plane through the bump's axis) single none out
     u, f = sphere_points(1200, seed=2)
     bumpy = Mesh(u * (1.0 + 0.3 * np.exp((u @ np.array([0.6, 0.0, 0.8]) - 1.0) / 0.16))[:, None], f)
+    assert reflection_symmetry(bumpy) is None
     sig = _smooth_signatures(bumpy)
     part, idx = cut(bumpy, bumpy.vertices[:, 2] > 0.2)
     assert np.isnan(locate_part(part, bumpy, sig[idx], sig).side_margin)
