@@ -313,8 +313,15 @@ def test_other_side_tells_a_map_from_its_mirror_image():
     assert _other_side(whole, mirror, plane, [plane, mirror[plane]], far) is None
 
 
+def _pick(scores, costs, weight=None) -> int:
+    """The candidate step 4 keeps (`_orient`): the least of `_rule`, the first on a tie."""
+    from wpot.maps.locate import _rule
+
+    return int(np.argmin(_rule(scores, costs, weight)))
+
+
 def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
-    from wpot.maps.locate import ORIENT_MARGIN, _pick
+    from wpot.maps.locate import ORIENT_MARGIN
 
     assert ORIENT_MARGIN == 0.5
     assert _pick([0.9, 0.5, -0.2], [3.0, 1.0, 0.0]) == 1  # -0.2 is more than 0.5 below the best
@@ -324,7 +331,7 @@ def test_orientation_step_picks_the_cheapest_of_the_well_oriented():
 
 
 def test_orientation_weight_trades_relative_cost_against_orientation():
-    from wpot.maps.locate import ORIENT_WEIGHT, _pick
+    from wpot.maps.locate import ORIENT_WEIGHT
 
     w = ORIENT_WEIGHT
     # a cost 1 % above the least is worth 0.01 / w of orientation score
@@ -487,8 +494,8 @@ def test_polish_weighs_the_near_anchors_around_a_hole():
 
 def test_step_4_rule_values_in_closed_form():
     """`_rule`: the relative cost r = cost / least cost − 1, less weight × orientation score; with no weight, r
-    for the candidates oriented within `ORIENT_MARGIN` of the best and inf for the others. `_pick` is its least."""
-    from wpot.maps.locate import ORIENT_MARGIN, _pick, _rule
+    for the candidates oriented within `ORIENT_MARGIN` of the best and inf for the others. Step 4 keeps its least."""
+    from wpot.maps.locate import ORIENT_MARGIN, _rule
 
     scores, costs = [0.9, 0.9 - ORIENT_MARGIN - 0.01, np.nan], [2.0, 1.0, 2.5]
     assert _rule(scores, costs).tolist() == [1.0, np.inf, np.inf]

@@ -464,10 +464,11 @@ class _Redraw:
 
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0
             ) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
-    """Step 4: the candidates (a)-(c) of the module docstring, and of them the one `_pick` takes by orientation
-    score and ``cost(map)`` (the mean signature cost). Returns the map, its orientation score, its cost, its side
-    margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in the whole's units) and the candidate of
-    least rule value on the other side (None when no candidate lies there)."""
+    """Step 4: the candidates (a)-(c) of the module docstring, and of them the one of least `_rule` value (by
+    orientation score and ``cost(map)``, the mean signature cost; the first on a tie). Returns the map, its
+    orientation score, its cost, its side margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in
+    the whole's units) and the candidate of least rule value on the other side (the first there when all are
+    inf; None when no candidate lies there)."""
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -479,11 +480,15 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
     costs = [cost(c) for c in cands]
     rule = _rule(scores, costs, weight)
     best = int(np.argmin(rule))
+    kept = (cands[best], float(scores[best]), float(costs[best]))
     other = None if sym is None else _other_side(whole, sym.map, cands[best], cands, far)
-    if other is None or not other.any():
-        return cands[best], float(scores[best]), float(costs[best]), float("inf" if other is not None else "nan"), None
-    alt = int(np.argmin(np.where(other, rule, np.inf))) if np.isfinite(rule[other]).any() else int(np.argmax(other))
-    return cands[best], float(scores[best]), float(costs[best]), float(rule[alt] - rule[best]), cands[alt]
+    if other is None:
+        return (*kept, float("nan"), None)
+    there = np.flatnonzero(other)
+    if not there.size:
+        return (*kept, float("inf"), None)
+    alt = int(there[np.argmin(rule[there])])
+    return (*kept, float(rule[alt] - rule[best]), cands[alt])
 
 
 def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float, unread: bool) -> tuple:
@@ -508,7 +513,7 @@ def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float
 
 
 def _rule(scores, costs, weight: float | None = None) -> np.ndarray:
-    """Step 4's rule: a value per candidate, the least kept (`_pick`). ``costs`` are positive mean signature
+    """Step 4's rule: a value per candidate, the least kept (`_orient`). ``costs`` are positive mean signature
     costs, r = cost / least cost − 1; a NaN orientation score reads as −1. With ``weight`` None, r for the
     candidates whose orientation score is within `ORIENT_MARGIN` of the best and inf for the others; else
     r − weight · score."""
@@ -518,11 +523,6 @@ def _rule(scores, costs, weight: float | None = None) -> np.ndarray:
     if weight is None:
         return np.where(o >= o.max() - ORIENT_MARGIN, r, np.inf)
     return r - weight * o
-
-
-def _pick(scores, costs, weight: float | None = None) -> int:
-    """The candidate step 4 keeps: the least of `_rule` (the first on a tie)."""
-    return int(np.argmin(_rule(scores, costs, weight)))
 
 
 def _other_side(whole: Mesh, mirror: np.ndarray, chosen: np.ndarray, cands: list, far: float) -> np.ndarray | None:
