@@ -701,25 +701,33 @@ class Comparer:
         """Locate ``part`` in ``whole`` (another pose, say) and map every vertex of it (`wpot.maps.locate.locate_part`):
         this comparer's signatures propose the matches, geodesic consistency chooses among them. ``options``: a
         `wpot.maps.locate.LocateOptions` (``edge="whole"``: LD-SIFT at the whole's edge length for both meshes;
-        ``scale="fit"`` with LD-SIFT at a set edge length: the part described again at the scale found). Returns a
-        `wpot.maps.locate.PartMap`."""
+        ``scale="fit"`` or a number, with LD-SIFT at a set edge length: the part described again at the whole's
+        scale). Returns a `wpot.maps.locate.PartMap`."""
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate(self, part, whole, options)
 
 
 def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
-    """`Comparer.locate` (after the comparer is fitted to the pair)."""
+    """`Comparer.locate` (after the comparer is fitted to the pair). LD-SIFT at a set edge length sees a part at its
+    own size, so a part whose scale is given (a number other than 1) or fitted is described again at the whole's
+    scale (grown by it) and located from those signatures, at scale 1; the result reports the scale."""
     c = locating_comparer(comparer, whole, options)
     sw = c.signatures(whole)
-    pm = locate_part(part, whole, c.signatures(part), sw, metric=comparer.stage.metric, options=options,
-                     device=comparer.device)
-    if (options is None or options.scale != "fit" or pm.scale == 1.0 or c.config.signature != "ldsift"
-            or c.config.signature_options.edge is None):
+
+    def at(mesh: Mesh, opt: Any) -> Any:
+        return locate_part(mesh, whole, c.signatures(mesh), sw, metric=comparer.stage.metric, options=opt,
+                           device=comparer.device)
+
+    sized = c.config.signature == "ldsift" and c.config.signature_options.edge is not None
+    scale = None if options is None else options.scale
+    if sized and scale not in ("same", "fit", None) and float(scale) != 1.0:  # given: no first pass
+        return dataclasses.replace(at(part.transformed(scale=float(scale)), dataclasses.replace(options, scale=1.0)),
+                                   scale=float(scale))
+    pm = at(part, options)
+    if not sized or scale != "fit" or pm.scale == 1.0:
         return pm
-    grown = part.transformed(scale=pm.scale)  # LD-SIFT at a set edge length sees the part at its own size
-    again = locate_part(grown, whole, c.signatures(grown), sw, metric=comparer.stage.metric,
-                        options=dataclasses.replace(options, scale=1.0), device=comparer.device)
-    return dataclasses.replace(again, scale=pm.scale)
+    return dataclasses.replace(at(part.transformed(scale=pm.scale), dataclasses.replace(options, scale=1.0)),
+                               scale=pm.scale)
 
 
 def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any,

@@ -162,6 +162,27 @@ def test_a_part_at_another_scale_is_found_with_its_scale(partial):
     assert "scale 1.2" in repr(given) and "scale" not in repr(base)
 
 
+def test_comparer_describes_a_part_of_given_scale_at_the_whole_s_size(partial):
+    """`Comparer.locate` with LD-SIFT at the whole's edge length (``edge="whole"``), which sees a part at its own
+    size: a part shrunk to 0.8 with ``scale=1.25`` given is described and located grown back by 1.25, as a fitted
+    scale is, so the map is the one of the part at the whole's size at scale 1, and reports 1.25. At each mesh's own
+    edge length (the default), LD-SIFT is scale-free and the part is located as it is."""
+    from wpot.comparison import Comparer
+
+    c = Comparer(signature="ldsift", device="cpu", cache_dir=False)
+    small = partial.part.transformed(scale=0.8)
+    pm = c.locate(small, partial.full, options=LocateOptions(edge="whole", scale=1.25))
+    ref = c.locate(small.transformed(scale=1.25), partial.full, options=LocateOptions(edge="whole", scale=1.0))
+    assert pm.scale == 1.25 and ref.scale == 1.0
+    np.testing.assert_array_equal(pm.correspondence, ref.correspondence)
+    np.testing.assert_allclose(pm.residual, ref.residual)
+    own = c.locate(small, partial.full, options=LocateOptions(scale=1.25))
+    direct = locate_part(small, partial.full, c.signatures(small), c.signatures(partial.full), metric="l2",
+                         options=LocateOptions(scale=1.25), device="cpu")
+    np.testing.assert_array_equal(own.correspondence, direct.correspondence)
+    assert own.scale == 1.25
+
+
 def test_cat_head_found_in_another_pose(tosca5k):
     """A cat's head cut from one pose, located in another pose (a different triangulation) with LD-SIFT:
     far nearer the truth than the partial transport's own map on the same signatures."""

@@ -157,8 +157,8 @@ class LocateOptions:
         so that a part's pose and its whole's were scaled apart); a number s > 0: the part's lengths times s are
         the whole's (1.0: one scale, without ``"same"``'s check). Steps 2-5 then read the part's geodesic
         distances times that scale (`PartMap.scale`). `locate_part` uses the signatures it is given;
-        `Comparer.locate` describes the part again at a fitted scale when LD-SIFT's edge length is set
-        (``edge="whole"``), as each mesh's own edge length does not depend on the scale
+        `Comparer.locate` describes the part again at the whole's scale (given or fitted) when LD-SIFT's edge
+        length is set (``edge="whole"``), as each mesh's own edge length does not depend on the scale
     """
 
     n_anchors: int = 64
