@@ -718,16 +718,15 @@ def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
         return locate_part(mesh, whole, c.signatures(mesh), sw, metric=comparer.stage.metric, options=opt,
                            device=comparer.device)
 
+    def grown(s: float) -> Any:  # the part at the whole's scale, located at scale 1; the result says s
+        return dataclasses.replace(at(part.transformed(scale=s), dataclasses.replace(options, scale=1.0)), scale=s)
+
     sized = c.config.signature == "ldsift" and c.config.signature_options.edge is not None
     scale = None if options is None else options.scale
     if sized and scale not in ("same", "fit", None) and float(scale) != 1.0:  # given: no first pass
-        return dataclasses.replace(at(part.transformed(scale=float(scale)), dataclasses.replace(options, scale=1.0)),
-                                   scale=float(scale))
+        return grown(float(scale))
     pm = at(part, options)
-    if not sized or scale != "fit" or pm.scale == 1.0:
-        return pm
-    return dataclasses.replace(at(part.transformed(scale=pm.scale), dataclasses.replace(options, scale=1.0)),
-                               scale=pm.scale)
+    return grown(pm.scale) if sized and scale == "fit" and pm.scale != 1.0 else pm
 
 
 def retrieve(comparer: "Comparer", part: Mesh, wholes: Sequence[Mesh], labels: Sequence[str], options: Any,
