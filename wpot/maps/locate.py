@@ -105,9 +105,10 @@ ORIENT_WEIGHT = 0.3
 #: a `PartMap.placement_confidence` below this: the part may not be where the map puts it
 PLACEMENT_DOUBT = 0.1
 #: a `PartMap.side_margin` below this: the map may be on the mirror side. The least round value under which every
-#: gross failure of TOSCA's re-meshed parts (1x, 2x, 0.5x; ``edge="whole", orient_weight=ORIENT_WEIGHT``, LD-SIFT
-#: turned by its gradients) was doubted by it or by `PLACEMENT_DOUBT`; checked on `tosca_lowres`, FAUST's people
-#: and the parts cut from the source's mesh at the defaults (the docs' Results page)
+#: gross failure of TOSCA's re-meshed parts (1x, 2x, 0.5x, 56 pairs each; ``edge="whole",
+#: orient_weight=ORIENT_WEIGHT``, LD-SIFT turned by its gradients) was doubted by it or by `PLACEMENT_DOUBT`;
+#: checked on `tosca_lowres`, FAUST's people, the parts cut from the source's mesh at the defaults, and larger
+#: TOSCA sets, where it misses some (the docs' Results page)
 SIDE_DOUBT = 0.15
 #: ``LocateOptions(scale="fit")`` tries the scales of the part from 1 / SCALE_RANGE to SCALE_RANGE
 SCALE_RANGE = 1.5
