@@ -371,7 +371,7 @@ BAD_VALUES = {
     "--ldsift-thickness": (["--signature", "ldsift", "--ldsift-thickness", "-1"],
                            "--ldsift-thickness must be a finite number >= 0, got -1"),
     "--ldsift-orientation": (["--signature", "ldsift", "--ldsift-orientation", "pca"],
-                             "--ldsift-orientation must be one of 'frame', 'gradient', got 'pca'"),
+                             "--ldsift-orientation must be one of ('frame', 'gradient'), got 'pca'"),
     "--hks-n-times": (["--signature", "hks", "--hks-n-times", "1"], "--hks-n-times must be an integer >= 2, got 1"),
     "--spectral-max-vertices": (["--spectral-max-vertices", "500"],
                                 "--spectral-max-vertices must be 0 (off) or at least 1000, got 500"),

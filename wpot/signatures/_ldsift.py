@@ -73,7 +73,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from wpot._validate import integer_at_least, nonnegative_finite
+from wpot._validate import integer_at_least, nonnegative_finite, one_of
 from wpot.mesh import Mesh
 from wpot.signatures._frames import (MIN_NEIGHBOURS, LocalFrames, check_edge, check_K, check_mesh, local_frames,
                                      positive_finite)
@@ -106,9 +106,7 @@ GRADIENT_WINDOW = 0.25
 
 def check_orientation(orientation: str) -> str:
     """``orientation``, when it is one of `ORIENTATIONS`; else a ValueError that names them."""
-    if orientation not in ORIENTATIONS:
-        raise ValueError(f"orientation must be one of {', '.join(map(repr, ORIENTATIONS))}, got {orientation!r}")
-    return orientation
+    return one_of("orientation", orientation, ORIENTATIONS)
 
 
 def _check_slab(slab: float) -> float:
