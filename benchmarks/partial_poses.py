@@ -749,8 +749,9 @@ def _curve(store: Store, recs: list[dict], key: str, thr: np.ndarray) -> np.ndar
 def _doubts(recs: list[dict]) -> str | None:
     """For `locate`'s records: how many gross failures (mean ε > GROSS) and how many good maps its pair-level
     doubts flag (`PartMap.placement_confidence` below `PLACEMENT_DOUBT`, `PartMap.side_margin` below `SIDE_DOUBT`),
-    and where the side is in doubt, how good the other side's map is, as a line of the report; None for records
-    of other methods."""
+    where the side or the place is in doubt how good the other answer is (`PartMap.other_side`,
+    `PartMap.other_place`), and the best answer each pair offers, as a line of the report; None for records of
+    other methods."""
     recs = [r for r in recs if "placement_confidence" in r["info"]]
     if not recs:
         return None
@@ -765,13 +766,20 @@ def _doubts(recs: list[dict]) -> str | None:
             f"placement_confidence < {PLACEMENT_DOUBT}, {sum(map(side, gross))} side_margin < {SIDE_DOUBT}, "
             f"{sum(place(r) or side(r) for r in gross)} either; of {len(good)} other maps, "
             f"{sum(place(r) or side(r) for r in good)} have either")
-    two = [(r["mean"], r["other_side_mean"]) for r in recs if "other_side_mean" in r]
-    if two:
-        kept, alt = np.array(two).T
-        best = np.minimum(kept, alt)
-        line += (f". The {len(two)} pairs below {SIDE_DOUBT} with a map on the other side (`PartMap.other_side`): "
-                 f"mean ε {kept.mean():.3f} kept, {alt.mean():.3f} the other side's, {best.mean():.3f} the better "
-                 f"of the two; gross failures {int((kept > GROSS).sum())}, {int((best > GROSS).sum())}")
+    for key, where, attr in (("other_side_mean", f"below {SIDE_DOUBT} with a map on the other side", "other_side"),
+                             ("other_place_mean", f"below {PLACEMENT_DOUBT} with a map at the other place",
+                              "other_place")):
+        two = [(r["mean"], r[key]) for r in recs if key in r]
+        if two:
+            kept, alt = np.array(two).T
+            best = np.minimum(kept, alt)
+            line += (f". The {len(two)} pairs {where} (`PartMap.{attr}`): mean ε {kept.mean():.3f} kept, "
+                     f"{alt.mean():.3f} the other answer's, {best.mean():.3f} the better of the two; gross failures "
+                     f"{int((kept > GROSS).sum())}, {int((best > GROSS).sum())}")
+    best = [min(r["mean"], r.get("other_side_mean", np.inf), r.get("other_place_mean", np.inf)) for r in recs]
+    line += (f". The best answer a pair offers (kept, and the other side's or place's where doubted): mean ε "
+             f"{np.mean([r['mean'] for r in recs]):.3f} → {np.mean(best):.3f}, gross failures {len(gross)} → "
+             f"{int(np.sum(np.array(best) > GROSS))}")
     return line
 
 
@@ -1158,6 +1166,8 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
                 rec.update(scores, mass=mass, uniform=truth.uniform, eval_seconds=time.perf_counter() - t_eval)
                 if m == "locate" and comp.other_side is not None and comp.side_margin < SIDE_DOUBT:
                     rec["other_side_mean"] = score_map(geo, comp.other_side, truth)[0]["mean"]  # the other answer
+                if m == "locate" and comp.other_place is not None:  # the answer at the rival place
+                    rec["other_place_mean"] = score_map(geo, comp.other_place, truth)[0]["mean"]
                 if comp is not None:
                     rec.update(trust=trust_scores(comp, truth, arrays["errors"], tm.vertex_areas))
                     arrays["confidence"] = np.asarray(comp.confidence)[truth.src].astype(np.float32)

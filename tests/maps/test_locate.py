@@ -437,6 +437,7 @@ def test_placement_confidence_separates_a_unique_place_a_second_place_and_no_pla
     one = locate_part(partial.part, full, sp, sw)
     assert one.placement_confidence > 3 * PLACEMENT_DOUBT
     assert len(one.rival) < 0.5 * len(one.anchors)
+    assert one.other_place is None  # the place is not in doubt
 
     with pytest.warns(MeshWarning, match="2 connected components"):
         twice = Mesh(np.r_[full.vertices, full.vertices + [5.0 * np.ptp(full.vertices[:, 0]), 0.0, 0.0]],
@@ -447,6 +448,12 @@ def test_placement_confidence_separates_a_unique_place_a_second_place_and_no_pla
     sides = [pm.anchors[:, 1] >= full.n_vertices, pm.rival[:, 1] >= full.n_vertices]
     assert len(pm.rival) > 0.5 * len(pm.anchors) and sides[0].all() != sides[1].all()
     assert sides[0].all() or not sides[0].any()
+    # the other answer is the same map on the other copy, vertex for vertex where the copies' signatures agree
+    n = full.n_vertices
+    assert pm.other_place is not None and pm.other_place.shape == pm.correspondence.shape
+    on_second = pm.other_place >= n
+    assert on_second.all() != (pm.correspondence >= n).all() and (on_second.all() or not on_second.any())
+    assert np.mean(pm.other_place % n == pm.correspondence % n) > 0.9
 
     noise = np.random.default_rng(8).normal(size=sp.shape)
     with warnings.catch_warnings():

@@ -55,7 +55,9 @@ geodesic distances to choose among them and to fill in the map:
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
    set is the best other place for the part. The result's ``placement_confidence`` is the share of the
    anchors that vouch for the chosen place and not for that rival: low when the part fits nowhere, or about
-   as well elsewhere (one leg of a quadruped on another leg).
+   as well elsewhere (one leg of a quadruped on another leg). Below `PLACEMENT_DOUBT`, the rival's matches draw a
+   second map (steps 3 and 4, polished), the result's ``other_place``: the signatures that would choose between
+   the two places are what proposed both, so the choice is left to a caller who can tell them apart.
 
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
@@ -237,6 +239,10 @@ class PartMap:
         least rule value there, polished like ``correspondence``): where the side is in doubt, the other answer, for
         a caller who can tell left from right (None when no candidate lay on the other side, or the side was not
         read)
+    other_place : (N_P,) int64 or None, where ``placement_confidence`` is below `PLACEMENT_DOUBT`, the map drawn
+        from the ``rival`` matches (steps 3 and 4, polished like ``correspondence``): the other answer where the
+        place is in doubt, for a caller who can tell the two places apart (a front leg from a hind one; None when
+        the place is not in doubt or the rival holds fewer than 3 matches)
     """
 
     correspondence: np.ndarray
@@ -252,6 +258,7 @@ class PartMap:
     scale: float = 1.0
     side_margin: float = float("nan")
     other_side: np.ndarray | None = None
+    other_place: np.ndarray | None = None
 
     def region(self, threshold: float | None = None) -> np.ndarray:
         """(N_W,) bool, the vertices of the whole that the part matched: ``image_distance <= threshold``
@@ -648,6 +655,11 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         warnings.warn(named(m.name, f"the {name} {why}, so locate cannot tell left from right: the map is not "
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
     t, score, mean_cost, local, side, other = _oriented(draw, t, cost, opt, opt.rival_tol * scale, bool(unread))
+    placement = max(len(kept) - len(rival), 0) / len(anchors)
+    elsewhere = None
+    if placement < PLACEMENT_DOUBT and len(rival) >= 3:  # step 5's other place, mapped like this one
+        elsewhere = draw.rounds(draw.dense(anchors[owner[rival]], target[rival]), opt.n_rounds)
+        elsewhere = _oriented(draw, elsewhere, cost, opt, opt.rival_tol * scale, bool(unread))[0]
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0, fw0 = draw.on_part(a).T, _distances(g_whole, b).T
@@ -658,5 +670,6 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
                    region_tol=opt.region_tol,
                    rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
-                   placement_confidence=float(max(len(kept) - len(rival), 0) / len(anchors)), scale=part_scale,
-                   side_margin=side, other_side=None if other is None else other.astype(np.int64))
+                   placement_confidence=float(placement), scale=part_scale, side_margin=side,
+                   other_side=None if other is None else other.astype(np.int64),
+                   other_place=None if elsewhere is None else elsewhere.astype(np.int64))
