@@ -135,7 +135,8 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="also locate A in B by geodesic consistency (wpot.maps.locate: A a part of a shape like B, in any "
                    "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
                    "saved as correspondence_locate, confidence_locate and region_locate (and "
-                   "correspondence_locate_other_side, the map on B's other side, when there is one), and drawn in the "
+                   "correspondence_locate_other_side, the map on B's other side, and correspondence_locate_other_place, "
+                   "the map at the other place where the place is in doubt, when there is one), and drawn in the "
                    "picture")
     p.add_argument("--locate-edge", choices=("own", "whole"), default=None,
                    help="LD-SIFT's edge length for --locate (with --signature ldsift): own (default) each mesh's own, "
@@ -189,8 +190,9 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
-    doubt = (f" (below {PLACEMENT_DOUBT}: another place in B fits A about as well, or none fits; check the region)"
-             if pm.placement_confidence < PLACEMENT_DOUBT else "")
+    doubt = (f" (below {PLACEMENT_DOUBT}: another place in B fits A about as well, or none fits; check the region"
+             + ("; the map at the other place is saved as correspondence_locate_other_place" if pm.other_place
+                is not None else "") + ")" if pm.placement_confidence < PLACEMENT_DOUBT else "")
     print(f"placement confidence {pm.placement_confidence:.2f}: {len(pm.anchors)} anchors vouch for this place, "
           f"{len(pm.rival)} for the best other{doubt}")
     if np.isnan(pm.side_margin):
@@ -782,7 +784,8 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
     """comparison.json, correspondence.npz (with ``correspondence_zoomout`` when ``refined``, a
     `wpot.maps.zoomout.ZoomOutResult`, is given, its orientation confidence in the json; and
     ``correspondence_locate``, ``confidence_locate``, ``region_locate`` when ``located`` (`_locate`) is, and
-    ``correspondence_locate_other_side`` when its map has one, `PartMap.other_side`) and
+    ``correspondence_locate_other_side`` and ``correspondence_locate_other_place`` when its map has them,
+    `PartMap.other_side` and `PartMap.other_place`) and
     correspondence.png (`_save_picture`).
 
     Vertex indices in the npz are those of the input files: with ``--repair`` a vertex of A that was removed
@@ -824,8 +827,9 @@ def _save_comparison(c: Any, a: _Loaded, b: _Loaded, out: Path, extra: dict[str,
         arrays.update(correspondence_locate=on_input(located.map.correspondence),
                       confidence_locate=per_input(a, located.map.confidence, np.nan),
                       region_locate=per_input(b, located.map.region(), False))
-        if located.map.other_side is not None:
-            arrays["correspondence_locate_other_side"] = on_input(located.map.other_side)
+        for name in ("other_side", "other_place"):
+            if getattr(located.map, name) is not None:
+                arrays[f"correspondence_locate_{name}"] = on_input(getattr(located.map, name))
     for name, m in (("index_map_a", a), ("index_map_b", b)):
         if m.index_map is not None:
             arrays[name] = m.index_map

@@ -155,10 +155,11 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
         assert info["side_margin"] == pytest.approx(pm.side_margin)
     else:
         assert info["side_margin"] == ("inf" if np.isinf(pm.side_margin) else None)
-    if pm.other_side is None:
-        assert "correspondence_locate_other_side" not in z
-    else:
-        np.testing.assert_array_equal(z["correspondence_locate_other_side"], pm.other_side)
+    for name in ("other_side", "other_place"):  # the other answers, saved when the map has them
+        if getattr(pm, name) is None:
+            assert f"correspondence_locate_{name}" not in z
+        else:
+            np.testing.assert_array_equal(z[f"correspondence_locate_{name}"], getattr(pm, name))
     _one_line_error(wpot("compare", str(a), str(b), "--zoomout", "--locate"), "--zoomout and --locate")
     # --locate-orient-weight is LocateOptions(orient_weight=...)
     r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-orient-weight",
