@@ -135,9 +135,9 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="also locate A in B by geodesic consistency (wpot.maps.locate: A a part of a shape like B, in any "
                    "pose, at the same scale; the signatures propose matches, geodesic distances choose among them); "
                    "saved as correspondence_locate, confidence_locate and region_locate (and "
-                   "correspondence_locate_other_side, the map on B's other side, and correspondence_locate_other_place, "
-                   "the map at the other place where the place is in doubt, when there is one), and drawn in the "
-                   "picture")
+                   "correspondence_locate_other_side, the map on B's other side, and "
+                   "correspondence_locate_other_place, the map at the other place where the place is in doubt, when "
+                   "there is one), and drawn in the picture")
     p.add_argument("--locate-edge", choices=("own", "whole"), default=None,
                    help="LD-SIFT's edge length for --locate (with --signature ldsift): own (default) each mesh's own, "
                    "the paper's; whole: B's for both, for a part meshed at another density than B (a scan, a part "
@@ -190,9 +190,12 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
-    doubt = (f" (below {PLACEMENT_DOUBT}: another place in B fits A about as well, or none fits; check the region"
-             + ("; the map at the other place is saved as correspondence_locate_other_place" if pm.other_place
-                is not None else "") + ")" if pm.placement_confidence < PLACEMENT_DOUBT else "")
+    doubt = ""
+    if pm.placement_confidence < PLACEMENT_DOUBT:
+        saved = ("" if pm.other_place is None else
+                 "; the map at the other place is saved as correspondence_locate_other_place")
+        doubt = (f" (below {PLACEMENT_DOUBT}: another place in B fits A about as well, or none fits; check the "
+                 f"region{saved})")
     print(f"placement confidence {pm.placement_confidence:.2f}: {len(pm.anchors)} anchors vouch for this place, "
           f"{len(pm.rival)} for the best other{doubt}")
     if np.isnan(pm.side_margin):

@@ -70,8 +70,9 @@ narrow neck bend (the part's boundary makes some paths longer; ``rel_tol`` absor
 heat-method solve per anchor and per distinct candidate, and a nearest-neighbour search in ``n_refine``
 dimensions, plus, the first time a whole is met, its symmetry for step 4 (`wpot.maps.symmetry.reflection_symmetry`,
 then cached), and steps 3-4 once more for a part whose place is in doubt (``other_place``); step 2 is run at
-`SCALE_STEPS` + 2 trial scales by Lanczos (for ``"fit"``, or for ``"same"``'s warning). The geodesic distances computed on a whole are kept for the next part located in it
-(`KEEP_GEODESICS`), and `prepare_whole` computes them all at once for a whole that many parts will be located in.
+`SCALE_STEPS` + 2 trial scales by Lanczos (for ``"fit"``, or for ``"same"``'s warning). The geodesic distances
+computed on a whole are kept for the next part located in it (`KEEP_GEODESICS`), and `prepare_whole` computes
+them all at once for a whole that many parts will be located in.
 Timings and accuracy: the docs' Results page (Parts across poses).
 """
 from __future__ import annotations
