@@ -526,6 +526,22 @@ def trust_scores(comp, truth: Truth, errors: np.ndarray, areas: np.ndarray) -> d
             "region_recall": inter / max(float(areas[truth.region].sum()), 1e-300)}
 
 
+def landmarks_from(part, truth: Truth, n: int) -> np.ndarray:
+    """(n, 2) landmarks (part vertex, its true vertex of T) for a pair, spread over the part as a user's would
+    be: farthest-point samples (along the part's edges) of its evaluated vertices (``truth.src``), the first the
+    one farthest from the part's most central vertex (an extremity: a hoof, a fingertip)."""
+    from wpot.mesh import edge_paths
+
+    x = part.vertices
+    centre = int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))
+    d = edge_paths(part, [centre], min_only=True)
+    pick: list[int] = []
+    for _ in range(min(n, len(truth.src))):
+        pick.append(int(np.argmax(d[truth.src])))
+        d = edge_paths(part, truth.src[pick], min_only=True)
+    return np.stack([truth.src[pick], truth.dst[pick]], axis=1).astype(np.int64)
+
+
 def score_map(geo, pred_all: np.ndarray, truth: Truth) -> tuple[dict, dict]:
     """Errors of a map (``pred_all``: vertex of T per vertex of P) at the evaluated template points."""
     from wpot.evaluate import correspondence_error, symmetric_flip
@@ -568,7 +584,9 @@ class Matchers:
         from dataclasses import asdict
 
         self.locate_options = a.locate  # main() parsed --locate-options
-        loc = {"signature": self.comparer.stage.params(), "locate": asdict(self.locate_options)}
+        self.landmarks = a.landmarks
+        loc = {"signature": self.comparer.stage.params(), "locate": asdict(self.locate_options),
+               **({"landmarks": a.landmarks} if a.landmarks else {})}
         loc_h = hashlib.sha1(json.dumps(loc, sort_keys=True, default=str).encode()).hexdigest()[:8]
         self.tags = {"wpot": f"wpot-{readable}-{h}", "locate": f"locate-{a.signature}-{loc_h}",
                      "nn-samples": f"nn-samples-{readable}-{h}", "nn-vertex": f"nn-vertex-{a.signature}-{sig_h}"}
@@ -606,13 +624,17 @@ class Matchers:
                 "matched": int(len(comp.matched))}
         return np.asarray(comp.correspondence, dtype=np.int64), dt, info, comp
 
-    def locate(self, p, t) -> tuple[np.ndarray, float, dict, object]:
-        """`Comparer.locate` on the same signatures; its distance (for retrieval) is `PartMap.cost`."""
+    def locate(self, p, t, truth: "Truth | None" = None) -> tuple[np.ndarray, float, dict, object]:
+        """`Comparer.locate` on the same signatures; its distance (for retrieval) is `PartMap.cost`. With
+        ``--landmarks L``, L of the pair's true matches (``truth``) are given to it as landmarks."""
         self.comparer.signatures(p), self.comparer.signatures(t)  # set-up, timed apart in prepare()
+        marks = None
+        if self.landmarks and truth is not None:
+            marks = landmarks_from(p, truth, self.landmarks)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             t0 = time.perf_counter()
-            pm = self.comparer.locate(p, t, options=self.locate_options)
+            pm = self.comparer.locate(p, t, options=self.locate_options, landmarks=marks)
             dt = time.perf_counter() - t0
         info = {"distance": pm.cost, "mean_residual": float(np.mean(pm.residual)), **pm.summary(),
                 "n_warnings": len(caught)}
@@ -1022,6 +1044,10 @@ def main(argv=None) -> int:
     ap.add_argument("--locate-options", default="{}",
                     help="`wpot.maps.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' "
                          "(default: its defaults)")
+    ap.add_argument("--landmarks", type=int, default=0, metavar="L",
+                    help="give locate L ground-truth landmarks a pair (`Comparer.locate`'s landmarks: the part's "
+                         "farthest-point samples among its evaluated points, with their true vertices), as a user "
+                         "who placed L landmarks on both shapes would (default 0: none)")
     ap.add_argument("--no-retrieval", action="store_true",
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")
@@ -1146,7 +1172,7 @@ def run(a, out: Path, store: Store, log, mt: Matchers, members, sources, targets
                 pred, dt, info, comp = mt.wpot(p.mesh, tm)
                 mass2, sub_b = comp.mass2, comp.sample_b
             elif m == "locate":
-                pred, dt, info, comp = mt.locate(p.mesh, tm)
+                pred, dt, info, comp = mt.locate(p.mesh, tm, truth)
             elif m == "nn-samples":
                 pred, dt, info, mass2, sub_b = mt.nn_samples(p.mesh, tm)
             else:

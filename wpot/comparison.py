@@ -697,17 +697,18 @@ class Comparer:
         parts cut from its wholes, each looked up among the others, and saved to a ``record`` file to resume from."""
         return calibrate_retrieval(self, wholes, labels, n_parts=n_parts, seed=seed, options=options, record=record)
 
-    def locate(self, part: Mesh, whole: Mesh, *, options: Any = None) -> Any:
+    def locate(self, part: Mesh, whole: Mesh, *, options: Any = None, landmarks: Any = None) -> Any:
         """Locate ``part`` in ``whole`` (another pose, say) and map every vertex of it (`wpot.maps.locate.locate_part`):
         this comparer's signatures propose the matches, geodesic consistency chooses among them. ``options``: a
         `wpot.maps.locate.LocateOptions` (``edge="whole"``: LD-SIFT at the whole's edge length for both meshes;
         ``scale="fit"`` or a number, with LD-SIFT at a set edge length: the part described again at the whole's
-        scale). Returns a `wpot.maps.locate.PartMap`."""
+        scale). ``landmarks``: (L, 2) vertex indices (part, whole) known to match, which the map must respect
+        (`locate_part`). Returns a `wpot.maps.locate.PartMap`."""
         self._fit_to_pair(part, whole, ("part", "whole"))
-        return locate(self, part, whole, options)
+        return locate(self, part, whole, options, landmarks)
 
 
-def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
+def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any, landmarks: Any = None) -> Any:
     """`Comparer.locate` (after the comparer is fitted to the pair). LD-SIFT at a set edge length sees a part at its
     own size, so a part whose scale is given (a number other than 1) or fitted is described again at the whole's
     scale (grown by it) and located from those signatures, at scale 1; the result reports the scale."""
@@ -716,7 +717,7 @@ def locate(comparer: "Comparer", part: Mesh, whole: Mesh, options: Any) -> Any:
 
     def at(mesh: Mesh, opt: Any) -> Any:
         return locate_part(mesh, whole, c.signatures(mesh), sw, metric=comparer.stage.metric, options=opt,
-                           device=comparer.device)
+                           landmarks=landmarks, device=comparer.device)
 
     def grown(s: float) -> Any:  # the part at the whole's scale, located at scale 1; the result says s
         return dataclasses.replace(at(part.transformed(scale=s), dataclasses.replace(options, scale=1.0)), scale=s)

@@ -350,23 +350,28 @@ def _agreement(d_part, d_whole, owner, sigma0, rel_tol):
     return w, dev, sig
 
 
-def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> tuple[np.ndarray, float]:
+def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True, forced=()) -> tuple[np.ndarray, float]:
     """`consistent_matches`, and the total agreement among the matches it keeps (the sum of the agreement matrix
     over their pairs). ``exact=False`` finds the leading eigenvector by Lanczos (`scipy.sparse.linalg.eigsh`),
     many times faster, but near-ties in the greedy order can then fall the other way: good enough to compare
-    scales (`_scaled_matches`), not for the matches kept."""
+    scales (`_scaled_matches`), not for the matches kept. ``forced``: indices of matches known to be right (the
+    caller's landmarks), taken first; the eigenvector is then that of the matches within 3 σ of all of them."""
     w, dev, sig = _agreement(d_part, d_whole, owner, sigma0, rel_tol)
-    if exact or len(w) < 3:
+    near = dev <= 3.0 * sig  # near[i, j]: i within 3 σ of j (heat-method distances are not quite symmetric)
+    forced = np.asarray(forced, dtype=np.int64)
+    ok = near[:, forced].all(axis=1)  # within 3 σ of every match taken so far (all True without landmarks)
+    if forced.size:
+        w = w * ok[:, None] * ok[None, :]
+    if exact or len(w) < 3 or not w.any():
         vec = np.linalg.eigh(w)[1][:, -1]
     else:
         from scipy.sparse.linalg import eigsh
 
         vec = eigsh(w, k=1, which="LA", v0=np.ones(len(w)))[1][:, 0]
     x = np.abs(vec)  # the Perron vector of a nonnegative symmetric matrix (its sign is arbitrary)
-    near = dev <= 3.0 * sig  # near[i, j]: i within 3 σ of j (heat-method distances are not quite symmetric)
-    ok = x > 0  # within 3 σ of every match taken so far
-    taken: list[int] = []
-    used: set[int] = set()
+    ok &= x > 0
+    taken: list[int] = [int(m) for m in forced]
+    used: set[int] = {int(owner[m]) for m in forced}
     for m in np.argsort(-x, kind="stable"):
         if not ok[m] or owner[m] in used:
             continue
@@ -377,28 +382,32 @@ def _consistent(d_part, d_whole, owner, sigma0, rel_tol, exact: bool = True) -> 
     return kept, float(w[np.ix_(kept, kept)].sum() / 2.0)
 
 
-def _scale_totals(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float) -> dict[float, float]:
+def _scale_totals(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float, forced=()) -> dict[float, float]:
     """Step 2's total agreement (Lanczos, `_consistent`) with the part's distances times each scale of a grid of
     `SCALE_STEPS` from 1 / `SCALE_RANGE` to `SCALE_RANGE` (1 among them), then half a step to each side of the
     best: {scale: total}."""
+    def total_at(s: float) -> float:
+        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False, forced=forced)[1]
+
     grid = SCALE_RANGE ** np.linspace(-1.0, 1.0, SCALE_STEPS)
-    total = {float(s): _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False)[1] for s in grid}
+    total = {float(s): total_at(s) for s in grid}
     best = max(total, key=total.get)
     step = np.sqrt(grid[1] / grid[0])
     for s in (best / step, best * step):
-        total[float(s)] = _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, exact=False)[1]
+        total[float(s)] = total_at(s)
     return total
 
 
-def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float, name: str | None = None
-                    ) -> tuple[np.ndarray, float]:
-    """Step 2 at the part's scale (`LocateOptions.scale`): the consistent matches, and the scale s by which the
-    part's geodesic distances ``d_part`` were multiplied. With ``"same"``, a `LocateWarning` (naming the part,
-    ``name``) when the matches agree `SCALE_DOUBT` times better at a scale more than 10 % from 1."""
+def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float, name: str | None = None,
+                    forced=()) -> tuple[np.ndarray, float]:
+    """Step 2 at the part's scale (`LocateOptions.scale`): the consistent matches (``forced`` first, see
+    `_consistent`), and the scale s by which the part's geodesic distances ``d_part`` were multiplied. With
+    ``"same"``, a `LocateWarning` (naming the part, ``name``) when the matches agree `SCALE_DOUBT` times better
+    at a scale more than 10 % from 1."""
     if opt.scale not in ("same", "fit"):
         s = float(opt.scale)
-        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s
-    total = _scale_totals(d_part, d_whole, owner, opt, sigma0)
+        return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, forced=forced)[0], s
+    total = _scale_totals(d_part, d_whole, owner, opt, sigma0, forced)
     best = max(total, key=total.get)
     gain = total[best] / max(total[1.0], 1e-300)
     if opt.scale == "same" and abs(np.log(best)) > np.log(1.1) and gain > SCALE_DOUBT:
@@ -407,7 +416,7 @@ def _scaled_matches(d_part, d_whole, owner, opt: "LocateOptions", sigma0: float,
                             "(shapes normalised one by one)? LocateOptions(scale='fit') finds the scale"),
                       LocateWarning, stacklevel=3)
     s = best if opt.scale == "fit" else 1.0
-    return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol)[0], s
+    return _consistent(s * d_part, d_whole, owner, sigma0, opt.rel_tol, forced=forced)[0], s
 
 
 def _distances(geo, sources: np.ndarray) -> np.ndarray:
@@ -471,13 +480,14 @@ class _Redraw:
         return self.rounds(t, 1)
 
 
-def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0
-            ) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
+def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0,
+            pins: np.ndarray | None = None) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one of least `_rule` value (by
     orientation score and ``cost(map)``, the mean signature cost; the first on a tie). Returns the map, its
     orientation score, its cost, its side margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in
     the whole's units) and the candidate of least rule value on the other side (the first there when all are
-    inf; None when no candidate lies there)."""
+    inf; None when no candidate lies there). With ``pins`` (L, 2), the caller's landmarks (part vertex, whole
+    vertex), only the candidates that send them within ``far`` (on average) of the best one's are eligible."""
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -488,6 +498,10 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
     scores = [orientation_score(part, whole, c) for c in cands]
     costs = [cost(c) for c in cands]
     rule = _rule(scores, costs, weight)
+    if pins is not None and len(pins):
+        d = _distances(draw.g_whole, pins[:, 1])  # (L, N_W)
+        miss = np.array([d[np.arange(len(pins)), c[pins[:, 0]]].mean() for c in cands])
+        rule = np.where(miss <= miss.min() + far, rule, np.inf)
     best = int(np.argmin(rule))
     kept = (cands[best], float(scores[best]), float(costs[best]))
     other = None if sym is None else _other_side(whole, sym.map, cands[best], cands, far)
@@ -500,16 +514,18 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
     return (*kept, float(rule[alt] - rule[best]), cands[alt])
 
 
-def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float, unread: bool) -> tuple:
-    """Step 4 (when ``opt.orient`` and the orientation can be read, ``unread`` False) and the polish after it.
-    Returns the map, its orientation score (NaN when unread) and mean cost, its local orientation (N_P,), the side
-    margin (NaN when not read) and the best map on the other side (polished too; None when there is none)."""
+def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float, unread: bool,
+              pins: np.ndarray | None = None) -> tuple:
+    """Step 4 (when ``opt.orient`` and the orientation can be read, ``unread`` False; ``pins``: the caller's
+    landmarks, `_orient`) and the polish after it. Returns the map, its orientation score (NaN when unread) and
+    mean cost, its local orientation (N_P,), the side margin (NaN when not read) and the best map on the other
+    side (polished too; None when there is none)."""
     part, whole = draw.part, draw.whole
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         oriented, side, other = opt.orient and not unread, float("nan"), None
         if oriented:
-            t, score, mean_cost, side, other = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, far)
+            t, score, mean_cost, side, other = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, far, pins)
         if opt.n_polish:
             h = LOG_OFFSET * max(part.mean_edge_length * draw.part_scale, whole.mean_edge_length)
             t = draw.rounds(t, opt.n_polish, offset=h)
@@ -553,12 +569,14 @@ def _other_side(whole: Mesh, mirror: np.ndarray, chosen: np.ndarray, cands: list
 
 
 def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: np.ndarray, d_anchor: np.ndarray,
-           d_target: np.ndarray, opt: LocateOptions, scale: float) -> np.ndarray:
+           d_target: np.ndarray, opt: LocateOptions, scale: float, forced: np.ndarray) -> np.ndarray:
     """Step 5: of the candidate matches (``owner`` (M,) their anchor, ``target`` (M,) their vertex of the whole),
     those farther than ``rival_tol`` from where the map sends their anchor (``images`` (A,)) and from its mirror
-    image, and of them the largest consistent set (`consistent_matches`; ``d_anchor`` (A, A) and ``d_target``
-    (M, M) as in step 2). Returns its indices into the candidates."""
-    near = np.zeros(len(target), dtype=bool)
+    image, and within 3 σ of the caller's landmarks (``forced``, indices of matches), and of them the largest
+    consistent set (`consistent_matches`; ``d_anchor`` (A, A) and ``d_target`` (M, M) as in step 2). Returns
+    its indices into the candidates."""
+    dp, dw = d_anchor[np.ix_(owner, owner[forced])], d_target[:, forced]
+    near = (np.abs(dp - dw) > 3.0 * (opt.tol * scale + opt.rel_tol * np.minimum(dp, dw))).any(axis=1)
     sym = reflection_symmetry(whole) if opt.orient else None
     for im in (images,) if sym is None else (images, sym.map[images]):
         uniq, at = np.unique(im, return_inverse=True)
@@ -570,18 +588,74 @@ def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: 
                                    owner[away], sigma0=opt.tol * scale, rel_tol=opt.rel_tol)]
 
 
-def check_part(part: Mesh, whole: Mesh, category: type[Warning], whole_is: str = "the whole") -> None:
+def check_part(part: Mesh, whole: Mesh, category: type[Warning], whole_is: str = "the whole", stacklevel: int = 3
+               ) -> None:
     """Warn (``category``) when ``part`` is larger than ``whole`` (area more than 5 % above), which a part of it
-    cannot be: the two swapped, or meshes at different scales. ``whole_is`` names the whole in the message."""
+    cannot be: the two swapped, or meshes at different scales. ``whole_is`` names the whole in the message;
+    ``stacklevel`` is `warnings.warn`'s (3: the caller of check_part's caller)."""
     ratio = part.area / whole.area
     if ratio > 1.05:
         warnings.warn(named(part.name, f"the part's area is {ratio:.2f} times that of {whole_is}, so it cannot be a "
                             "part of it: are the part and the whole swapped, or at different scales?"), category,
-                      stacklevel=3)
+                      stacklevel=stacklevel)
+
+
+def _landmarks(value: ArrayLike | None, part: Mesh, whole: Mesh) -> np.ndarray:
+    """`locate_part`'s ``landmarks`` checked: (L, 2) int64 (empty without them), each row a vertex of the part and
+    the vertex of the whole known to match it, no vertex of the part twice."""
+    if value is None:
+        return np.zeros((0, 2), dtype=np.int64)
+    pins = np.asarray(value)
+    if pins.ndim != 2 or pins.shape[1] != 2 or not len(pins):
+        raise ValueError("landmarks must be (L, 2), L >= 1, a vertex of the part and the vertex of the whole it "
+                         f"matches in each row, got shape {pins.shape}")
+    cols = [_validate.vertex_map(f"landmarks[:, {j}]", pins[:, j], len(pins), m.n_vertices).tolist()
+            for j, m in ((0, part), (1, whole))]
+    twice = sorted({v for v in cols[0] if cols[0].count(v) > 1})
+    if twice:
+        raise ValueError(f"landmarks name vertex {twice[0]} of the part more than once: a vertex has one match")
+    return np.stack(cols, axis=1).astype(np.int64)
+
+
+def _check_inputs(part, whole, sp_: np.ndarray, sw: np.ndarray, opt) -> None:
+    """`locate_part`'s arguments checked, each error naming the argument; a part larger than the whole warned
+    about (`check_part`)."""
+    for name, m in (("part", part), ("whole", whole)):
+        if not isinstance(m, Mesh):
+            raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
+    if not isinstance(opt, LocateOptions):
+        raise TypeError(f"options must be a wpot.maps.locate.LocateOptions, got {type(opt).__name__}")
+    for name, s, m in (("part_signatures", sp_, part), ("whole_signatures", sw, whole)):
+        if s.ndim != 2 or s.shape[0] != m.n_vertices:
+            raise ValueError(f"{name} must be ({m.n_vertices}, D), one row per vertex, got shape {s.shape}")
+    if sp_.shape[1] != sw.shape[1]:
+        raise ValueError(f"part_signatures and whole_signatures have different widths ({sp_.shape[1]} and "
+                         f"{sw.shape[1]}): compute both with the same signature settings")
+    if part.n_vertices < 3:
+        raise ValueError(f"part has {part.n_vertices} vertices; at least 3 are needed")
+    check_part(part, whole, LocateWarning, stacklevel=4)
+    if part.n_components > 1:
+        raise ValueError(f"part has {part.n_components} connected components: locate places one connected part by "
+                         "geodesic consistency, and no geodesic joins two components. Locate each component on its "
+                         "own (Mesh.cleaned(keep_largest_component=True) keeps the largest)")
+
+
+def _check_landmarks(pins: np.ndarray, d_part: np.ndarray, d_whole: np.ndarray, opt: LocateOptions,
+                     scale: float) -> None:
+    """Warn (`LocateWarning`) when two of the caller's landmarks disagree: their geodesic distance on the part
+    (``d_part`` (L, L), at the whole's scale) differs from that on the whole (``d_whole`` (L, L)) by more than
+    step 2's 3 σ, so they cannot all be right (or the scale is not the one assumed)."""
+    dev = np.abs(d_part - d_whole) - 3.0 * (opt.tol * scale + opt.rel_tol * np.minimum(d_part, d_whole))
+    i, j = np.unravel_index(int(np.argmax(dev)), dev.shape)
+    if dev[i, j] > 0:
+        warnings.warn(f"landmarks {i} and {j} disagree: {d_part[i, j]:.3g} apart on the part (at the whole's scale) "
+                      f"and {d_whole[i, j]:.3g} on the whole, so they cannot both be right; the map follows them "
+                      "where it can (check their vertex indices, and the part's scale)", LocateWarning, stacklevel=3)
 
 
 def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signatures: ArrayLike, *,
-                metric: str = "l2", options: LocateOptions | None = None, device: str | None = None) -> PartMap:
+                metric: str = "l2", options: LocateOptions | None = None, landmarks: ArrayLike | None = None,
+                device: str | None = None) -> PartMap:
     """Locate ``part`` in ``whole`` and map it onto it (see the module docstring).
 
     Parameters
@@ -591,52 +665,45 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         they only propose candidate matches
     metric : their cost (`wpot.cost.cost_matrix`: "l2" for LD-SIFT and HKS, "wks" for WKS)
     options : `LocateOptions` (default: its defaults)
+    landmarks : (L, 2) ints or None, vertices of the part and of the whole known to match (a morphometric
+        landmark placed on both): they join step 2's matches first, so that only the candidates consistent with
+        all of them are kept, step 4 keeps only maps that send them near their matches, and step 5's rival must
+        agree with them too. One landmark away from the rest of the part's like places (a hoof, not a knee)
+        tells the part's place (which leg), and one off the plane of symmetry its side.
     device : Warp device for the signature costs
 
     Returns
     -------
-    `PartMap`. Warns (`LocateWarning`) when fewer than 3 consistent matches are found: the map is then
-    unreliable, as its residuals say.
+    `PartMap` (its ``anchors`` include the landmarks). Warns (`LocateWarning`) when fewer than 3 consistent
+    matches are found (the map is then unreliable, as its residuals say) and when two landmarks disagree.
     """
 
-    for name, m in (("part", part), ("whole", whole)):
-        if not isinstance(m, Mesh):
-            raise TypeError(f"{name} must be a wpot.Mesh, got {type(m).__name__}")
     opt = LocateOptions() if options is None else options
-    if not isinstance(opt, LocateOptions):
-        raise TypeError(f"options must be a wpot.maps.locate.LocateOptions, got {type(opt).__name__}")
     sp_ = np.asarray(part_signatures, dtype=np.float64)
     sw = np.asarray(whole_signatures, dtype=np.float64)
-    for name, s, m in (("part_signatures", sp_, part), ("whole_signatures", sw, whole)):
-        if s.ndim != 2 or s.shape[0] != m.n_vertices:
-            raise ValueError(f"{name} must be ({m.n_vertices}, D), one row per vertex, got shape {s.shape}")
-    if sp_.shape[1] != sw.shape[1]:
-        raise ValueError(f"part_signatures and whole_signatures have different widths ({sp_.shape[1]} and "
-                         f"{sw.shape[1]}): compute both with the same signature settings")
-    if part.n_vertices < 3:
-        raise ValueError(f"part has {part.n_vertices} vertices; at least 3 are needed")
-    check_part(part, whole, LocateWarning)
-    if part.n_components > 1:
-        raise ValueError(f"part has {part.n_components} connected components: locate places one connected part by "
-                         "geodesic consistency, and no geodesic joins two components. Locate each component on its "
-                         "own (Mesh.cleaned(keep_largest_component=True) keeps the largest)")
+    _check_inputs(part, whole, sp_, sw, opt)
+    pins = _landmarks(landmarks, part, whole)
     scale = float(np.sqrt(whole.area))
     g_part, g_whole = _geodesics(part), _geodesics(whole)
 
     # steps 1-2; farthest-point sampling is greedy, so one run gives both the anchors and step 3's sources as
-    # its first n_anchors and n_refine samples
+    # its first n_anchors and n_refine samples. The landmarks are matches of anchors of their own, taken first
     spread = farthest_point_sampling(part, min(max(opt.n_anchors, opt.n_refine), part.n_vertices)).indices
     anchors, src = spread[:opt.n_anchors], spread[:opt.n_refine]
     cand = candidate_matches(sp_, sw, anchors, opt.n_candidates, metric, device)
-    owner = np.repeat(np.arange(len(anchors)), cand.shape[1])
-    target = cand.ravel()
-    d_anchor = _distances(g_part, anchors)[:, anchors]
+    seeds = np.r_[anchors, pins[:, 0]]
+    owner = np.r_[np.repeat(np.arange(len(anchors)), cand.shape[1]), len(anchors) + np.arange(len(pins))]
+    target = np.r_[cand.ravel(), pins[:, 1]]
+    forced = np.arange(cand.size, len(target))
+    d_anchor = _distances(g_part, seeds)[:, seeds]
     uniq, inv = np.unique(target, return_inverse=True)
     d_target = _distances(g_whole, uniq)[:, uniq][np.ix_(inv, inv)]
     kept, part_scale = _scaled_matches(d_anchor[np.ix_(owner, owner)], d_target, owner, opt, opt.tol * scale,
-                                       part.name)
+                                       part.name, forced)
     d_anchor = part_scale * d_anchor
-    a, b = anchors[owner[kept]], target[kept]
+    if len(pins):
+        _check_landmarks(pins, d_anchor[len(anchors):, len(anchors):], d_target[np.ix_(forced, forced)], opt, scale)
+    a, b = seeds[owner[kept]], target[kept]
     if len(kept) < 3:
         warnings.warn(f"only {len(kept)} consistent matches between the part and the whole: the part could not "
                       "be placed reliably (are they at the same scale, and is the part in the whole?)",
@@ -645,7 +712,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
     # steps 3 and 4
     draw = _Redraw(part, whole, src, g_part, g_whole, part_scale)
     t = draw.rounds(draw.dense(a, b), opt.n_rounds)
-    rival = _rival(g_whole, whole, t[anchors], owner, target, d_anchor, d_target, opt, scale)
+    rival = _rival(g_whole, whole, t[seeds], owner, target, d_anchor, d_target, opt, scale, forced)
 
     def cost(t: np.ndarray) -> float:
         return float(np.mean(paired_costs(sp_, sw, t, metric=metric, device=device)))
@@ -655,12 +722,13 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
         name, m, why = unread[0]
         warnings.warn(named(m.name, f"the {name} {why}, so locate cannot tell left from right: the map is not "
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
-    t, score, mean_cost, local, side, other = _oriented(draw, t, cost, opt, opt.rival_tol * scale, bool(unread))
-    placement = max(len(kept) - len(rival), 0) / len(anchors)
+    far = opt.rival_tol * scale
+    t, score, mean_cost, local, side, other = _oriented(draw, t, cost, opt, far, bool(unread), pins)
+    placement = min(max(len(kept) - len(rival), 0) / len(anchors), 1.0)
     elsewhere = None
     if placement < PLACEMENT_DOUBT and len(rival) >= 3:  # step 5's other place, mapped like this one
-        elsewhere = draw.rounds(draw.dense(anchors[owner[rival]], target[rival]), opt.n_rounds)
-        elsewhere = _oriented(draw, elsewhere, cost, opt, opt.rival_tol * scale, bool(unread))[0]
+        elsewhere = draw.rounds(draw.dense(seeds[owner[rival]], target[rival]), opt.n_rounds)
+        elsewhere = _oriented(draw, elsewhere, cost, opt, far, bool(unread), pins)[0]
 
     # residuals against step 2's anchors, which do not depend on the refined map itself
     fp0, fw0 = draw.on_part(a).T, _distances(g_whole, b).T
@@ -670,7 +738,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                    image_distance=_image_distance(whole, t) / scale, cost=mean_cost,
                    anchors=np.stack([a, b], axis=1).astype(np.int64), orientation=float(score),
                    region_tol=opt.region_tol,
-                   rival=np.stack([anchors[owner[rival]], target[rival]], axis=1).astype(np.int64),
+                   rival=np.stack([seeds[owner[rival]], target[rival]], axis=1).astype(np.int64),
                    placement_confidence=float(placement), scale=part_scale, side_margin=side,
                    other_side=None if other is None else other.astype(np.int64),
                    other_place=None if elsewhere is None else elsewhere.astype(np.int64))
