@@ -151,6 +151,11 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="how A's lengths compare with B's for --locate: same (default) one scale; fit: found by "
                    "--locate, for shapes normalised one by one (each scaled on its own); a number s: A's "
                    "lengths times s are B's")
+    p.add_argument("--locate-landmarks", default=None, metavar="FILE",
+                   help="landmarks for --locate: a text file with a vertex of A and the vertex of B that matches it "
+                   "on each line (two 0-based indices into the mesh files; # starts a comment). The located map "
+                   "must agree with them, which settles what A's shape leaves in doubt: which of several like "
+                   "places (one leg of four), and which side")
 
 
 class _Located(NamedTuple):
@@ -177,16 +182,61 @@ def located_registration(part: Any, whole: Any, pm: Any) -> Any:
     return reg.with_target(whole)
 
 
-def _locate(a: argparse.Namespace, comparer: Any, ma, mb) -> _Located | None:
+def _landmarks(path: str | None, ma: "_Loaded", mb: "_Loaded") -> np.ndarray | None:
+    """``--locate-landmarks FILE`` read: (L, 2) indices into the meshes as the command uses them (after
+    ``--repair``), each row a vertex of A and its match on B; None without the flag. Errors in the flag's words."""
+    if path is None:
+        return None
+    if not Path(path).is_file():
+        raise CliError(f"--locate-landmarks: file not found: {path}")
+    rows = []
+    for k, line in enumerate(Path(path).read_text().splitlines(), 1):
+        words = line.split("#", 1)[0].replace(",", " ").split()
+        if not words:
+            continue
+        if len(words) != 2 or not all(w.isdigit() for w in words):
+            raise CliError(f"--locate-landmarks {path}, line {k}: expected two vertex indices (a vertex of A, then "
+                           f"the vertex of B it matches; 0-based), got {line.strip()!r}")
+        rows.append((k, int(words[0]), int(words[1])))
+    if not rows:
+        raise CliError(f"--locate-landmarks {path} holds no landmarks (two vertex indices a line)")
+    out = np.zeros((len(rows), 2), dtype=np.int64)
+    for j, (m, label) in enumerate(((ma, "A"), (mb, "B"))):
+        inverse = np.arange(m.n_input) if m.index_map is None else np.full(m.n_input, -1)
+        if m.index_map is not None:
+            inverse[m.index_map] = np.arange(len(m.index_map))
+        for i, (k, *v) in enumerate(rows):
+            if v[j] >= m.n_input:
+                raise CliError(f"--locate-landmarks {path}, line {k}: {label} has no vertex {v[j]} (it has "
+                               f"{m.n_input}, numbered from 0)")
+            if inverse[v[j]] < 0:
+                raise CliError(f"--locate-landmarks {path}, line {k}: vertex {v[j]} of {label} was removed by "
+                               "--repair; choose another")
+            out[i, j] = inverse[v[j]]
+    first = {}
+    for (k, v, _), used in zip(rows, out[:, 0]):
+        if int(used) in first:
+            raise CliError(f"--locate-landmarks {path}: lines {first[int(used)]} and {k} both give vertex {v} of A "
+                           "a match; keep one")
+        first[int(used)] = k
+    return out
+
+
+def _locate(a: argparse.Namespace, comparer: Any, ma, mb, landmarks: np.ndarray | None = None) -> _Located | None:
     """`Comparer.locate` of A in B when ``--locate`` was given (printing what it found, its confidence and the
-    transform that places it)."""
+    transform that places it); ``landmarks``: `_landmarks`."""
     if not getattr(a, "locate", False):
         return None
     from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT, LocateOptions
 
     given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight),
                                ("scale", _locate_scale(a.locate_scale))) if v is not None}
-    pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None)
+    pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None, landmarks=landmarks)
+    if landmarks is not None:
+        miss = np.linalg.norm(mb.vertices[pm.correspondence[landmarks[:, 0]]] - mb.vertices[landmarks[:, 1]], axis=1)
+        print(f"landmarks: {len(landmarks)} from {a.locate_landmarks}; the map puts them a mean of "
+              f"{miss.mean() / np.sqrt(mb.area):.3g} x sqrt(area of B) from their matches (straight line; largest "
+              f"{miss.max() / np.sqrt(mb.area):.3g})")
     print(f"locate: {len(pm.anchors)} consistent anchor matches; median residual {np.median(pm.residual):.3g} "
           f"x sqrt(area of B); region {int(pm.region().sum())} of B's {mb.n_vertices} vertices; orientation score "
           f"{pm.orientation:.2f}")
@@ -238,6 +288,8 @@ def _check_refinements(a: argparse.Namespace) -> None:
         if not getattr(a, "locate", False):
             raise CliError("--locate-scale sets the scale of --locate; add --locate, or drop --locate-scale")
         _locate_scale(a.locate_scale)
+    if getattr(a, "locate_landmarks", None) is not None and not getattr(a, "locate", False):
+        raise CliError("--locate-landmarks gives --locate landmarks; add --locate, or drop --locate-landmarks")
     if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):
         raise CliError("--locate-edge sets the edge length of --locate; add --locate, or drop --locate-edge")
     w = getattr(a, "locate_orient_weight", None)
@@ -978,6 +1030,7 @@ def cmd_compare(a: argparse.Namespace) -> None:
     pair = ("compare takes two mesh files (`wpot all-vs-all FOLDER --out RUN` compares every pair of a folder's "
             "shapes)")
     ma, mb = _load(a.mesh_a, "A", repair, folder=pair), _load(a.mesh_b, "B", repair, folder=pair)
+    marks = _landmarks(getattr(a, "locate_landmarks", None), ma, mb)  # read before the comparison, to fail early
     for m, label in ((ma, "A"), (mb, "B")):
         _check_size(m, config, label)
     comparer = Comparer(config, device=a.device, signature_state=state, progress=_progress(a))
@@ -996,13 +1049,14 @@ def cmd_compare(a: argparse.Namespace) -> None:
     if other:
         print(f"  (other settings than the run's: {'; '.join(other)}; so this is not the run's distance for the pair)")
     refined = _zoomout(a, ma.mesh, mb.mesh, c)
-    located = _locate(a, comparer, ma.mesh, mb.mesh)
+    located = _locate(a, comparer, ma.mesh, mb.mesh, marks)
     if a.out:
         extra = {"mesh_a": str(a.mesh_a), "mesh_b": str(a.mesh_b), "zoomout": bool(a.zoomout),
                  "settings": config.describe(), "signature_state": info, "repair": repair_setting(repair)}
         if located is not None:
             pm = located.map
-            extra["locate"] = {**pm.summary(), "registration": _registration_json(located.registration)}
+            extra["locate"] = {**pm.summary(), "registration": _registration_json(located.registration),
+                               "landmarks": 0 if marks is None else len(marks)}
         files = _save_comparison(c, ma, mb, Path(a.out), extra, refined=refined, located=located)
         print("saved " + ", ".join(str(f) for f in files))
 

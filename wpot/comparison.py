@@ -702,8 +702,7 @@ class Comparer:
         this comparer's signatures propose the matches, geodesic consistency chooses among them. ``options``: a
         `wpot.maps.locate.LocateOptions` (``edge="whole"``: LD-SIFT at the whole's edge length for both meshes;
         ``scale="fit"`` or a number, with LD-SIFT at a set edge length: the part described again at the whole's
-        scale). ``landmarks``: (L, 2) vertex indices (part, whole) known to match, which the map must respect
-        (`locate_part`). Returns a `wpot.maps.locate.PartMap`."""
+        scale); ``landmarks``: (L, 2) vertices (part, whole) known to match. Returns a `wpot.maps.locate.PartMap`."""
         self._fit_to_pair(part, whole, ("part", "whole"))
         return locate(self, part, whole, options, landmarks)
 

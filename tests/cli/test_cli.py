@@ -177,6 +177,17 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
                                   scaled.correspondence)
     assert json.loads((tmp_path / "s" / "comparison.json").read_text())["locate"]["scale"] == scaled.scale == 1.2
     assert "A's lengths times 1.2 are B's" in r.stdout
+    # --locate-landmarks FILE is Comparer.locate(landmarks=...), its rows read as (vertex of A, vertex of B)
+    marks = np.array([[0, pm.correspondence[0]], [ma.n_vertices - 1, 3]])
+    (tmp_path / "marks.txt").write_text("# vertex of A, vertex of B\n" + "\n".join(f"{i} {j}" for i, j in marks))
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-landmarks",
+             str(tmp_path / "marks.txt"), "--out", str(tmp_path / "m"))
+    assert r.returncode == 0, r.stderr
+    pinned = c.locate(ma, mb, landmarks=marks)
+    np.testing.assert_array_equal(np.load(tmp_path / "m" / "correspondence.npz")["correspondence_locate"],
+                                  pinned.correspondence)
+    assert json.loads((tmp_path / "m" / "comparison.json").read_text())["locate"]["landmarks"] == 2
+    assert re.search(r"^landmarks: 2 from .*marks\.txt; the map puts them a mean of", r.stdout, re.M)
 
 
 @pytest.mark.slow

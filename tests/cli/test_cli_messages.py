@@ -388,6 +388,7 @@ BAD_VALUES = {
                                "--locate-orient-weight must be a finite number >= 0, got -1"),
     "--locate-scale": (["--locate", "--locate-scale", "big"],
                        "--locate-scale must be same, fit or a positive number, got 'big'"),
+    "--locate-landmarks": (["--locate", "--locate-landmarks", "FILE"], "--locate-landmarks FILE holds no landmarks"),
 }
 #: flags of the other commands
 OTHER_BAD_VALUES = [
@@ -441,6 +442,32 @@ def test_a_bad_value_is_named_by_its_flag(flag, pair, capsys, tmp_path):
     assert expected in line, line
     keywords = [k for k in flag_table() if "_" in k]
     assert not any(re.search(rf"(?<![\w-]){k}(?!\w)", line) for k in keywords), line
+
+
+def test_a_bad_landmark_file_is_named_by_line_before_any_comparison(pair, capsys, tmp_path):
+    """``--locate-landmarks``: each fault of the file named with its line, in the command's words (A, B, 0-based
+    vertices, --repair), before the comparison starts; and the flag wants --locate."""
+    import wpot
+
+    n_a, n_b = wpot.load_mesh(pair[0]).n_vertices, wpot.load_mesh(pair[1]).n_vertices
+    marks = tmp_path / "marks.txt"
+    cases = [("# a comment\n0 1\n2 x\n", "line 3: expected two vertex indices"),
+             ("0 1 2\n", "line 1: expected two vertex indices"),
+             (f"0, {n_b}\n", f"line 1: B has no vertex {n_b} (it has {n_b}, numbered from 0)"),
+             (f"{n_a} 0\n", f"line 1: A has no vertex {n_a}"),
+             ("5 1\n\n5 2\n", "lines 1 and 3 both give vertex 5 of A a match"),
+             ("-1 2\n", "line 1: expected two vertex indices")]
+    for text, expected in cases:
+        marks.write_text(text)
+        code, out, err = cli(capsys, "compare", *pair, *FAST, "--locate", "--locate-landmarks", marks)
+        line = one_line_error(code, err)
+        assert f"--locate-landmarks {marks}" in line and expected in line, line
+        assert "distance" not in out  # refused before the comparison
+    line = one_line_error(*cli(capsys, "compare", *pair, *FAST, "--locate-landmarks", marks)[::2])
+    assert "--locate-landmarks gives --locate landmarks; add --locate" in line
+    line = one_line_error(*cli(capsys, "compare", *pair, *FAST, "--locate", "--locate-landmarks",
+                               tmp_path / "none.txt")[::2])
+    assert f"--locate-landmarks: file not found: {tmp_path / 'none.txt'}" in line
 
 
 @pytest.mark.parametrize("args, expected", OTHER_BAD_VALUES)

@@ -571,3 +571,65 @@ def test_side_margin_read_on_a_mirror_symmetric_whole_and_not_read_without_one()
     sig = _smooth_signatures(bumpy)
     part, idx = cut(bumpy, bumpy.vertices[:, 2] > 0.2)
     assert np.isnan(locate_part(part, bumpy, sig[idx], sig).side_margin)
+
+
+def test_a_landmark_chooses_the_place_and_the_side(partial):
+    """Landmarks decide what the signatures and geodesics cannot: in a whole that holds the part's place twice
+    (two copies), one landmark on either copy puts the whole map there, with no rival left (the other copy
+    disagrees with the landmark); on a mirror-symmetric whole with signatures blind to the mirror, one landmark
+    on either side puts the map on that side, even the side whose map reverses orientation."""
+    from helpers import mirror_symmetric
+
+    from wpot.maps.locate import PLACEMENT_DOUBT
+    from wpot.maps.symmetry import reflection_symmetry
+    from wpot.mesh import cut
+
+    full, n = partial.full, partial.full.n_vertices
+    sp, sw = _planted_signatures(partial, outliers=0.3, seed=7)
+    with pytest.warns(MeshWarning, match="2 connected components"):
+        twice = Mesh(np.r_[full.vertices, full.vertices + [5.0 * np.ptp(full.vertices[:, 0]), 0.0, 0.0]],
+                     np.r_[full.faces, full.faces + full.n_vertices])
+    free = locate_part(partial.part, twice, sp, np.r_[sw, sw])
+    v = int(np.argmax(np.linalg.norm(partial.part.vertices - partial.part.vertices.mean(axis=0), axis=1)))
+    for copy in (0, 1):
+        pm = locate_part(partial.part, twice, sp, np.r_[sw, sw],
+                         landmarks=[[v, partial.correspondence[v] + copy * n]])
+        assert (pm.correspondence // n == copy).all()
+        assert np.mean(pm.correspondence % n == free.correspondence % n) > 0.9  # the same map, on that copy
+        assert pm.placement_confidence > PLACEMENT_DOUBT and pm.other_place is None
+        assert [v, partial.correspondence[v] + copy * n] in pm.anchors.tolist()
+
+    whole = mirror_symmetric(1500, seed=1)
+    mirror = reflection_symmetry(whole, cache=False).map
+    part, idx = cut(whole, whole.vertices[:, 0] > 0.15)
+    blind = _smooth_signatures(whole) + _smooth_signatures(Mesh(whole.vertices * [-1.0, 1.0, 1.0], whole.faces))
+    x, edge = whole.vertices, whole.mean_edge_length
+    w = int(np.argmax(part.vertices[:, 0]))  # the farthest from the plane of symmetry
+    for truth in (idx, mirror[idx]):
+        pm = locate_part(part, whole, blind[idx], blind, options=LocateOptions(orient_weight=0.3),
+                         landmarks=[[w, truth[w]]])
+        assert np.median(np.linalg.norm(x[pm.correspondence] - x[truth], axis=1)) < edge
+        assert np.isinf(pm.side_margin)  # the landmark ruled the other side out
+
+
+def test_landmarks_checked_and_disagreeing_landmarks_named(partial):
+    """Bad ``landmarks`` are refused naming the keyword; two that cannot both be right (the geodesic distance
+    between them on the part far from that on the whole) are warned about, naming them."""
+    from wpot.maps.locate import LocateWarning
+
+    sp, sw = _planted_signatures(partial, outliers=0.0)
+    part, full, t = partial.part, partial.full, partial.correspondence
+    for bad, match in (([1, 2], r"landmarks must be \(L, 2\)"), (np.zeros((0, 2), int), r"L >= 1"),
+                       ([[0, full.n_vertices]], r"landmarks\[:, 1\] holds 1 indices outside"),
+                       ([[part.n_vertices, 0]], r"landmarks\[:, 0\] holds 1 indices outside"),
+                       ([[0.5, 3]], "vertex indices"), ([[0, 1], [0, 2]], "vertex 0 of the part more than once")):
+        with pytest.raises(ValueError, match=match):
+            locate_part(part, full, sp, sw, landmarks=bad)
+    far = np.linalg.norm(part.vertices - part.vertices[0], axis=1)
+    a, b = 0, int(np.argmax(far))
+    with pytest.warns(LocateWarning, match="landmarks 0 and 1 disagree"):
+        locate_part(part, full, sp, sw, landmarks=[[a, t[a]], [b, t[a]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LocateWarning)  # two right landmarks: no warning
+        pm = locate_part(part, full, sp, sw, landmarks=[[a, t[a]], [b, t[b]]])
+    assert np.median(_errors_in_edges(partial, pm.correspondence)) < 1.0

@@ -59,6 +59,11 @@ geodesic distances to choose among them and to fill in the map:
    second map (steps 3 and 4, polished), the result's ``other_place``: the signatures that would choose between
    the two places are what proposed both, so the choice is left to a caller who can tell them apart.
 
+**Landmarks** (``landmarks``): vertex pairs (part, whole) the caller knows to match, for what the geometry leaves
+open (which of four legs; which side). They are matches of anchors of their own, taken first in step 2, where only
+the candidates within 3 σ of all of them enter the agreement matrix; step 4 considers only the candidates that send
+them within ``rival_tol`` (on average) of the best candidate's; step 5's rival must agree with them too.
+
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
 ``confidence`` from it; and which part of the whole was matched (`PartMap.region`: the images of the part's
@@ -218,7 +223,8 @@ class PartMap:
         partial transport's distance (Eq. 27) or the mean residual, and worse than the mean distance from each
         vertex's signature to the nearest signature of the whole (no map at all;
         `Comparer.nearest_signature_distance`); the docs' Results page has the figures
-    anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2
+    anchors : (K, 2) int64, the consistent matches (part vertex, whole vertex) of step 2, the caller's landmarks
+        among them
     orientation : the final map's `wpot.maps.orientation.orientation_score` (NaN when it cannot be read)
     region_tol : the default threshold of `region`
     rival : (R, 2) int64, the largest consistent set of candidate matches that are not in this placement (step
@@ -234,8 +240,9 @@ class PartMap:
         relative mean signature cost, less ``orient_weight`` times an orientation score). Below `SIDE_DOUBT` the
         map may be on the mirror side (a left limb on the right one): the side was a near-tie. ``inf`` when no
         candidate lay on the other side (or, with ``orient_weight`` None, none there was oriented within
-        `ORIENT_MARGIN` of the best); NaN when the side was not read (no left/right symmetry found in the
-        whole, an orientation that cannot be read, ``orient=False``, or a part on the plane of symmetry)
+        `ORIENT_MARGIN` of the best, or the landmarks ruled that side out); NaN when the side was not read (no
+        left/right symmetry found in the whole, an orientation that cannot be read, ``orient=False``, or a part on
+        the plane of symmetry)
     other_side : (N_P,) int64 or None, the map step 4 preferred on the other side of the whole (its candidate of
         least rule value there, polished like ``correspondence``): where the side is in doubt, the other answer, for
         a caller who can tell left from right (None when no candidate lay on the other side, or the side was not
