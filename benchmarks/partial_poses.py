@@ -527,19 +527,26 @@ def trust_scores(comp, truth: Truth, errors: np.ndarray, areas: np.ndarray) -> d
 
 
 def landmarks_from(part, truth: Truth, n: int) -> np.ndarray:
-    """(n, 2) landmarks (part vertex, its true vertex of T) for a pair, spread over the part as a user's would
-    be: farthest-point samples (along the part's edges) of its evaluated vertices (``truth.src``), the first the
-    one farthest from the part's most central vertex (an extremity: a hoof, a fingertip)."""
+    """(n, 2) landmarks (part vertex, its true vertex of T) for a pair, where a user would place them: on
+    features inside the part, not on its cut. Of the evaluated vertices (``truth.src``) at least half as far
+    from the part's boundary (along its edges) as the farthest, the first is the one farthest from the part's
+    most central vertex (an extremity: a hoof, a hand), the next ones farthest-point samples."""
     from wpot.mesh import edge_paths
 
     x = part.vertices
+    border = np.unique(part.boundary_edges.ravel())
+    inner = truth.src
+    if border.size:
+        d_border = edge_paths(part, border, min_only=True)[truth.src]
+        inner = truth.src[d_border >= 0.5 * d_border.max()]
     centre = int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))
     d = edge_paths(part, [centre], min_only=True)
     pick: list[int] = []
-    for _ in range(min(n, len(truth.src))):
-        pick.append(int(np.argmax(d[truth.src])))
-        d = edge_paths(part, truth.src[pick], min_only=True)
-    return np.stack([truth.src[pick], truth.dst[pick]], axis=1).astype(np.int64)
+    for _ in range(min(n, len(inner))):
+        pick.append(int(inner[np.argmax(d[inner])]))
+        d = edge_paths(part, pick, min_only=True)
+    first = {int(v): i for i, v in reversed(list(enumerate(truth.src)))}
+    return np.array([[v, truth.dst[first[v]]] for v in pick], dtype=np.int64).reshape(-1, 2)
 
 
 def score_map(geo, pred_all: np.ndarray, truth: Truth) -> tuple[dict, dict]:
@@ -1045,9 +1052,9 @@ def main(argv=None) -> int:
                     help="`wpot.maps.locate.LocateOptions` fields as JSON, e.g. '{\"n_refine\": 96}' "
                          "(default: its defaults)")
     ap.add_argument("--landmarks", type=int, default=0, metavar="L",
-                    help="give locate L ground-truth landmarks a pair (`Comparer.locate`'s landmarks: the part's "
-                         "farthest-point samples among its evaluated points, with their true vertices), as a user "
-                         "who placed L landmarks on both shapes would (default 0: none)")
+                    help="give locate L ground-truth landmarks a pair (`Comparer.locate`'s landmarks: farthest-point "
+                         "samples of the part's evaluated points away from its cut, with their true vertices), as a "
+                         "user who placed L landmarks on both shapes would (default 0: none)")
     ap.add_argument("--no-retrieval", action="store_true",
                     help="skip the other-class wholes (faster; no class retrieval in the report)")
     ap.add_argument("--device", default="cpu")
