@@ -143,6 +143,28 @@ def test_true_region_on_another_pose_and_mass_over_cells(pp, tosca5k, cat):
     assert pp.received_share(m, sub, truth.region) == pytest.approx(1.0)
 
 
+def test_landmarks_are_true_pairs_inside_the_part_and_spread(pp, tosca5k, cat):
+    """``--landmarks``: each landmark is an evaluated vertex of the part with its true vertex of T, none on the
+    part's cut (at least half the deepest evaluated vertex's distance from it), the first at an extremity and the
+    second as far from it as the inside allows."""
+    from wpot.mesh import edge_paths
+
+    S, T = cat["S"], cat["T"]
+    limb = next(p for p in cat["parts"] if p.kind == "limb")
+    truth = pp.ground_truth(tosca5k, limb, S, "cat1", T)
+    marks = pp.landmarks_from(limb.mesh, truth, 3)
+    assert marks.shape == (3, 2) and len(set(marks[:, 0])) == 3
+    where = {int(v): i for i, v in enumerate(truth.src)}
+    assert all(truth.dst[where[int(a)]] == b for a, b in marks)
+    depth = edge_paths(limb.mesh, np.unique(limb.mesh.boundary_edges.ravel()), min_only=True)
+    assert (depth[marks[:, 0]] >= 0.5 * depth[truth.src].max() - 1e-9).all()
+    assert depth[marks[0, 0]] > 0  # not on the cut
+    inner = truth.src[depth[truth.src] >= 0.5 * depth[truth.src].max()]
+    d0 = edge_paths(limb.mesh, int(marks[0, 0]))
+    assert d0[marks[1, 0]] == pytest.approx(d0[inner].max())
+    assert pp.landmarks_from(limb.mesh, truth, 1).tolist() == marks[:1].tolist()
+
+
 def test_store_resumes_and_refuses_changed_parts(pp, tmp_path, cat):
     store = pp.Store(tmp_path)
     rec = {"method": "m", "part": "p", "target": "t", "relation": "same", "seconds": 0.1, "info": {"distance": 1.0}}
