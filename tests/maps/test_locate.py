@@ -595,7 +595,8 @@ def test_a_landmark_chooses_the_place_and_the_side(partial):
         pm = locate_part(partial.part, twice, sp, np.r_[sw, sw],
                          landmarks=[[v, partial.correspondence[v] + copy * n]])
         assert (pm.correspondence // n == copy).all()
-        assert np.mean(pm.correspondence % n == free.correspondence % n) > 0.9  # the same map, on that copy
+        assert np.median(_errors_in_edges(partial, pm.correspondence % n)) < 1.0  # the true map, on that copy
+        assert np.mean(pm.correspondence % n == free.correspondence % n) > 0.8  # nearly the free one
         assert pm.placement_confidence > PLACEMENT_DOUBT and pm.other_place is None
         assert [v, partial.correspondence[v] + copy * n] in pm.anchors.tolist()
 

@@ -61,8 +61,9 @@ geodesic distances to choose among them and to fill in the map:
 
 **Landmarks** (``landmarks``): vertex pairs (part, whole) the caller knows to match, for what the geometry leaves
 open (which of four legs; which side). They are matches of anchors of their own, taken first in step 2, where only
-the candidates within 3 σ of all of them enter the agreement matrix; step 4 considers only the candidates that send
-them within ``rival_tol`` (on average) of the best candidate's; step 5's rival must agree with them too.
+the candidates within 3 σ of all of them enter the agreement matrix; in steps 3 and 4 they are refinement anchors
+whose images stay their given matches; step 4 considers only the candidates that send them within ``rival_tol``
+(on average) of the best candidate's; step 5's rival must agree with them too.
 
 The result (`PartMap`) also says which matches to trust: the ``residual`` of each vertex (how far its
 geodesic distances to the consistent matches are from its image's, a fraction of √area(W)) and a
@@ -444,15 +445,18 @@ def _image_distance(whole: Mesh, images: np.ndarray) -> np.ndarray:
 
 class _Redraw:
     """Steps 3 and 4: a map of the part drawn from matched anchors by their geodesic distances, with the
-    distances from the part's refinement anchors ``src`` computed once."""
+    distances from the part's refinement anchors ``src`` computed once. The caller's landmarks (``pins``, (L, 2)
+    part and whole vertices) are refinement anchors too, whose images stay their given matches."""
 
     def __init__(self, part: Mesh, whole: Mesh, src: np.ndarray, g_part=None, g_whole=None,
-                 part_scale: float = 1.0) -> None:
-        self.part, self.whole, self.src = part, whole, np.asarray(src, dtype=np.int64)
+                 part_scale: float = 1.0, pins: np.ndarray | None = None) -> None:
+        pins = np.zeros((0, 2), dtype=np.int64) if pins is None else np.asarray(pins, dtype=np.int64)
+        self.part, self.whole = part, whole
+        self.src, self.fixed = np.r_[np.asarray(src, dtype=np.int64), pins[:, 0]], pins[:, 1]
         self.g_part = _geodesics(part) if g_part is None else g_part
         self.g_whole = _geodesics(whole) if g_whole is None else g_whole
         self.part_scale = float(part_scale)
-        self.d_src = self.on_part(self.src).T  # (N_P, n_refine)
+        self.d_src = self.on_part(self.src).T  # (N_P, n_refine + L)
 
     def on_part(self, sources: np.ndarray) -> np.ndarray:
         """(S, N_P) geodesic distances on the part from ``sources``, at the whole's scale (times ``part_scale``)."""
@@ -464,23 +468,32 @@ class _Redraw:
 
         return nearest_rows(self.on_part(from_part).T, _distances(self.g_whole, to_whole).T)[0]
 
+    def _kept(self, keep: np.ndarray | None) -> np.ndarray:
+        """(n_refine + L,) bool, the refinement anchors used: ``keep``'s, and the landmarks always."""
+        k = np.ones(len(self.src), dtype=bool) if keep is None else np.array(keep, dtype=bool)
+        k[len(self.src) - len(self.fixed):] = True
+        return k
+
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None, offset: float | None = None
                ) -> np.ndarray:
-        """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine,) bool) and their
-        current images; with ``offset`` h, the distances d compared as log(d + h) (step 3's polish)."""
+        """``n`` rounds of the map redrawn from ``src`` (those where ``keep``, (n_refine + L,) bool) and their
+        current images (the landmarks' given ones); with ``offset`` h, the distances d compared as log(d + h)
+        (step 3's polish)."""
 
-        k = np.ones(len(self.src), dtype=bool) if keep is None else keep
+        k = self._kept(keep)
         f = (lambda d: d) if offset is None else (lambda d: np.log(d + offset))
         for _ in range(n):
-            t = nearest_rows(f(self.d_src[:, k]), f(_distances(self.g_whole, t[self.src[k]]).T))[0]
+            images = t[self.src]
+            images[len(self.src) - len(self.fixed):] = self.fixed
+            t = nearest_rows(f(self.d_src[:, k]), f(_distances(self.g_whole, images[k]).T))[0]
         return t
 
     def unfold(self, t: np.ndarray, n: int) -> np.ndarray:
-        """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation, then once from
-        all of them."""
+        """Step 4 (b): the map redrawn ``n`` times from the anchors where it keeps orientation (and the
+        landmarks), then once from all of them."""
 
         for _ in range(n):
-            keep = np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0
+            keep = self._kept(np.nan_to_num(local_orientation(self.part, self.whole, t), nan=0.0)[self.src] > 0)
             if keep.sum() < 3 or keep.all():
                 break
             t = self.rounds(t, 1, keep)
@@ -717,7 +730,7 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                       LocateWarning, stacklevel=2)
 
     # steps 3 and 4
-    draw = _Redraw(part, whole, src, g_part, g_whole, part_scale)
+    draw = _Redraw(part, whole, src, g_part, g_whole, part_scale, pins)
     t = draw.rounds(draw.dense(a, b), opt.n_rounds)
     rival = _rival(g_whole, whole, t[seeds], owner, target, d_anchor, d_target, opt, scale, forced)
 
