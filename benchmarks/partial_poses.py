@@ -526,27 +526,44 @@ def trust_scores(comp, truth: Truth, errors: np.ndarray, areas: np.ndarray) -> d
             "region_recall": inter / max(float(areas[truth.region].sum()), 1e-300)}
 
 
-def landmarks_from(part, truth: Truth, n: int) -> np.ndarray:
-    """(n, 2) landmarks (part vertex, its true vertex of T) for a pair, where a user would place them: on
-    features inside the part, not on its cut. Of the evaluated vertices (``truth.src``) at least half as far
-    from the part's boundary (along its edges) as the farthest, the first is the one farthest from the part's
-    most central vertex (an extremity: a hoof, a hand), the next ones farthest-point samples."""
+def landmarks_from(part, target, truth: Truth, n: int) -> np.ndarray:
+    """(n, 2) landmarks (part vertex, its true vertex of ``target``) for a pair, where a user would place them: on
+    features inside the part, not on its cut, and right. Of the evaluated vertices (``truth.src``) at least half as
+    far from the part's boundary (along its edges) as the farthest, the first is the one farthest from the part's
+    most central vertex (an extremity: a hoof, a hand), the next ones farthest-point samples; a vertex whose
+    ground truth disagrees with its neighbours' (`_truth_agrees`: a fault of the data's correspondence, which a
+    user's landmark would not have) is passed over for the next."""
     from wpot.mesh import edge_paths
 
     x = part.vertices
     border = np.unique(part.boundary_edges.ravel())
-    inner = truth.src
+    inner = np.arange(len(truth.src))
     if border.size:
         d_border = edge_paths(part, border, min_only=True)[truth.src]
-        inner = truth.src[d_border >= 0.5 * d_border.max()]
+        inner = inner[d_border >= 0.5 * d_border.max()]
     centre = int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))
-    d = edge_paths(part, [centre], min_only=True)
+    d = edge_paths(part, [centre], min_only=True)[truth.src]
     pick: list[int] = []
-    for _ in range(min(n, len(inner))):
-        pick.append(int(inner[np.argmax(d[inner])]))
-        d = edge_paths(part, pick, min_only=True)
-    first = {int(v): i for i, v in reversed(list(enumerate(truth.src)))}
-    return np.array([[v, truth.dst[first[v]]] for v in pick], dtype=np.int64).reshape(-1, 2)
+    while len(pick) < n:
+        order = (int(i) for i in inner[np.argsort(-d[inner], kind="stable")] if int(i) not in pick)
+        i = next((i for i in order if _truth_agrees(part, target, truth, i)), None)
+        if i is None:
+            break
+        pick.append(i)
+        d = edge_paths(part, truth.src[pick], min_only=True)[truth.src]  # the next: farthest from those picked
+    return np.stack([truth.src[pick], truth.dst[pick]], axis=1).astype(np.int64).reshape(-1, 2)
+
+
+def _truth_agrees(part, target, truth: Truth, i: int, k: int = 8) -> bool:
+    """Whether evaluated point ``i``'s true match agrees with those of its ``k`` nearest evaluated neighbours on
+    the part: their distances along the edges on the target within half their distance on the part plus 0.05
+    √area(target) (a pose change keeps them; a wrong match does not)."""
+    from wpot.mesh import edge_paths
+
+    dp = edge_paths(part, int(truth.src[i]))[truth.src]
+    near = np.argsort(dp, kind="stable")[1:k + 1]
+    dw = edge_paths(target, int(truth.dst[i]))[truth.dst[near]]
+    return bool(np.median(np.abs(dw - dp[near]) - 0.5 * dp[near]) <= 0.05 * np.sqrt(target.area))
 
 
 def score_map(geo, pred_all: np.ndarray, truth: Truth) -> tuple[dict, dict]:
@@ -637,7 +654,7 @@ class Matchers:
         self.comparer.signatures(p), self.comparer.signatures(t)  # set-up, timed apart in prepare()
         marks = None
         if self.landmarks and truth is not None:
-            marks = landmarks_from(p, truth, self.landmarks)
+            marks = landmarks_from(p, t, truth, self.landmarks)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             t0 = time.perf_counter()

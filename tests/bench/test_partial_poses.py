@@ -146,23 +146,31 @@ def test_true_region_on_another_pose_and_mass_over_cells(pp, tosca5k, cat):
 def test_landmarks_are_true_pairs_inside_the_part_and_spread(pp, tosca5k, cat):
     """``--landmarks``: each landmark is an evaluated vertex of the part with its true vertex of T, none on the
     part's cut (at least half the deepest evaluated vertex's distance from it), the first at an extremity and the
-    second as far from it as the inside allows."""
+    second as far from it as the inside allows; a vertex whose truth is planted wrong is passed over."""
+    import dataclasses
+
     from wpot.mesh import edge_paths
 
     S, T = cat["S"], cat["T"]
     limb = next(p for p in cat["parts"] if p.kind == "limb")
     truth = pp.ground_truth(tosca5k, limb, S, "cat1", T)
-    marks = pp.landmarks_from(limb.mesh, truth, 3)
+    marks = pp.landmarks_from(limb.mesh, T, truth, 3)
     assert marks.shape == (3, 2) and len(set(marks[:, 0])) == 3
     where = {int(v): i for i, v in enumerate(truth.src)}
     assert all(truth.dst[where[int(a)]] == b for a, b in marks)
     depth = edge_paths(limb.mesh, np.unique(limb.mesh.boundary_edges.ravel()), min_only=True)
-    assert (depth[marks[:, 0]] >= 0.5 * depth[truth.src].max() - 1e-9).all()
-    assert depth[marks[0, 0]] > 0  # not on the cut
+    assert (depth[marks[:, 0]] >= 0.5 * depth[truth.src].max() - 1e-9).all() and depth[marks[0, 0]] > 0
     inner = truth.src[depth[truth.src] >= 0.5 * depth[truth.src].max()]
     d0 = edge_paths(limb.mesh, int(marks[0, 0]))
     assert d0[marks[1, 0]] == pytest.approx(d0[inner].max())
-    assert pp.landmarks_from(limb.mesh, truth, 1).tolist() == marks[:1].tolist()
+    assert pp.landmarks_from(limb.mesh, T, truth, 1).tolist() == marks[:1].tolist()
+    # the first landmark's truth sent to the far end of T: the picker takes another vertex
+    i = where[int(marks[0, 0])]
+    far = int(np.argmax(edge_paths(T, int(truth.dst[i]))))
+    wrong = dataclasses.replace(truth, dst=np.where(np.arange(len(truth.dst)) == i, far, truth.dst))
+    assert not pp._truth_agrees(limb.mesh, T, wrong, i) and pp._truth_agrees(limb.mesh, T, truth, i)
+    again = pp.landmarks_from(limb.mesh, T, wrong, 1)
+    assert again[0, 0] != marks[0, 0] and again[0, 1] == truth.dst[where[int(again[0, 0])]]
 
 
 def test_store_resumes_and_refuses_changed_parts(pp, tmp_path, cat):
