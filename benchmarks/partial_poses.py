@@ -551,7 +551,7 @@ def landmarks_from(part, target, truth: Truth, n: int) -> np.ndarray:
             break
         pick.append(i)
         d = edge_paths(part, truth.src[pick], min_only=True)[truth.src]  # the next: farthest from those picked
-    return np.stack([truth.src[pick], truth.dst[pick]], axis=1).astype(np.int64).reshape(-1, 2)
+    return np.stack([truth.src[pick], truth.dst[pick]], axis=1).astype(np.int64)
 
 
 def _truth_agrees(part, target, truth: Truth, i: int, k: int = 8) -> bool:

@@ -202,17 +202,15 @@ def _landmarks(path: str | None, ma: "_Loaded", mb: "_Loaded") -> np.ndarray | N
         raise CliError(f"--locate-landmarks {path} holds no landmarks (two vertex indices a line)")
     out = np.zeros((len(rows), 2), dtype=np.int64)
     for j, (m, label) in enumerate(((ma, "A"), (mb, "B"))):
-        inverse = np.arange(m.n_input) if m.index_map is None else np.full(m.n_input, -1)
-        if m.index_map is not None:
-            inverse[m.index_map] = np.arange(len(m.index_map))
         for i, (k, *v) in enumerate(rows):
             if v[j] >= m.n_input:
                 raise CliError(f"--locate-landmarks {path}, line {k}: {label} has no vertex {v[j]} (it has "
                                f"{m.n_input}, numbered from 0)")
-            if inverse[v[j]] < 0:
+        out[:, j] = m.from_input([v[j] for _, *v in rows])
+        for i, (k, *v) in enumerate(rows):
+            if out[i, j] < 0:
                 raise CliError(f"--locate-landmarks {path}, line {k}: vertex {v[j]} of {label} was removed by "
                                "--repair; choose another")
-            out[i, j] = inverse[v[j]]
     first = {}
     for (k, v, _), used in zip(rows, out[:, 0]):
         if int(used) in first:
@@ -681,6 +679,14 @@ class _Loaded:
     def __init__(self, mesh: Any, path: str, index_map: np.ndarray | None = None, n_input: int | None = None) -> None:
         self.mesh, self.path, self.index_map = mesh, path, index_map
         self.n_input = mesh.n_vertices if n_input is None else n_input
+
+    def from_input(self, vertices: np.ndarray) -> np.ndarray:
+        """Indices of the file's vertices as indices of the used mesh (-1 for a vertex ``--repair`` removed)."""
+        if self.index_map is None:
+            return np.asarray(vertices)
+        used = np.full(self.n_input, -1, dtype=np.int64)
+        used[self.index_map] = np.arange(len(self.index_map))
+        return used[np.asarray(vertices)]
 
     def to_input(self, vertices: np.ndarray) -> np.ndarray:
         """Vertex indices of the used mesh as indices of the file's vertices."""

@@ -444,6 +444,19 @@ def test_a_bad_value_is_named_by_its_flag(flag, pair, capsys, tmp_path):
     assert not any(re.search(rf"(?<![\w-]){k}(?!\w)", line) for k in keywords), line
 
 
+def test_loaded_mesh_maps_file_indices_both_ways():
+    """`_Loaded.from_input` inverts `to_input` (the file's vertices as the used mesh's), and gives -1 for a
+    vertex --repair removed; without a repair both are the identity."""
+    from wpot.cli import _Loaded
+
+    kept = np.array([0, 2, 3, 5])  # the file's vertices 1 and 4 removed
+    m = _Loaded(None, "f.off", kept, n_input=6)
+    assert m.from_input(m.to_input(np.arange(4))).tolist() == [0, 1, 2, 3]
+    assert m.from_input([1, 4, 5]).tolist() == [-1, -1, 3]
+    plain = _Loaded(type("M", (), {"n_vertices": 6})(), "f.off")
+    assert plain.from_input([4, 1]).tolist() == [4, 1] and plain.to_input([4, 1]).tolist() == [4, 1]
+
+
 def test_a_bad_landmark_file_is_named_by_line_before_any_comparison(pair, capsys, tmp_path):
     """``--locate-landmarks``: each fault of the file named with its line, in the command's words (A, B, 0-based
     vertices, --repair), before the comparison starts; and the flag wants --locate."""

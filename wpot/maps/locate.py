@@ -349,10 +349,15 @@ def consistent_matches(d_part: np.ndarray, d_whole: np.ndarray, owner: np.ndarra
     return _consistent(d_part, d_whole, owner, sigma0, rel_tol)[0]
 
 
+def _deviation(d_part, d_whole, sigma0, rel_tol) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2's deviations |d_part − d_whole| and tolerances σ = sigma0 + rel_tol · min(d_part, d_whole), for
+    distances of any matching shape; two matches agree within 3 σ."""
+    return np.abs(d_part - d_whole), sigma0 + rel_tol * np.minimum(d_part, d_whole)
+
+
 def _agreement(d_part, d_whole, owner, sigma0, rel_tol):
-    """Step 2's agreement matrix (M, M), deviations |d_part − d_whole| and tolerances σ."""
-    sig = sigma0 + rel_tol * np.minimum(d_part, d_whole)
-    dev = np.abs(d_part - d_whole)
+    """Step 2's agreement matrix (M, M), deviations |d_part − d_whole| and tolerances σ (`_deviation`)."""
+    dev, sig = _deviation(d_part, d_whole, sigma0, rel_tol)
     w = np.exp(-0.5 * (dev / sig) ** 2)
     w[owner[:, None] == owner[None, :]] = 0.0
     return w, dev, sig
@@ -595,8 +600,8 @@ def _rival(g_whole, whole: Mesh, images: np.ndarray, owner: np.ndarray, target: 
     image, and within 3 σ of the caller's landmarks (``forced``, indices of matches), and of them the largest
     consistent set (`consistent_matches`; ``d_anchor`` (A, A) and ``d_target`` (M, M) as in step 2). Returns
     its indices into the candidates."""
-    dp, dw = d_anchor[np.ix_(owner, owner[forced])], d_target[:, forced]
-    near = (np.abs(dp - dw) > 3.0 * (opt.tol * scale + opt.rel_tol * np.minimum(dp, dw))).any(axis=1)
+    dev, sig = _deviation(d_anchor[np.ix_(owner, owner[forced])], d_target[:, forced], opt.tol * scale, opt.rel_tol)
+    near = (dev > 3.0 * sig).any(axis=1)  # a match that disagrees with a landmark is no rival
     sym = reflection_symmetry(whole) if opt.orient else None
     for im in (images,) if sym is None else (images, sym.map[images]):
         uniq, at = np.unique(im, return_inverse=True)
@@ -665,9 +670,10 @@ def _check_landmarks(pins: np.ndarray, d_part: np.ndarray, d_whole: np.ndarray, 
     """Warn (`LocateWarning`) when two of the caller's landmarks disagree: their geodesic distance on the part
     (``d_part`` (L, L), at the whole's scale) differs from that on the whole (``d_whole`` (L, L)) by more than
     step 2's 3 σ, so they cannot all be right (or the scale is not the one assumed)."""
-    dev = np.abs(d_part - d_whole) - 3.0 * (opt.tol * scale + opt.rel_tol * np.minimum(d_part, d_whole))
-    i, j = np.unravel_index(int(np.argmax(dev)), dev.shape)
-    if dev[i, j] > 0:
+    dev, sig = _deviation(d_part, d_whole, opt.tol * scale, opt.rel_tol)
+    excess = dev - 3.0 * sig
+    i, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    if excess[i, j] > 0:
         warnings.warn(f"landmarks {i} and {j} disagree: {d_part[i, j]:.3g} apart on the part (at the whole's scale) "
                       f"and {d_whole[i, j]:.3g} on the whole, so they cannot both be right; the map follows them "
                       "where it can (check their vertex indices, and the part's scale)", LocateWarning, stacklevel=3)
