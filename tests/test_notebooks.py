@@ -64,6 +64,13 @@ PROBES = {
         "locate_error": locate_error,
         "transport_error": transport_error,
     }""",
+    "locating_parts.ipynb": """{
+        "full": FULL,
+        "n_parts": len(cases),
+        "error": {n: r["error"] for n, r in results.items()},
+        "doubted": {n: bool(r["doubt"]) for n, r in results.items()},
+        "landmark_error": {n: w["error"] for n, w in with_landmark.items()},
+    }""",
 }
 _PROBE_TAG = "WPOT_PROBE "
 
@@ -196,6 +203,21 @@ def test_partial_heads(kernel_env, tosca5k, monkeypatch):
     assert set(s["locate_error"]) == set(s["transport_error"]) and s["locate_error"]
     for h, e in s["locate_error"].items():
         assert e < 0.1 and e < s["transport_error"][h] / 2, (h, e, s["transport_error"][h])
+
+
+@pytest.mark.data
+def test_locating_parts(kernel_env, faust5k, monkeypatch):
+    monkeypatch.setenv("WPOT_DATA", str(faust5k))
+    _, s = execute("locating_parts.ipynb", PROBES["locating_parts.ipynb"])
+    assert s["full"] is False and s["n_parts"] >= 8
+    err, doubted, landmark = s["error"], s["doubted"], s["landmark_error"]
+    assert set(err) == set(doubted) == set(landmark)
+    # what the notebook tells a user: a map that is wrong is doubted (its place or its side), and most are right
+    assert all(doubted[n] for n, e in err.items() if e > 0.3), (err, doubted)
+    assert np.median([e for n, e in err.items() if not doubted[n]]) < 0.05
+    # one landmark a part, inside it and off its centre: every map right, and better on the whole
+    assert max(landmark.values()) < 0.1, landmark
+    assert np.mean(list(landmark.values())) < np.mean(list(err.values()))
 
 
 # ------------------------------------------------------------------------------------------- storing
