@@ -202,14 +202,15 @@ def _landmarks(path: str | None, ma: "_Loaded", mb: "_Loaded") -> np.ndarray | N
         raise CliError(f"--locate-landmarks {path} holds no landmarks (two vertex indices a line)")
     out = np.zeros((len(rows), 2), dtype=np.int64)
     for j, (m, label) in enumerate(((ma, "A"), (mb, "B"))):
-        for i, (k, *v) in enumerate(rows):
-            if v[j] >= m.n_input:
-                raise CliError(f"--locate-landmarks {path}, line {k}: {label} has no vertex {v[j]} (it has "
+        given = [row[1 + j] for row in rows]
+        for (k, *_), v in zip(rows, given):
+            if v >= m.n_input:
+                raise CliError(f"--locate-landmarks {path}, line {k}: {label} has no vertex {v} (it has "
                                f"{m.n_input}, numbered from 0)")
-        out[:, j] = m.from_input([v[j] for _, *v in rows])
-        for i, (k, *v) in enumerate(rows):
-            if out[i, j] < 0:
-                raise CliError(f"--locate-landmarks {path}, line {k}: vertex {v[j]} of {label} was removed by "
+        out[:, j] = m.from_input(given)
+        for (k, *_), v, used in zip(rows, given, out[:, j]):
+            if used < 0:
+                raise CliError(f"--locate-landmarks {path}, line {k}: vertex {v} of {label} was removed by "
                                "--repair; choose another")
     first = {}
     for (k, v, _), used in zip(rows, out[:, 0]):

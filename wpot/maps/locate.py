@@ -458,6 +458,7 @@ class _Redraw:
         pins = np.zeros((0, 2), dtype=np.int64) if pins is None else np.asarray(pins, dtype=np.int64)
         self.part, self.whole = part, whole
         self.src, self.fixed = np.r_[np.asarray(src, dtype=np.int64), pins[:, 0]], pins[:, 1]
+        self.pinned = slice(len(self.src) - len(pins), None)  # the landmarks' places in src
         self.g_part = _geodesics(part) if g_part is None else g_part
         self.g_whole = _geodesics(whole) if g_whole is None else g_whole
         self.part_scale = float(part_scale)
@@ -476,7 +477,7 @@ class _Redraw:
     def _kept(self, keep: np.ndarray | None) -> np.ndarray:
         """(n_refine + L,) bool, the refinement anchors used: ``keep``'s, and the landmarks always."""
         k = np.ones(len(self.src), dtype=bool) if keep is None else np.array(keep, dtype=bool)
-        k[len(self.src) - len(self.fixed):] = True
+        k[self.pinned] = True
         return k
 
     def rounds(self, t: np.ndarray, n: int, keep: np.ndarray | None = None, offset: float | None = None
@@ -489,7 +490,7 @@ class _Redraw:
         f = (lambda d: d) if offset is None else (lambda d: np.log(d + offset))
         for _ in range(n):
             images = t[self.src]
-            images[len(self.src) - len(self.fixed):] = self.fixed
+            images[self.pinned] = self.fixed
             t = nearest_rows(f(self.d_src[:, k]), f(_distances(self.g_whole, images[k]).T))[0]
         return t
 
