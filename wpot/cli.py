@@ -151,6 +151,11 @@ def _add_locate(p: argparse.ArgumentParser) -> None:
                    help="how A's lengths compare with B's for --locate: same (default) one scale; fit: found by "
                    "--locate, for shapes normalised one by one (each scaled on its own); a number s: A's "
                    "lengths times s are B's")
+    p.add_argument("--locate-aligned", action="store_true",
+                   help="A is given in B's frame (scanned in one place, the same way up and facing the same way): "
+                   "--locate then prefers, of its candidate maps, those that turn A least onto B, which tells "
+                   "left from right and front from back where A's shape cannot. Warns when the map kept turns A "
+                   "by more than 90 degrees")
     p.add_argument("--locate-landmarks", default=None, metavar="FILE",
                    help="landmarks for --locate: a text file with a vertex of A and the vertex of B that matches it "
                    "on each line (two 0-based indices into the mesh files; # starts a comment). The located map "
@@ -229,7 +234,8 @@ def _locate(a: argparse.Namespace, comparer: Any, ma, mb, landmarks: np.ndarray 
     from wpot.maps.locate import PLACEMENT_DOUBT, SIDE_DOUBT, LocateOptions
 
     given = {k: v for k, v in (("edge", a.locate_edge), ("orient_weight", a.locate_orient_weight),
-                               ("scale", _locate_scale(a.locate_scale))) if v is not None}
+                               ("scale", _locate_scale(a.locate_scale)), ("aligned", a.locate_aligned or None))
+             if v is not None}
     pm = comparer.locate(ma, mb, options=LocateOptions(**given) if given else None, landmarks=landmarks)
     if landmarks is not None:
         miss = np.linalg.norm(mb.vertices[pm.correspondence[landmarks[:, 0]]] - mb.vertices[landmarks[:, 1]], axis=1)
@@ -287,6 +293,9 @@ def _check_refinements(a: argparse.Namespace) -> None:
         if not getattr(a, "locate", False):
             raise CliError("--locate-scale sets the scale of --locate; add --locate, or drop --locate-scale")
         _locate_scale(a.locate_scale)
+    if getattr(a, "locate_aligned", False) and not getattr(a, "locate", False):
+        raise CliError("--locate-aligned tells --locate that A is in B's frame; add --locate, or drop "
+                       "--locate-aligned")
     if getattr(a, "locate_landmarks", None) is not None and not getattr(a, "locate", False):
         raise CliError("--locate-landmarks gives --locate landmarks; add --locate, or drop --locate-landmarks")
     if getattr(a, "locate_edge", None) is not None and not getattr(a, "locate", False):

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from helpers import FAST_CLI, make_dataset
+from wpot.maps.locate import LocateWarning
 
 
 def wpot(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
@@ -168,6 +169,15 @@ def test_compare_locate_saves_the_located_map_of_the_api(dataset, tmp_path):
     weighed = c.locate(ma, mb, options=w.LocateOptions(orient_weight=0.3))
     np.testing.assert_array_equal(np.load(tmp_path / "w" / "correspondence.npz")["correspondence_locate"],
                                   weighed.correspondence)
+    # --locate-aligned is LocateOptions(aligned=True)
+    r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-aligned",
+             "--out", str(tmp_path / "al"))
+    assert r.returncode == 0, r.stderr
+    with pytest.warns(LocateWarning, match="aligned"):  # these two blobs are not in one frame
+        aligned = c.locate(ma, mb, options=w.LocateOptions(aligned=True))
+    assert "aligned=True" in r.stderr
+    np.testing.assert_array_equal(np.load(tmp_path / "al" / "correspondence.npz")["correspondence_locate"],
+                                  aligned.correspondence)
     # --locate-scale is LocateOptions(scale=...), printed and saved
     r = wpot("compare", str(a), str(b), *FAST_CLI, "--transport", "partial", "--locate", "--locate-scale", "1.2",
              "--out", str(tmp_path / "s"))
@@ -316,6 +326,7 @@ def test_partial_all_vs_all_with_labels(dataset, tmp_path):
         (["compare", "a.off", "b.off", "--locate-edge", "whole"], ["--locate-edge", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-orient-weight", "0.3"], ["--locate-orient-weight", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate-scale", "fit"], ["--locate-scale", "add --locate"]),
+        (["compare", "a.off", "b.off", "--locate-aligned"], ["--locate-aligned", "add --locate"]),
         (["compare", "a.off", "b.off", "--locate", "--locate-scale", "0"], ["--locate-scale", "positive number"]),
         (["compare", "a.off", "b.off", "--locate", "--locate-edge", "whole"], ["--signature wks", "--signature ldsift"]),
     ],

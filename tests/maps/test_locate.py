@@ -634,3 +634,49 @@ def test_landmarks_checked_and_disagreeing_landmarks_named(partial):
         warnings.simplefilter("error", LocateWarning)  # two right landmarks: no warning
         pm = locate_part(part, full, sp, sw, landmarks=[[a, t[a]], [b, t[b]]])
     assert np.median(_errors_in_edges(partial, pm.correspondence)) < 1.0
+
+
+def test_turn_of_a_map_in_closed_form_and_in_step_4_s_rule():
+    """`_turn`: a mesh turned by θ about any axis and mapped vertex for vertex onto itself turns by θ / 180°, at
+    any scale and translation; `_rule` adds each candidate's turn to its value under both rules."""
+    from helpers import mirror_symmetric
+
+    from wpot.maps.locate import _rule, _turn
+
+    mesh = mirror_symmetric(400, seed=3)
+    ident = np.arange(mesh.n_vertices)
+    for deg, axis in ((0.0, [0, 0, 1]), (60.0, [1, 2, 3]), (150.0, [0, 1, 0]), (180.0, [1, 0, 0])):
+        k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+        th = np.radians(deg)
+        kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        rot = np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx  # Rodrigues
+        moved = Mesh(2.5 * mesh.vertices @ rot.T + [1.0, -2.0, 0.5], mesh.faces)
+        assert _turn(moved, mesh, ident) == pytest.approx(deg / 180.0, abs=1e-6)
+    scores, costs, turns = [0.8, 0.8], [1.0, 1.05], [0.9, 0.1]
+    assert np.allclose(_rule(scores, costs, 0.3, turns), [0.9 - 0.24, 0.05 + 0.1 - 0.24])
+    assert np.allclose(_rule(scores, costs, None, turns), [0.9, 0.15])
+    assert _pick(scores, costs) == 0 and int(np.argmin(_rule(scores, costs, None, turns))) == 1
+    assert _turn(mesh, mesh, np.zeros(mesh.n_vertices, dtype=np.int64)) == 1.0  # every image at one vertex
+    with pytest.raises(ValueError, match="aligned"):
+        LocateOptions(aligned="yes")
+
+
+def test_aligned_part_keeps_its_map_and_a_turned_one_is_named(partial):
+    """With ``aligned=True`` a part given in the whole's frame is located as without it, its map turning it by
+    next to nothing; the example's part as given (moved rigidly by the example's rotation, more than 90°) gets a
+    `LocateWarning` that names the option."""
+    from wpot.maps.locate import TURN_DOUBT, LocateWarning, _turn
+
+    sp, sw = _planted_signatures(partial, outliers=0.3, seed=7)
+    home = Mesh((partial.part.vertices - partial.translation) @ partial.rotation, partial.part.faces)
+    free = locate_part(home, partial.full, sp, sw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LocateWarning)
+        pm = locate_part(home, partial.full, sp, sw, options=LocateOptions(aligned=True))
+    assert np.median(_errors_in_edges(partial, pm.correspondence)) < 1.0
+    assert np.mean(pm.correspondence == free.correspondence) > 0.95
+    assert 180.0 * _turn(home, partial.full, pm.correspondence) < 10.0
+    angle = np.degrees(np.arccos((np.trace(partial.rotation) - 1.0) / 2.0))
+    assert angle > TURN_DOUBT  # the example's own motion
+    with pytest.warns(LocateWarning, match="aligned"):
+        locate_part(partial.part, partial.full, sp, sw, options=LocateOptions(aligned=True))

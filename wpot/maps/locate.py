@@ -95,6 +95,7 @@ from wpot.mesh import Mesh, edge_paths, named
 from wpot.cost import cost_matrix, nearest_rows, paired_costs
 from wpot.evaluate import GeodesicDistances
 from wpot.maps.orientation import local_orientation, orientation_score, unreadable
+from wpot.maps.registration import fit_similarity
 from wpot.maps.seams import LOG_OFFSET
 from wpot.maps.symmetry import keep_orientation, reflection_symmetry
 from wpot.sampling import farthest_point_sampling
@@ -102,7 +103,7 @@ from wpot.sampling import farthest_point_sampling
 __all__ = ["LocateOptions", "PartMap", "locate_part", "prepare_whole", "clear_geodesics", "LocateWarning",
            "candidate_matches", "consistent_matches",
            "PLACEMENT_DOUBT", "SIDE_DOUBT", "KEEP_GEODESICS", "ORIENT_MARGIN", "ORIENT_WEIGHT", "SCALE_RANGE",
-           "SCALE_STEPS", "SCALE_DOUBT"]
+           "SCALE_STEPS", "SCALE_DOUBT", "TURN_DOUBT"]
 
 
 #: step 4 chooses among the maps oriented within this of the best one (orientation scores lie in [-1, 1])
@@ -127,6 +128,9 @@ SCALE_STEPS = 11
 #: 1, and by more than this factor over their agreement at 1. Chosen on FAUST's people (whose 5k meshes were
 #: scaled one by one), checked on TOSCA's parts, which share their wholes' scale (the docs' Results page)
 SCALE_DOUBT = 1.5
+#: with ``aligned=True``, a `LocateWarning` when the kept map turns the part by more than this (degrees): nearer a
+#: half turn than none, so the part may not be in the whole's frame
+TURN_DOUBT = 90.0
 
 
 class LocateWarning(UserWarning):
@@ -169,6 +173,13 @@ class LocateOptions:
         distances times that scale (`PartMap.scale`). `locate_part` uses the signatures it is given;
         `Comparer.locate` describes the part again at the whole's scale (given or fitted) when LD-SIFT's edge
         length is set (``edge="whole"``), as each mesh's own edge length does not depend on the scale
+    aligned : the part is given in the whole's frame (scanned in one place, the same way up and facing the same
+        way; a pose may still turn its limbs). Step 4 then adds each candidate's turn to its rule value: the angle
+        of the rotation of the least-squares similarity taking the part's vertices onto their images
+        (`wpot.maps.registration.fit_similarity`), over 180°, so that a map onto the mirror side or turned half
+        round, which a near-symmetric body's own shape cannot tell from the right one, costs up to a whole unit.
+        A `LocateWarning` names the option when the kept map turns the part by more than `TURN_DOUBT` degrees.
+        False (default): the part may be given in any position, and nothing depends on it
     """
 
     n_anchors: int = 64
@@ -184,6 +195,7 @@ class LocateOptions:
     edge: str = "own"
     orient_weight: float | None = None
     scale: str | float = "same"
+    aligned: bool = False
 
     def __post_init__(self) -> None:
         _validate.integer_at_least("n_anchors", self.n_anchors, 3)
@@ -194,6 +206,7 @@ class LocateOptions:
         _validate.integer_at_least("n_rounds", self.n_rounds, 0)
         _validate.integer_at_least("n_polish", self.n_polish, 0)
         _validate.boolean("orient", self.orient)
+        _validate.boolean("aligned", self.aligned)
         if self.orient_weight is not None:
             _validate.nonnegative_finite("orient_weight", self.orient_weight)
         _validate.positive_finite("region_tol", self.region_tol)
@@ -507,13 +520,15 @@ class _Redraw:
 
 
 def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | None = None, far: float = 0.0,
-            pins: np.ndarray | None = None) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
+            pins: np.ndarray | None = None, aligned: bool = False
+            ) -> tuple[np.ndarray, float, float, float, np.ndarray | None]:
     """Step 4: the candidates (a)-(c) of the module docstring, and of them the one of least `_rule` value (by
     orientation score and ``cost(map)``, the mean signature cost; the first on a tie). Returns the map, its
     orientation score, its cost, its side margin (`PartMap.side_margin`; ``far``: `_other_side`'s distance, in
     the whole's units) and the candidate of least rule value on the other side (the first there when all are
     inf; None when no candidate lies there). With ``pins`` (L, 2), the caller's landmarks (part vertex, whole
-    vertex), only the candidates that send them within ``far`` (on average) of the best one's are eligible."""
+    vertex), only the candidates that send them within ``far`` (on average) of the best one's are eligible.
+    ``aligned``: each candidate's `_turn` joins its rule value (`LocateOptions.aligned`)."""
 
     part, whole, n = draw.part, draw.whole, max(1, n_rounds)
     cands = [keep_orientation(part, whole, t, refine=lambda t0: draw.rounds(t0, n), symmetry_of="b")[0],
@@ -523,7 +538,7 @@ def _orient(draw: _Redraw, t: np.ndarray, cost, n_rounds: int, weight: float | N
         cands.append(draw.unfold(sym.map[t], n))
     scores = [orientation_score(part, whole, c) for c in cands]
     costs = [cost(c) for c in cands]
-    rule = _rule(scores, costs, weight)
+    rule = _rule(scores, costs, weight, [_turn(part, whole, c) for c in cands] if aligned else None)
     if pins is not None and len(pins):
         d = _distances(draw.g_whole, pins[:, 1])  # (L, N_W)
         miss = np.array([d[np.arange(len(pins)), c[pins[:, 0]]].mean() for c in cands])
@@ -551,7 +566,8 @@ def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float
         warnings.simplefilter("ignore")  # an orientation that cannot be read leaves the map as it is (NaN)
         oriented, side, other = opt.orient and not unread, float("nan"), None
         if oriented:
-            t, score, mean_cost, side, other = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, far, pins)
+            t, score, mean_cost, side, other = _orient(draw, t, cost, opt.n_rounds, opt.orient_weight, far, pins,
+                                                       opt.aligned)
         if opt.n_polish:
             h = LOG_OFFSET * max(part.mean_edge_length * draw.part_scale, whole.mean_edge_length)
             t = draw.rounds(t, opt.n_polish, offset=h)
@@ -563,17 +579,30 @@ def _oriented(draw: _Redraw, t: np.ndarray, cost, opt: LocateOptions, far: float
     return t, score, mean_cost, local, side, other
 
 
-def _rule(scores, costs, weight: float | None = None) -> np.ndarray:
+def _rule(scores, costs, weight: float | None = None, turns=None) -> np.ndarray:
     """Step 4's rule: a value per candidate, the least kept (`_orient`). ``costs`` are positive mean signature
     costs, r = cost / least cost − 1; a NaN orientation score reads as −1. With ``weight`` None, r for the
     candidates whose orientation score is within `ORIENT_MARGIN` of the best and inf for the others; else
-    r − weight · score."""
+    r − weight · score. ``turns`` (`LocateOptions.aligned`): each candidate's `_turn`, added."""
     o = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-1.0)
     c = np.asarray(costs, dtype=np.float64)
     r = c / max(float(c.min()), 1e-300) - 1.0
+    if turns is not None:
+        r = r + np.asarray(turns, dtype=np.float64)
     if weight is None:
         return np.where(o >= o.max() - ORIENT_MARGIN, r, np.inf)
     return r - weight * o
+
+
+def _turn(part: Mesh, whole: Mesh, t: np.ndarray) -> float:
+    """How far the map ``t`` (N_P,) turns the part onto the whole, in half turns (0 to 1): the angle of the proper
+    rotation of the least-squares similarity taking the part's vertices onto their images, over 180°; 1 when the
+    images do not determine a rotation (they lie on a line or at one point)."""
+    p, q = part.vertices, whole.vertices[t]
+    spread = [np.linalg.svd(x - x.mean(axis=0), compute_uv=False) for x in (p, q)]
+    if spread[1][1] <= 1e-9 * spread[0][0]:
+        return 1.0
+    return fit_similarity(p, q).rotation_degrees / 180.0
 
 
 def _other_side(whole: Mesh, mirror: np.ndarray, chosen: np.ndarray, cands: list, far: float) -> np.ndarray | None:
@@ -751,6 +780,10 @@ def locate_part(part: Mesh, whole: Mesh, part_signatures: ArrayLike, whole_signa
                             "checked for mirroring (PartMap.orientation NaN)"), LocateWarning, stacklevel=2)
     far = opt.rival_tol * scale
     t, score, mean_cost, local, side, other = _oriented(draw, t, cost, opt, far, bool(unread), pins)
+    if opt.aligned and (turn := 180.0 * _turn(part, whole, t)) > TURN_DOUBT:
+        warnings.warn(named(part.name, f"with aligned=True the part is taken to be in the whole's frame, but its map "
+                            f"turns it by {turn:.0f} degrees onto the whole: unless the pose turned it that far, "
+                            "give the part in the whole's frame, or leave aligned False"), LocateWarning, stacklevel=2)
     placement = min(max(len(kept) - len(rival), 0) / len(anchors), 1.0)
     elsewhere = None
     if placement < PLACEMENT_DOUBT and len(rival) >= 3:  # step 5's other place, mapped like this one
