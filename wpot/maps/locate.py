@@ -47,10 +47,10 @@ geodesic distances to choose among them and to fill in the map:
    pays each candidate's turn onto the whole, which a map onto the mirror side makes large. A whole whose
    symmetry is not detected gets (a) and (b) only. A part or whole whose orientation cannot be read (triangles
    wound against their neighbours, or no outside: `wpot.maps.orientation.unreadable`) skips this step, with a
-   `LocateWarning` that names it and its repair. How near the choice of side was is the result's
-   ``side_margin``: the rule's value of the best candidate on the other side of the whole less that of the one kept (a candidate is on the other side when
-   most of the part's lateral images lie nearer the mirror images of the kept map's than its own), and that
-   candidate, polished like the kept map, is the result's ``other_side``.
+   `LocateWarning` that names it and its repair. How near the choice of side was is the result's ``side_margin``:
+   the rule's value of the best candidate on the other side of the whole less that of the one kept (a candidate
+   is on the other side when most of the part's lateral images lie nearer the mirror images of the kept map's
+   than its own), and that candidate, polished like the kept map, is the result's ``other_side``.
 
 5. **Rival placement.** The candidate matches that lie neither where the map sends their anchors nor at the
    mirror image of that (farther than ``rival_tol``) are put through step 2 again: their largest consistent
