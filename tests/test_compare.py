@@ -110,12 +110,30 @@ def test_registration_apply_inverse_and_matrix_round_trip():
     [
         ((np.zeros((2, 3)), np.zeros((2, 3))), "at least 3"),
         ((np.zeros((4, 3)), np.zeros((5, 3))), "shape"),
-        ((np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)],) * 2, "collinear"),
+        ((np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)],) * 2, "source points are .*collinear"),
+        ((np.random.default_rng(0).normal(size=(5, 3)), np.c_[np.arange(5.0), 2 * np.arange(5.0), np.ones(5)]),
+         "target points are .*collinear"),
+        ((np.random.default_rng(0).normal(size=(5, 3)), np.tile([0.3, -1.7, 2.9], (5, 1))), "target points coincide"),
+        ((np.tile([1e3, 0.1, 0.0], (5, 1)), np.random.default_rng(0).normal(size=(5, 3))), "source points coincide"),
     ],
 )
 def test_fit_similarity_rejects_bad_input(args, match):
     with pytest.raises(ValueError, match=match):
         fit_similarity(*args)
+
+
+def test_fit_similarity_holds_at_any_size_and_place():
+    """The degeneracy checks are relative: a shape a millionth the size, far from the origin, is fitted exactly,
+    while the same shape collapsed onto one of its points (a map's images at one vertex) is refused."""
+    _, rot, _ = _random_similarity(4)
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(8, 3))
+    q = 1e-6 * p @ rot.T + np.array([50.0, -20.0, 7.0])
+    reg = fit_similarity(p, q)
+    assert reg.scale == pytest.approx(1e-6, rel=1e-6)
+    np.testing.assert_allclose(reg.rotation, rot, atol=1e-6)
+    with pytest.raises(ValueError, match="target points coincide"):
+        fit_similarity(p, q[[3] * len(q)] * (1 + 1e-16 * rng.normal(size=q.shape)))
 
 
 def test_fit_similarity_rejects_negative_weights():

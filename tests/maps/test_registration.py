@@ -178,3 +178,20 @@ def test_a_comparison_registers_a_moved_and_scaled_copy_exactly():
     part = wpot.compare(mesh, moved, transport="partial", n_eigen=40, n_energies=40, device="cpu",
                         scale_invariant=True)
     assert part.registration.scale_from == "fit" and part.registration.scale == pytest.approx(0.6, rel=0.05)
+
+
+def test_wrong_pairs_sent_to_one_point_do_not_make_a_hypothesis():
+    """Wrong matches that all land on one vertex (a map collapsed there) are outliers, never a transform: the
+    triples drawn among them have a target at one point, whose fit is rounding noise, and are set aside."""
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(30, 3))
+    rot = Rotation.random(random_state=7).as_matrix()
+    q = 1.7 * p @ rot.T + np.array([0.2, 3.0, -1.0])
+    bad = np.arange(12)
+    q[bad] = q[20]
+    reg = fit_similarity_robust(p, q)
+    assert reg.scale == pytest.approx(1.7, rel=1e-9)
+    np.testing.assert_allclose(reg.rotation, rot, atol=1e-9)
+    assert not reg.inliers[bad].any()
+    with pytest.raises(ValueError, match="target\\s+points are .*collinear or coincident"):
+        fit_similarity_robust(p, np.tile(q[20], (30, 1)))

@@ -599,11 +599,10 @@ def _turn(part: Mesh, whole: Mesh, t: np.ndarray) -> float:
     """How far the map ``t`` (N_P,) turns the part onto the whole, in half turns (0 to 1): the angle of the proper
     rotation of the least-squares similarity taking the part's vertices onto their images, over 180°; 1 when the
     images do not determine a rotation (they lie on a line or at one point)."""
-    p, q = part.vertices, whole.vertices[t]
-    spread = [np.linalg.svd(x - x.mean(axis=0), compute_uv=False) for x in (p, q)]
-    if spread[1][1] <= 1e-9 * spread[0][0]:
+    try:
+        return fit_similarity(part.vertices, whole.vertices[t]).rotation_degrees / 180.0
+    except ValueError:
         return 1.0
-    return fit_similarity(p, q).rotation_degrees / 180.0
 
 
 def _other_side(whole: Mesh, mirror: np.ndarray, chosen: np.ndarray, cands: list, far: float) -> np.ndarray | None:

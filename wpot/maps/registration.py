@@ -146,10 +146,32 @@ def _validated(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None
     return p, q, w
 
 
+#: a point set whose spread is below this fraction of its coordinates' size coincides (numerically), and one whose
+#: second principal spread is below this fraction of its first lies on a line: neither determines a rotation
+_RANK_TOL = 1e-9
+
+
+def _undetermined(name: str, x: np.ndarray, w: np.ndarray) -> str | None:
+    """Why the points ``x`` (n, 3) with weights ``w`` (n,), summing to 1, cannot determine a rotation (they
+    coincide or lie on a line, up to rounding), or None when they can. ``name`` names them in the reason."""
+    spread = np.linalg.svd((x - w @ x) * np.sqrt(w)[:, None], compute_uv=False)
+    if spread[0] <= _RANK_TOL * max(float(np.abs(x).max()), np.finfo(float).tiny):
+        return f"the {name} points coincide (numerically)"
+    if spread[1] <= _RANK_TOL * spread[0]:
+        return f"the {name} points are (numerically) collinear"
+    return None
+
+
 def _umeyama(p: np.ndarray, q: np.ndarray, w: np.ndarray, with_scale: bool
              ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted least-squares (scale, rotation, translation) for validated p, q (n, 3) and w (n,) ≥ 0."""
+    """Weighted least-squares (scale, rotation, translation) for validated p, q (n, 3) and w (n,) ≥ 0. Raises
+    ValueError, naming the point set, when the source or the target points coincide or lie on a line: the
+    cross-covariance of a target collapsed to one point is rounding noise, whose SVD would give an arbitrary
+    rotation."""
     w = w / w.sum()
+    for name, x in (("source", p), ("target", q)):
+        if (why := _undetermined(name, x, w)) is not None:
+            raise ValueError(f"{why}; a rotation is not determined")
     mp = w @ p
     mq = w @ q
     pc = p - mp
@@ -157,11 +179,9 @@ def _umeyama(p: np.ndarray, q: np.ndarray, w: np.ndarray, with_scale: bool
     cov = (qc * w[:, None]).T @ pc  # Σ w q p^T, (3, 3)
     u, d, vt = np.linalg.svd(cov)
     var_p = float(w @ np.einsum("ij,ij->i", pc, pc))
-    if var_p <= 0 or d[1] <= 1e-12 * max(d[0], np.finfo(float).tiny):
-        raise ValueError(
-            f"the source points are (numerically) collinear or coincident (singular values {d.tolist()}); "
-            "a rotation is not determined"
-        )
+    if d[1] <= 1e-12 * max(d[0], np.finfo(float).tiny):
+        raise ValueError(f"the pairs do not determine a rotation (the cross-covariance's singular values are "
+                         f"{d.tolist()}: the source and target spreads are at right angles)")
     sign = np.ones(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         sign[2] = -1.0
@@ -192,8 +212,9 @@ def fit_similarity(source: ArrayLike, target: ArrayLike, weights: ArrayLike | No
 
     Raises
     ------
-    ValueError : mismatched shapes, negative or all-zero weights, fewer than 3 points, or points that are
-        (numerically) collinear, for which the rotation is not determined.
+    ValueError : mismatched shapes, negative or all-zero weights, fewer than 3 points, or source or target points
+        that (numerically) coincide or lie on a line, for which the rotation is not determined (the message
+        names which).
     """
     p, q, w = _validated(source, target, weights)
     scale, rot, trans = _umeyama(p, q, w, with_scale)
@@ -224,7 +245,10 @@ def _minimal_fits(p3: np.ndarray, q3: np.ndarray, with_scale: bool) -> tuple[np.
     sign = np.ones((len(p3), 3))
     sign[np.linalg.det(u) * np.linalg.det(vt) < 0, 2] = -1.0
     rot = (u * sign[:, None, :]) @ vt
+    size_q = np.abs(q3).max(axis=(1, 2))
+    var_q = np.einsum("sni,sni->s", qc, qc) / 3.0  # a target triple at one point: noise, not a rotation
     ok = (var_p > 0) & (d[:, 1] > 1e-9 * np.maximum(d[:, 0], np.finfo(float).tiny))
+    ok &= np.sqrt(var_q) > _RANK_TOL * np.maximum(size_q, np.finfo(float).tiny)
     scale = np.where(ok, (d * sign).sum(1) / np.where(var_p > 0, var_p, 1.0), 0.0) if with_scale else np.ones(len(p3))
     ok &= scale > 0
     trans = mq - scale[:, None] * np.einsum("sij,sj->si", rot, mp)
@@ -374,8 +398,8 @@ def _least_median_fit(p: np.ndarray, q: np.ndarray, w: np.ndarray, fitted: np.nd
     scale, rot, trans, ok = _minimal_fits(p[tri], q[tri], with_scale)
     if not ok.any():
         raise ValueError(
-            f"none of the {len(tri)} sampled triples of pairs determines a transform: the source points are "
-            "(numerically) collinear or coincident, or the pairs are inconsistent"
+            f"none of the {len(tri)} sampled triples of pairs determines a transform: the source or target "
+            "points are (numerically) collinear or coincident, or the pairs are inconsistent"
         )
     scale, rot, trans = scale[ok], rot[ok], trans[ok]
     best, best_med = -1, np.inf
